@@ -1,0 +1,25 @@
+"""dissil_jax: dissipative imitation learning of LTI output-feedback controllers in JAX."""
+
+from ._certify import Certificate as Certificate, certify as certify
+from ._controller import LTIController as LTIController
+from ._data import Windows as Windows
+from ._lmi import kyp_matrix as kyp_matrix
+from ._projection import (
+    Status as Status,
+    project as project,
+    project_with_status as project_with_status,
+)
+from ._rollout import (
+    imitation_loss as imitation_loss,
+    observability_toeplitz as observability_toeplitz,
+    predict as predict,
+    rollout as rollout,
+)
+from ._supply import (
+    QSR as QSR,
+    ClosedLoopCertificate as ClosedLoopCertificate,
+    closed_loop_certificate as closed_loop_certificate,
+    stabilising_qsr as stabilising_qsr,
+)
+
+__version__ = "0.1.0"

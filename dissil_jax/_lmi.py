@@ -1,0 +1,216 @@
+"""KYP blocks in float64 on the host: the exact dissipativity LMI and its convexified form.
+
+Everything here is plain numpy; the SDP modules build on it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._supply import QSR
+
+
+def kyp_matrix(A, B, C, D, qsr: QSR, P) -> np.ndarray:
+    """The discrete KYP matrix of paper Lemma 2 (float64); $K$ is dissipative iff it is $\\preceq 0$.
+
+    $$\\begin{bmatrix} A^\\top PA - P - C^\\top QC & A^\\top PB - C^\\top S - C^\\top QD \\\\
+    \\ast & B^\\top PB - D^\\top QD - D^\\top S - S^\\top D - R\\end{bmatrix}$$
+    """
+    A, B, C, D, P = (np.asarray(M, np.float64) for M in (A, B, C, D, P))
+    Q, S, R = qsr.Q, qsr.S, qsr.R
+    top = np.hstack([A.T @ P @ A - P - C.T @ Q @ C, A.T @ P @ B - C.T @ S - C.T @ Q @ D])
+    bot = B.T @ P @ B - D.T @ Q @ D - D.T @ S - S.T @ D - R
+    M = np.vstack([top, np.hstack([top[:, A.shape[0]:].T, bot])])
+    return (M + M.T) / 2
+
+
+def kyp_scale(A, B, C, D, qsr: QSR, P) -> float:
+    """A magnitude for relative tolerances on the KYP matrix (sum of the terms' sizes)."""
+    norms = [np.linalg.norm(np.asarray(M, np.float64), 2) for M in (A, B, C, D, P)]
+    nA, nB, nC, nD, nP = norms
+    q, s, r = (np.linalg.norm(M, 2) for M in (qsr.Q, qsr.S, qsr.R))
+    return 1.0 + nP * (1 + (nA + nB) ** 2) + q * (nC + nD) ** 2 + 2 * s * (nC + nD) + r
+
+
+# Relative round-off allowance for the float64 eigenvalue check of the KYP matrix.
+VERIFY_RTOL = 1e-11
+
+
+def kyp_margin(A, B, C, D, qsr: QSR, P) -> float:
+    """$-\\lambda_{\\max}$ of the KYP matrix, capped by $\\lambda_{\\min}(P)$.
+
+    Positive means certified (up to `VERIFY_RTOL` round-off, see `kyp_certified`).
+    """
+    P = np.asarray(P, np.float64)
+    lam = np.linalg.eigvalsh(kyp_matrix(A, B, C, D, qsr, P))[-1]
+    return float(min(-lam, np.linalg.eigvalsh((P + P.T) / 2)[0]))
+
+
+def kyp_certified(A, B, C, D, qsr: QSR, P) -> bool:
+    """Exact float64 check: $P\\succ0$ and KYP$(P)\\prec 0$ beyond round-off."""
+    P = np.asarray(P, np.float64)
+    if not (np.all(np.isfinite(P)) and all(np.all(np.isfinite(M)) for M in (A, B, C, D))):
+        return False
+    tol = VERIFY_RTOL * kyp_scale(A, B, C, D, qsr, P)
+    return kyp_margin(A, B, C, D, qsr, P) > tol
+
+
+def svec_indices(N: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows, cols and weights of Clarabel's svec: upper triangle, column-major, off-diag x sqrt2."""
+    cols, rows = [], []
+    for j in range(N):
+        for i in range(j + 1):
+            rows.append(i)
+            cols.append(j)
+    rows, cols = np.array(rows), np.array(cols)
+    w = np.where(rows == cols, 1.0, np.sqrt(2.0))
+    return rows, cols, w
+
+
+def svec(M: np.ndarray, idx=None) -> np.ndarray:
+    """Clarabel's scaled vectorisation of symmetric `M` (works on stacks `[..., N, N]`)."""
+    rows, cols, w = idx if idx is not None else svec_indices(M.shape[-1])
+    return M[..., rows, cols] * w
+
+
+def smat(v: np.ndarray, N: int) -> np.ndarray:
+    """Inverse of `svec`."""
+    rows, cols, w = svec_indices(N)
+    M = np.zeros((N, N))
+    M[rows, cols] = v / w
+    M[cols, rows] = v / w
+    return M
+
+
+class ConvexifiedLMI:
+    """The convexified KYP LMI of DESIGN §2 (paper Corollary 1 + Remark 1, factored form).
+
+    For $-Q = LL^\\top$ and a fixed $\\tilde P\\succ0$, the matrix
+
+    $$\\mathcal M = \\begin{bmatrix} -P & -C^\\top S & C^\\top L & A^\\top\\tilde P \\\\
+    \\ast & -D^\\top S - S^\\top D - R & D^\\top L & B^\\top \\tilde P \\\\
+    \\ast & \\ast & -I_r & 0 \\\\ \\ast & \\ast & \\ast & P - 2\\tilde P\\end{bmatrix}$$
+
+    is affine in $x = (\\operatorname{vec}A, \\operatorname{vec}B, \\operatorname{vec}C,
+    \\operatorname{vec}D, P)$ and $\\mathcal M\\preceq0$ implies the exact KYP LMI (it is the
+    congruence by $\\operatorname{diag}(I,I,I,\\tilde P)$ of the Schur form with
+    $-P^{-1}$ overbounded by $-2\\tilde P^{-1} + \\tilde P^{-1}P\\tilde P^{-1}$).
+
+    This class precomputes, for fixed sizes and supply rate, the affine map
+    $x\\mapsto\\operatorname{svec}(\\mathcal M)$ as a constant part plus a part linear in
+    $\\tilde P$, so that $\\tilde P$ can be changed by updating numbers only.
+
+    Variable order: `vec` is row-major (numpy's `ravel`) for A, B, C, D, then the
+    upper-triangular entries of P (row-major, `np.triu_indices`), with $P = \\sum_k p_k E_k$.
+    """
+
+    def __init__(self, n: int, p: int, m: int, qsr: QSR):
+        if qsr.S.shape != (m, p):
+            raise ValueError(
+                f"`qsr` has S of shape {qsr.S.shape}, but the controller maps R^{p} -> R^{m}; "
+                f"S must be {m}x{p}."
+            )
+        L = qsr.neg_q_factor()
+        r = L.shape[1]
+        self.n, self.p, self.m, self.r = n, p, m, r
+        self.N = N = 2 * n + p + r
+        i0, i1, i2, i3 = 0, n, n + p, n + p + r  # block offsets: x, u, L-block, P~-block
+        self.nA, self.nB, self.nC, self.nD = n * n, n * p, m * n, m * p
+        self.ntheta = self.nA + self.nB + self.nC + self.nD
+        iu, ju = np.triu_indices(n)
+        self.p_rows, self.p_cols = iu, ju
+        self.nP = len(iu)
+        self.nx = self.ntheta + self.nP
+        S, R = qsr.S, qsr.R
+
+        # Constant part of M (without the -2P~ term) and the linear maps.
+        M0 = np.zeros((N, N))
+        M0[i1:i2, i1:i2] = -R
+        M0[i2:i3, i2:i3] = -np.eye(r)
+        self.M0 = M0
+        # Jacobian of the P~-independent part: [nx, N, N]
+        J = np.zeros((self.nx, N, N))
+        k = 0
+        k += self.nA + self.nB  # A and B columns depend on P~ (filled in `jacobian`)
+        for a in range(m):  # C[a, b]
+            for b in range(n):
+                E = np.zeros((N, N))
+                # -C^T S block (x, u): (C^T S)[b, :] = S[a, :]
+                E[i0 + b, i1:i2] -= S[a, :]
+                E[i0 + b, i2:i3] += L[a, :]
+                J[k] = E + E.T
+                k += 1
+        for a in range(m):  # D[a, b]
+            for b in range(p):
+                E = np.zeros((N, N))
+                # -(D^T S + S^T D): d/dD[a,b] of D^T S is e_b S[a,:]
+                E[i1 + b, i1:i2] -= S[a, :]
+                E[i1 + b, i2:i3] += L[a, :]
+                J[k] = E + E.T
+                k += 1
+        for a, b in zip(iu, ju):  # P[a, b] (symmetric basis)
+            E = np.zeros((N, N))
+            E[i0 + a, i0 + b] -= 1.0
+            E[i3 + a, i3 + b] += 1.0
+            if a != b:
+                E[i0 + b, i0 + a] -= 1.0
+                E[i3 + b, i3 + a] += 1.0
+            J[k] = E
+            k += 1
+        self.J_fixed = J
+        # Linear-in-P~ part for the A and B columns: d/dA[a,b] of (P~ A) at rows i3+:, col i0+b
+        # equals P~[:, a]; put it in the (x-block col, P~-block row) position and symmetrise.
+        G = np.zeros((self.nA + self.nB, n, n, N, N))  # [var, P~ row, P~ col, N, N]
+        k = 0
+        for a in range(n):
+            for b in range(n):
+                for c in range(n):  # entry (i3 + c, i0 + b) += P~[c, a]
+                    G[k, c, a, i3 + c, i0 + b] += 1.0
+                    G[k, c, a, i0 + b, i3 + c] += 1.0
+                k += 1
+        for a in range(n):
+            for b in range(p):
+                for c in range(n):
+                    G[k, c, a, i3 + c, i1 + b] += 1.0
+                    G[k, c, a, i1 + b, i3 + c] += 1.0
+                k += 1
+        self.G = G
+        self._svec_idx = svec_indices(N)
+
+    def blocks(self, P_tilde: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return `(M0, J)` with $\\mathcal M(x) = M_0 + \\sum_k x_k J_k$ at this $\\tilde P$."""
+        P_tilde = np.asarray(P_tilde, np.float64)
+        i3 = self.N - self.n
+        M0 = self.M0.copy()
+        M0[i3:, i3:] = -2 * P_tilde
+        J = self.J_fixed.copy()
+        J[: self.nA + self.nB] = np.einsum("kcaij,ca->kij", self.G, P_tilde)
+        return M0, J
+
+    def evaluate(self, x: np.ndarray, P_tilde: np.ndarray) -> np.ndarray:
+        """$\\mathcal M(x)$ at a given $\\tilde P$ (dense, for checks)."""
+        M0, J = self.blocks(P_tilde)
+        return M0 + np.tensordot(x, J, axes=1)
+
+    def pack(self, A, B, C, D, P=None) -> np.ndarray:
+        """Stack a controller (and optionally P) into the variable vector x."""
+        parts = [np.asarray(M, np.float64).ravel() for M in (A, B, C, D)]
+        if P is not None:
+            parts.append(np.asarray(P, np.float64)[self.p_rows, self.p_cols])
+        return np.concatenate(parts)
+
+    def unpack(self, x: np.ndarray):
+        """Inverse of `pack`: returns `(A, B, C, D, P)`."""
+        n, p, m = self.n, self.p, self.m
+        o = np.cumsum([0, self.nA, self.nB, self.nC, self.nD])
+        A = x[o[0]:o[1]].reshape(n, n)
+        B = x[o[1]:o[2]].reshape(n, p)
+        C = x[o[2]:o[3]].reshape(m, n)
+        D = x[o[3]:o[4]].reshape(m, p)
+        P = np.zeros((n, n))
+        P[self.p_rows, self.p_cols] = x[o[4]:]
+        P = P + np.triu(P, 1).T
+        return A, B, C, D, P
+
+    def svec(self, M: np.ndarray) -> np.ndarray:
+        return svec(M, self._svec_idx)

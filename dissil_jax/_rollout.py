@@ -1,0 +1,84 @@
+"""Controller rollouts: observability/Toeplitz matrices and a `lax.scan` loop (paper eq. 15)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._controller import LTIController
+from ._data import Windows
+
+# Below this horizon the explicit (O, T) product beats the sequential scan on CPU
+# (one batched matmul instead of h dependent steps); see benchmarks/bench_rollout.py.
+_TOEPLITZ_MAX_HORIZON = 32
+
+
+def observability_toeplitz(
+    K: LTIController, horizon: int
+) -> tuple[Float[Array, "hm n"], Float[Array, "hm hp"]]:
+    """The observability matrix $\\mathcal O$ and block-Toeplitz matrix $\\mathcal T$ (paper eq. 15).
+
+    $$\\begin{bmatrix}\\hat y_0\\\\ \\vdots\\\\ \\hat y_{h-1}\\end{bmatrix} = \\underbrace{\\begin{bmatrix}
+    C\\\\ CA\\\\ \\vdots\\\\ CA^{h-1}\\end{bmatrix}}_{\\mathcal O}\\hat x_0 + \\underbrace{\\begin{bmatrix}
+    D & & \\\\ CB & D & \\\\ \\vdots & \\ddots & \\ddots \\\\ CA^{h-2}B & \\cdots & CB\\quad D\\end{bmatrix}}_{\\mathcal T}
+    \\begin{bmatrix}\\hat u_0\\\\ \\vdots\\\\ \\hat u_{h-1}\\end{bmatrix}$$
+
+    **Arguments:** one (unbatched) controller `K` and the `horizon` $h\\ge1$.
+
+    **Returns:** `(O, T)` with shapes `[h*m, n]` and `[h*m, h*p]` (time-major blocks).
+    """
+    if int(horizon) != horizon or horizon < 1:
+        raise ValueError(f"`horizon` must be a positive integer, got {horizon!r}.")
+    if K.batch_shape:
+        raise ValueError("`K` must be a single controller; vmap for batches.")
+    m, n, p = K.n_out, K.n_state, K.n_in
+
+    def step(CAk, _):
+        return CAk @ K.A, CAk
+
+    _, CA = jax.lax.scan(step, K.C, None, length=horizon)  # [h, m, n]: C A^t
+    markov = jnp.concatenate([K.D[None], CA[:-1] @ K.B], axis=0)  # [h, m, p]: D, CB, CAB, ...
+    t = jnp.arange(horizon)
+    lag = t[:, None] - t[None, :]
+    blocks = jnp.where((lag >= 0)[:, :, None, None], markov[jnp.clip(lag, 0)], 0.0)
+    T = blocks.transpose(0, 2, 1, 3).reshape(horizon * m, horizon * p)
+    return CA.reshape(horizon * m, n), T
+
+
+def rollout(
+    K: LTIController, x0: Float[Array, " n"], u_in: Float[Array, "h p"]
+) -> Float[Array, "h m"]:
+    """Simulate the controller from state `x0` on inputs `u_in` with `lax.scan`.
+
+    Returns the outputs $\\hat y_0..\\hat y_{h-1}$ (`[h, m]`). Unbatched; vmap for batches.
+    """
+
+    def step(x, u):
+        x_next, y = K(x, u)
+        return x_next, y
+
+    _, y = jax.lax.scan(step, x0, u_in)
+    return y
+
+
+def predict(K: LTIController, windows: Windows) -> Float[Array, "N h m"]:
+    """Controller outputs on every window (vmapped), via (O, T) or a scan by horizon."""
+    h = windows.horizon
+    if h <= _TOEPLITZ_MAX_HORIZON:
+        O, T = observability_toeplitz(K, h)
+        N = windows.num_windows
+        y = windows.x0 @ O.T + windows.y.reshape(N, -1) @ T.T
+        return y.reshape(N, h, K.n_out)
+    return jax.vmap(rollout, in_axes=(None, 0, 0))(K, windows.x0, windows.y)
+
+
+def imitation_loss(K: LTIController, windows: Windows) -> Float[Array, ""]:
+    """Mean squared imitation error (paper eq. 16), with the sign of DESIGN §1.
+
+    $$J(K) = \\frac{1}{Nh}\\sum_{i=1}^{N}\\sum_{k=0}^{h-1} \\lVert \\hat y^{(i)}_k - (-u^{(i)}_k) \\rVert_2^2$$
+
+    i.e. the squared 2-norm per sample, averaged over windows and time steps.
+    """
+    err = predict(K, windows) - windows.target
+    return jnp.mean(jnp.sum(err**2, axis=-1))

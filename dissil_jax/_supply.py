@@ -1,0 +1,266 @@
+"""QSR supply rates, the closed-loop QSR theorem and the controller-supply recipe.
+
+Conventions (see `docs/concepts.md`): an operator with input $u\\in\\mathbb{R}^{p}$ and
+output $y\\in\\mathbb{R}^{m}$ is $(Q,S,R)$-dissipative when for every horizon $T$
+
+$$\\sum_{k\\le T} w(u_k, y_k) \\ge \\beta, \\qquad
+w(u, y) = y^\\top Q y + 2 y^\\top S u + u^\\top R u,$$
+
+with $Q$ ($m\\times m$), $S$ ($m\\times p$), $R$ ($p\\times p$). For a controller $K$ the
+input is the plant output and the output is (minus) the plant input.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import numpy as np
+import scipy.optimize
+
+_SYM_TOL = 1e-9
+
+
+def _as_matrix(name: str, value, shape: tuple[int, int] | None = None) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim == 0:
+        arr = arr.reshape(1, 1)
+    if arr.ndim != 2:
+        raise ValueError(f"`{name}` must be a matrix (or a scalar), got shape {arr.shape}.")
+    if shape is not None and arr.shape != shape:
+        raise ValueError(f"`{name}` must have shape {shape}, got {arr.shape}.")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"`{name}` contains NaN or inf; supply finite numbers.")
+    return arr
+
+
+class QSR(eqx.Module):
+    """A quadratic supply rate $w(u,y) = y^\\top Q y + 2y^\\top S u + u^\\top R u$.
+
+    The matrices are stored as float64 numpy arrays: a supply rate is host-side
+    problem data (it fixes the shapes of the SDPs), not a traced quantity. Close over
+    it inside `jax.jit` rather than passing it as a traced argument.
+
+    **Arguments:**
+
+    - `Q`: symmetric $m\\times m$ weight on the output (a scalar is a $1\\times1$ matrix).
+    - `S`: $m\\times p$ cross weight.
+    - `R`: symmetric $p\\times p$ weight on the input.
+
+    Special cases (paper, Table 1) are available as constructors:
+    [`QSR.passive`][dissil_jax.QSR.passive], [`QSR.bounded_gain`][dissil_jax.QSR.bounded_gain],
+    [`QSR.conic`][dissil_jax.QSR.conic], [`QSR.degenerate_conic`][dissil_jax.QSR.degenerate_conic].
+
+    ```python
+    qsr = dj.QSR(-29.867, 3.556, 0.601)   # the paper's nonlinear-example controller
+    ```
+    """
+
+    Q: np.ndarray
+    S: np.ndarray
+    R: np.ndarray
+
+    def __init__(self, Q, S, R):
+        S = _as_matrix("S", S)
+        m, p = S.shape
+        Q, R = _as_matrix("Q", Q), _as_matrix("R", R)
+        if Q.shape != (m, m):
+            raise ValueError(f"`Q` must be {m}x{m} to match `S` ({m}x{p}), got {Q.shape}.")
+        if R.shape != (p, p):
+            raise ValueError(f"`R` must be {p}x{p} to match `S` ({m}x{p}), got {R.shape}.")
+        for name, M in (("Q", Q), ("R", R)):
+            if not np.allclose(M, M.T, atol=_SYM_TOL * max(1.0, np.abs(M).max())):
+                raise ValueError(f"`{name}` must be symmetric; pass ({name} + {name}.T) / 2.")
+        self.Q = (Q + Q.T) / 2
+        self.S = S
+        self.R = (R + R.T) / 2
+
+    @property
+    def n_out(self) -> int:
+        """Output dimension $m$ (rows of $S$)."""
+        return self.S.shape[0]
+
+    @property
+    def n_in(self) -> int:
+        """Input dimension $p$ (columns of $S$)."""
+        return self.S.shape[1]
+
+    # -- special cases (paper Table 1) -------------------------------------------------
+    @classmethod
+    def passive(cls, dim: int) -> QSR:
+        """Passivity: $Q=0$, $S=\\tfrac12 I$, $R=0$, so $w = y^\\top u$."""
+        dim = _check_dim("dim", dim)
+        return cls(np.zeros((dim, dim)), 0.5 * np.eye(dim), np.zeros((dim, dim)))
+
+    @classmethod
+    def bounded_gain(cls, gamma: float, n_out: int, n_in: int) -> QSR:
+        """$\\gamma$-bounded $\\ell_2$ gain: $Q=-I$, $S=0$, $R=\\gamma^2 I$."""
+        n_out, n_in = _check_dim("n_out", n_out), _check_dim("n_in", n_in)
+        if not np.isfinite(gamma) or gamma <= 0:
+            raise ValueError(f"`gamma` must be a positive finite gain, got {gamma}.")
+        return cls(-np.eye(n_out), np.zeros((n_out, n_in)), gamma**2 * np.eye(n_in))
+
+    @classmethod
+    def conic(cls, a: float, b: float, dim: int) -> QSR:
+        """Interior cone $[a, b]$: $Q=-I$, $S=\\tfrac{a+b}{2}I$, $R=-abI$ (needs $a<b$).
+
+        $w = -(y - a u)^\\top (y - b u)$, non-negative exactly when $y$ lies between $au$
+        and $bu$.
+        """
+        dim = _check_dim("dim", dim)
+        if not (np.isfinite(a) and np.isfinite(b)) or not a < b:
+            raise ValueError(f"`a` must be smaller than `b` (both finite), got a={a}, b={b}.")
+        return cls(-np.eye(dim), 0.5 * (a + b) * np.eye(dim), -a * b * np.eye(dim))
+
+    @classmethod
+    def degenerate_conic(cls, d: float, dim: int) -> QSR:
+        """Degenerate cone $[d, \\infty)$: $Q=0$, $S=\\tfrac12 I$, $R=-dI$."""
+        dim = _check_dim("dim", dim)
+        if not np.isfinite(d):
+            raise ValueError(f"`d` must be finite, got {d}.")
+        return cls(np.zeros((dim, dim)), 0.5 * np.eye(dim), -d * np.eye(dim))
+
+    # -- utilities ------------------------------------------------------------------
+    def supply(self, u, y) -> np.ndarray:
+        """Evaluate $w(u, y)$ for one pair (or batches along leading axes)."""
+        u, y = np.asarray(u, np.float64), np.asarray(y, np.float64)
+        return (
+            np.einsum("...i,ij,...j->...", y, self.Q, y)
+            + 2 * np.einsum("...i,ij,...j->...", y, self.S, u)
+            + np.einsum("...i,ij,...j->...", u, self.R, u)
+        )
+
+    def neg_q_factor(self) -> np.ndarray:
+        """Return $L$ ($m\\times r$, $r=\\operatorname{rank} Q$) with $-Q = LL^\\top$.
+
+        Raises `ValueError` when $Q$ has a positive eigenvalue: then the KYP inequality
+        cannot be Schur-complemented into the convex form used for learning.
+        """
+        w, V = np.linalg.eigh(-self.Q)
+        scale = max(1.0, float(np.abs(w).max(initial=0.0)))
+        if w.min(initial=0.0) < -1e-10 * scale:
+            raise ValueError(
+                "`qsr.Q` has a positive eigenvalue "
+                f"({-w.min():.3g}); learning needs Q negative semidefinite (Q = 0 for "
+                "passivity, Q = -I for gains and cones). Choose a supply rate with Q <= 0."
+            )
+        keep = w > 1e-10 * scale
+        return V[:, keep] * np.sqrt(w[keep])
+
+    def __repr__(self) -> str:
+        f = lambda M: np.array2string(M, precision=4, separator=", ")
+        return f"QSR(Q={f(self.Q)}, S={f(self.S)}, R={f(self.R)})"
+
+
+def _check_dim(name: str, dim) -> int:
+    if int(dim) != dim or dim < 1:
+        raise ValueError(f"`{name}` must be a positive integer, got {dim!r}.")
+    return int(dim)
+
+
+class ClosedLoopCertificate(NamedTuple):
+    """Outcome of [`closed_loop_certificate`][dissil_jax.closed_loop_certificate]."""
+
+    holds: bool
+    alpha: float
+
+
+def _theorem1_matrix(plant: QSR, ctrl: QSR, alpha: float) -> np.ndarray:
+    return np.block(
+        [
+            [plant.Q + alpha * ctrl.R, -plant.S + alpha * ctrl.S.T],
+            [(-plant.S + alpha * ctrl.S.T).T, plant.R + alpha * ctrl.Q],
+        ]
+    )
+
+
+def _check_interconnection(plant_qsr: QSR, controller_qsr: QSR) -> None:
+    if not isinstance(plant_qsr, QSR) or not isinstance(controller_qsr, QSR):
+        raise ValueError("`plant_qsr` and `controller_qsr` must be `dj.QSR` instances.")
+    # plant: u in R^m -> y in R^p, so plant S is p x m; controller maps R^p -> R^m.
+    if controller_qsr.S.shape != plant_qsr.S.T.shape:
+        raise ValueError(
+            f"`controller_qsr` has S of shape {controller_qsr.S.shape} but the plant's S is "
+            f"{plant_qsr.S.shape}; the controller's input is the plant's output, so its S "
+            f"must be {plant_qsr.S.T.shape}."
+        )
+
+
+def closed_loop_certificate(plant_qsr: QSR, controller_qsr: QSR) -> ClosedLoopCertificate:
+    """Decide the QSR input-output stability theorem (paper Theorem 1) for a feedback pair.
+
+    The negative-feedback loop $u_1 = r_1 - y_2$, $u_2 = r_2 + y_1$ of a
+    $(Q_1,S_1,R_1)$-dissipative plant and a $(Q_2,S_2,R_2)$-dissipative controller is
+    $\\ell_2$-stable if some $\\alpha>0$ gives
+
+    $$M(\\alpha) = \\begin{bmatrix} Q_1 + \\alpha R_2 & -S_1 + \\alpha S_2^\\top \\\\
+    \\ast & R_1 + \\alpha Q_2 \\end{bmatrix} \\prec 0.$$
+
+    $\\lambda_{\\max}(M(\\alpha))$ is convex in $\\alpha$, so it is minimised by a
+    log-spaced scan over $\\alpha\\in[10^{-8}, 10^{8}]$ followed by Brent refinement.
+
+    **Arguments:**
+
+    - `plant_qsr`: the plant's supply rate (input $u\\in\\mathbb{R}^m$, output $y\\in\\mathbb{R}^p$).
+    - `controller_qsr`: the controller's supply rate (input $y$, output $\\hat y\\in\\mathbb{R}^m$).
+
+    **Returns:** `ClosedLoopCertificate(holds, alpha)`; `alpha` is the best multiplier found
+    (the one minimising $\\lambda_{\\max}$), returned even when `holds` is False.
+    """
+    _check_interconnection(plant_qsr, controller_qsr)
+    f = lambda la: np.linalg.eigvalsh(_theorem1_matrix(plant_qsr, controller_qsr, 10**la))[-1]
+    grid = np.linspace(-8, 8, 321)
+    vals = np.array([f(g) for g in grid])
+    i = int(np.argmin(vals))
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+    best_la, best = grid[i], vals[i]
+    if hi > lo:
+        res = scipy.optimize.minimize_scalar(f, bounds=(lo, hi), method="bounded",
+                                             options={"xatol": 1e-10})
+        if res.fun < best:
+            best_la, best = res.x, res.fun
+    scale = 1.0 + np.abs(_theorem1_matrix(plant_qsr, controller_qsr, 10**best_la)).max()
+    return ClosedLoopCertificate(holds=bool(best < -1e-12 * scale), alpha=float(10**best_la))
+
+
+def stabilising_qsr(plant_qsr: QSR, alpha: float = 1.0, margins=(1e-2, 1e-2)) -> QSR:
+    """A controller supply rate that Theorem 1 pairs with `plant_qsr` (DESIGN §2 recipe).
+
+    $$S_2 = S_1^\\top/\\alpha,\\quad R_2 = -(Q_1 + M_1)/\\alpha,\\quad Q_2 = -(R_1 + M_2)/\\alpha,$$
+
+    so that $M(\\alpha) = \\operatorname{diag}(-M_1, -M_2) \\prec 0$ for $M_1, M_2 \\succ 0$.
+    The paper's nonlinear example ($\\alpha=1$, margins $0.399$, $0.534$) maps the plant
+    $(-1, 3.556, 29.333)$ to the controller $(-29.867, 3.556, 0.601)$.
+
+    **Arguments:**
+
+    - `plant_qsr`: the plant's supply rate.
+    - `alpha`: the multiplier $\\alpha>0$.
+    - `margins`: `(M1, M2)`, positive scalars or positive definite matrices of the plant's
+      output and input sizes.
+
+    **Returns:** the controller's `QSR`.
+    """
+    if not isinstance(plant_qsr, QSR):
+        raise ValueError("`plant_qsr` must be a `dj.QSR`.")
+    if not np.isfinite(alpha) or alpha <= 0:
+        raise ValueError(f"`alpha` must be positive and finite, got {alpha}.")
+    try:
+        M1, M2 = margins
+    except (TypeError, ValueError):
+        raise ValueError("`margins` must be a pair (M1, M2).") from None
+    p, m = plant_qsr.S.shape
+    mats = []
+    for name, M, d in (("margins[0]", M1, p), ("margins[1]", M2, m)):
+        M = np.asarray(M, np.float64)
+        M = M * np.eye(d) if M.ndim == 0 else _as_matrix(name, M, (d, d))
+        if not np.allclose(M, M.T) or np.linalg.eigvalsh(M).min() <= 0:
+            raise ValueError(f"`{name}` must be positive (definite), got eigenvalues "
+                             f"{np.linalg.eigvalsh((M + M.T) / 2)}.")
+        mats.append(M)
+    M1, M2 = mats
+    return QSR(
+        Q=-(plant_qsr.R + M2) / alpha,
+        S=plant_qsr.S.T / alpha,
+        R=-(plant_qsr.Q + M1) / alpha,
+    )

@@ -1,0 +1,1 @@
+"""Trainers sharing one result type."""
