@@ -23,3 +23,9 @@ from ._supply import (
 )
 
 __version__ = "0.1.0"
+
+# --- trainers (PGD/GD) ---
+
+# --- issue 3: systems, experts, evaluation, plant QSR ---
+
+# --- issue 4: ICO, ICO-NC, MLP ---
