@@ -25,6 +25,8 @@ from ._supply import (
 __version__ = "0.1.0"
 
 # --- trainers (PGD/GD) ---
+from ._train.pgd import fit_gd as fit_gd, fit_pgd as fit_pgd, pgd_run as pgd_run
+from ._train.result import FitResult as FitResult
 
 # --- issue 3: systems, experts, evaluation, plant QSR ---
 
