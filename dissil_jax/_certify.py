@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import equinox as eqx
 import numpy as np
 
@@ -85,7 +87,10 @@ def certify(K: LTIController, qsr: QSR, *, P=None, tol: float = VERIFY_RTOL) -> 
     M = (M + M.T) / 2
     k = M.shape[0]
     prob = cp.Problem(cp.Maximize(t), [M << -t * np.eye(k), Pv >> t * np.eye(n), t <= 1])
-    with single_threaded_blas():
+    # cvxpy warns "may be inaccurate" on nearly lossless systems; the verdict below does not
+    # trust the solver anyway (it re-checks P by an eigenvalue computation).
+    with single_threaded_blas(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
         try:
             prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-11, tol_gap_rel=1e-11,
                        tol_feas=1e-11, max_iter=400)

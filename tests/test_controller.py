@@ -1,0 +1,57 @@
+import control
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dissil_jax as dj
+from helpers import tree_allclose
+
+
+def test_call_is_one_step(getkey):
+    K = dj.LTIController.random(getkey(), 3, 2, 1, scale=1.0)
+    x, u = jnp.arange(3.0), jnp.array([1.0, -2.0])
+    xn, y = K(x, u)
+    np.testing.assert_allclose(xn, K.A @ x + K.B @ u)
+    np.testing.assert_allclose(y, K.C @ x + K.D @ u)
+    assert (K.n_state, K.n_in, K.n_out) == (3, 2, 1)
+
+
+def test_random_scale_and_determinism(getkey):
+    key = getkey()
+    K1 = dj.LTIController.random(key, 20, 10, 10, scale=0.3)
+    K2 = dj.LTIController.random(key, 20, 10, 10, scale=0.3)
+    assert tree_allclose(K1, K2)
+    assert 0.25 < float(jnp.std(K1.A)) < 0.35
+
+
+def test_statespace_round_trip(getkey):
+    K = dj.LTIController.random(getkey(), 2, 3, 2)
+    sys = K.to_statespace(dt=0.1)
+    assert isinstance(sys, control.StateSpace) and sys.dt == 0.1
+    assert tree_allclose(dj.LTIController.from_statespace(sys), K)
+    with pytest.raises(ValueError, match="`sys`"):
+        dj.LTIController.from_statespace(control.ss([[-1.0]], [[1.0]], [[1.0]], [[0.0]]))
+
+
+def test_shape_errors_name_the_argument():
+    with pytest.raises(ValueError, match="`B`"):
+        dj.LTIController(np.eye(2), np.ones((3, 1)), np.ones((1, 2)), np.ones((1, 1)))
+    with pytest.raises(ValueError, match="`D`"):
+        dj.LTIController(np.eye(2), np.ones((2, 1)), np.ones((1, 2)), np.ones((2, 1)))
+    with pytest.raises(ValueError, match="`A`"):
+        dj.LTIController(np.full((2, 2), np.nan), np.ones((2, 1)), np.ones((1, 2)), np.ones((1, 1)))
+    with pytest.raises(ValueError, match="`n`"):
+        dj.LTIController.random(jax.random.PRNGKey(0), 0, 1, 1)
+
+
+def test_batched_controllers_via_vmap(getkey):
+    keys = jax.random.split(getkey(), 4)
+    Ks = jax.vmap(lambda k: dj.LTIController.random(k, 2, 1, 1))(keys)
+    assert Ks.batch_shape == (4,)
+    x = jnp.ones((4, 2))
+    u = jnp.ones((4, 1))
+    xn, y = jax.vmap(lambda K, x, u: K(x, u))(Ks, x, u)
+    for i in range(4):
+        Ki = jax.tree.map(lambda a: a[i], Ks)
+        np.testing.assert_allclose(y[i], Ki(x[i], u[i])[1])

@@ -1,0 +1,82 @@
+import jax.flatten_util  # noqa: F401
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dissil_jax as dj
+from dissil_jax import _rollout
+
+
+def _loop_outputs(K, x0, u):
+    A, B, C, D = (np.asarray(M) for M in (K.A, K.B, K.C, K.D))
+    x, ys = np.asarray(x0), []
+    for uk in np.asarray(u):
+        ys.append(C @ x + D @ uk)
+        x = A @ x + B @ uk
+    return np.array(ys)
+
+
+@pytest.mark.parametrize("n, p, m, h", [(1, 1, 1, 2), (3, 2, 1, 5), (6, 3, 3, 7)])
+def test_toeplitz_and_scan_equal_plain_loop(getkey, n, p, m, h):
+    K = dj.LTIController.random(getkey(), n, p, m, scale=0.5)
+    x0 = jax.random.normal(getkey(), (n,))
+    u = jax.random.normal(getkey(), (h, p))
+    ref = _loop_outputs(K, x0, u)
+    np.testing.assert_allclose(dj.rollout(K, x0, u), ref, rtol=1e-12, atol=1e-12)
+    O, T = dj.observability_toeplitz(K, h)
+    assert O.shape == (h * m, n) and T.shape == (h * m, h * p)
+    np.testing.assert_allclose((O @ x0 + T @ u.ravel()).reshape(h, m), ref, rtol=1e-12,
+                               atol=1e-12)
+
+
+def test_predict_both_paths_agree(getkey, monkeypatch):
+    K = dj.LTIController.random(getkey(), 2, 2, 1, scale=0.5)
+    w = dj.Windows(jax.random.normal(getkey(), (5, 2)), jax.random.normal(getkey(), (5, 4, 2)),
+                   jax.random.normal(getkey(), (5, 4, 1)))
+    a = dj.predict(K, w)
+    monkeypatch.setattr(_rollout, "_TOEPLITZ_MAX_HORIZON", 0)
+    b = dj.predict(K, w)
+    np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    for i in range(5):
+        np.testing.assert_allclose(a[i], _loop_outputs(K, w.x0[i], w.y[i]), atol=1e-12)
+
+
+def test_sign_convention_lqr_like_expert_is_passive_gain():
+    # Expert u = -k y with k > 0 is imitated exactly by the static passive controller yhat = k y.
+    k = 0.7
+    y = jnp.linspace(-1, 1, 12).reshape(6, 2, 1)
+    w = dj.Windows(jnp.zeros((6, 1)), y, -k * y)
+    K = dj.LTIController([[0.0]], [[0.0]], [[0.0]], [[k]])
+    assert float(dj.imitation_loss(K, w)) == pytest.approx(0.0, abs=1e-14)
+    assert dj.certify(K, dj.QSR.passive(1)).holds
+    K_wrong = dj.LTIController([[0.0]], [[0.0]], [[0.0]], [[-k]])
+    assert float(dj.imitation_loss(K_wrong, w)) > 0.1
+
+
+def test_loss_value_and_gradient_match_finite_differences(getkey):
+    K = dj.LTIController.random(getkey(), 2, 2, 2, scale=0.5)
+    w = dj.Windows(jax.random.normal(getkey(), (7, 2)), jax.random.normal(getkey(), (7, 3, 2)),
+                   jax.random.normal(getkey(), (7, 3, 2)))
+    ref = np.mean([np.sum((_loop_outputs(K, w.x0[i], w.y[i]) + np.asarray(w.u[i])) ** 2, -1)
+                   for i in range(7)])
+    assert float(dj.imitation_loss(K, w)) == pytest.approx(ref, rel=1e-12)
+    g = jax.grad(dj.imitation_loss)(K, w)
+    flat, unravel = jax.flatten_util.ravel_pytree(K)
+    gflat, _ = jax.flatten_util.ravel_pytree(g)
+    f = lambda v: float(dj.imitation_loss(unravel(v), w))
+    h = 1e-6
+    fd = np.array([(f(flat.at[i].add(h)) - f(flat.at[i].add(-h))) / (2 * h)
+                   for i in range(flat.size)])
+    np.testing.assert_allclose(gflat, fd, rtol=1e-6, atol=1e-8)
+
+
+def test_windows_validation():
+    with pytest.raises(ValueError, match="`y`"):
+        dj.Windows(jnp.zeros((3, 1)), jnp.zeros((3, 2)), jnp.zeros((3, 2, 1)))
+    with pytest.raises(ValueError, match="`x0`, `y` and `u`"):
+        dj.Windows(jnp.zeros((3, 1)), jnp.zeros((4, 2, 1)), jnp.zeros((3, 2, 1)))
+    with pytest.raises(ValueError, match="`u`"):
+        dj.Windows(jnp.zeros((3, 1)), jnp.zeros((3, 2, 1)), jnp.full((3, 2, 1), jnp.nan))
+    with pytest.raises(ValueError, match="`horizon`"):
+        dj.observability_toeplitz(dj.LTIController.random(jax.random.PRNGKey(0), 1, 1, 1), 0)
