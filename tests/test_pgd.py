@@ -83,7 +83,7 @@ def test_learning_rate_sweep_with_vmap_equals_loop(getkey):
     swept = jax.jit(jax.vmap(run))(lrs)
     assert swept.loss_history.shape == (3, 2, 9)
     for j, lr in enumerate(lrs):
-        single = run(lr)
+        single = jax.jit(run)(lr)
         np.testing.assert_allclose(swept.loss_history[j], single.loss_history, rtol=1e-4,
                                    atol=1e-8, equal_nan=True)
         np.testing.assert_array_equal(swept.steps[j], single.steps)
