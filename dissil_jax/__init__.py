@@ -31,3 +31,5 @@ from ._train.result import FitResult as FitResult
 # --- issue 3: systems, experts, evaluation, plant QSR ---
 
 # --- issue 4: ICO, ICO-NC, MLP ---
+from ._train.ico import fit_ico as fit_ico, fit_ico_nc as fit_ico_nc
+from ._train.mlp import MLPController as MLPController, fit_mlp as fit_mlp

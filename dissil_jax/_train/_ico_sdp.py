@@ -1,0 +1,457 @@
+"""The convex overbound SDP of one ICO iteration, assembled straight into Clarabel's format.
+
+Host-side float64 numpy only. One [`ICOProblem`][] per (windows, supply rate) holds the data
+and the fixed sparsity pattern (shared read-only by all threads); one `ICOSolver` per
+initialisation owns a Clarabel solver whose numbers are updated in place every iteration
+(`solver.update(q=..., A=..., b=...)`, DESIGN §2).
+
+## The SDP (two-step loss, paper Problem 17 / eq. 18, DESIGN §3)
+
+Write $\\theta = (A, B, C, D)$, the current iterate $\\theta_0$, the step $\\delta\\theta$, and per
+window $k$: $\\zeta_k = (\\hat x_{k,0}, \\hat u_{k,0})$, targets $t_{k,0}, t_{k,1}$ ($t = -u$),
+$z_k = A_0\\hat x_{k,0} + B_0\\hat u_{k,0}$, $\\delta z_k = [\\delta A\\ \\delta B]\\zeta_k$. The residuals
+(target minus prediction) are
+
+$$r_k(\\delta) = t_{k,0} - (C\\hat x_{k,0} + D\\hat u_{k,0}) \\quad\\text{(affine)}, \\qquad
+e_k(\\delta) = \\bar e_k(\\delta) - \\delta C\\,\\delta z_k,$$
+
+$$\\bar e_k(\\delta) = t_{k,1} - C_0 z_k - D_0\\hat u_{k,1} - C_0\\delta z_k - \\delta C z_k -
+\\delta D\\hat u_{k,1} \\quad\\text{(affine)}.$$
+
+Young's relation with $W = wI$ (the device of paper Lemmas 5-7) gives for every $v$
+$-2v^\\top\\delta C\\delta z \\le w\\,v^\\top\\delta C\\delta C^\\top v + \\lVert\\delta z\\rVert^2/w$, hence
+$\\lVert e\\rVert^2 = \\max_v 2e^\\top v - \\lVert v\\rVert^2 \\le \\bar e^\\top (I - w\\,\\delta C\\delta
+C^\\top)^{-1}\\bar e + \\lVert\\delta z\\rVert^2/w$. This is the DESIGN §3 LMI
+$\\bigl[\\begin{smallmatrix}-s & \\bar e^\\top & 0 & \\delta z^\\top\\\\ \\bar e & -I & \\delta C & 0\\\\ 0 &
+\\delta C^\\top & -W^{-1} & 0\\\\ \\delta z & 0 & 0 & -W\\end{smallmatrix}\\bigr]\\preceq 0$ after Schur
+complements on its last two blocks. We keep the same bound but lift its pieces so each
+window costs a $(1+m)$-dimensional cone instead of $(1+m+2\\hat n)$:
+
+- $Y \\succeq w\\,\\delta C\\delta C^\\top$, one shared LMI $\\bigl[\\begin{smallmatrix} Y & \\delta C\\\\
+  \\delta C^\\top & \\phi(w) I\\end{smallmatrix}\\bigr]\\succeq 0$ with $\\phi(w) = 2/\\tilde w - w/\\tilde
+  w^2 \\le 1/w$ (the paper's overbound $W^{-1}\\succeq 2\\tilde W - \\tilde W W\\tilde W$, written for
+  the inverse weight; scalar $W=wI$);
+- $\\sigma_k \\ge \\bar e_k^\\top (I - Y)^{-1}\\bar e_k$: the per-window LMI
+  $\\bigl[\\begin{smallmatrix}\\sigma_k & \\bar e_k^\\top\\\\ \\bar e_k & I - Y\\end{smallmatrix}\\bigr]\\succeq0$;
+- $\\sum_k\\lVert\\delta z_k\\rVert^2 / w = \\lVert[\\delta A\\ \\delta B] F\\rVert_F^2/w \\le \\tau$ with
+  $FF^\\top = \\sum_k\\zeta_k\\zeta_k^\\top$: one rotated second-order cone, size independent of $N$.
+
+Minimising over $Y$ (the LMIs are monotone in $Y$) recovers exactly the per-window bound, so
+the SDP
+
+$$\\min\\ \\frac{1}{2N}\\Bigl(\\sum_k\\lVert r_k(\\delta)\\rVert^2 + \\tau + \\sum_k \\sigma_k\\Bigr) +
+\\tfrac{\\mu}{2}\\lVert\\delta\\theta\\rVert^2 + \\tfrac{\\nu}{2}\\lVert P - \\tilde P\\rVert^2
+\\quad\\text{s.t. the cones above and}\\quad \\mathcal M(\\theta_0+\\delta\\theta, P;\\tilde P)\\preceq
+-\\varepsilon I$$
+
+overbounds the true two-step loss $J(\\theta_0+\\delta\\theta)$ and equals $J(\\theta_0)$ at
+$\\delta = 0$ ($Y = 0$, $\\tau = 0$, $w = \\tilde w$, $\\sigma_k = \\lVert\\bar e_k(0)\\rVert^2$). The
+$\\sum_k\\lVert r_k\\rVert^2$ term is a plain quadratic with Hessian $I_m\\otimes\\sum_k\\zeta_k\\zeta_k^\\top$,
+so it adds no per-window variables at all. $\\mathcal M$ is the convexified KYP LMI of DESIGN §2
+(`ConvexifiedLMI`, paper Corollary 1 + Remark 1), affine in $\\theta_0 + \\delta\\theta$.
+
+Variable vector: $x = (\\delta\\theta, P_{\\text{triu}}, Y_{\\text{triu}}, w, \\tau, \\sigma_{1..N})$
+(no $P$ for ICO-NC). Cones, in order: KYP PSD (ICO only), the rotated SOC, the $Y$ PSD
+(size $m+\\hat n$), then $N$ PSD cones of size $1+m$.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from .._lmi import ConvexifiedLMI, svec, svec_indices
+from .._supply import QSR
+
+_OK = {"Solved", "AlmostSolved"}
+_SQRT2 = np.sqrt(2.0)
+
+
+def _svec_pos(i, j):
+    """Clarabel svec position of entry (i, j) with i <= j (upper triangle, column-major)."""
+    return j * (j + 1) // 2 + i
+
+
+def _svec_len(d):
+    return d * (d + 1) // 2
+
+
+def settings(max_iter: int = 200):
+    import clarabel
+
+    s = clarabel.DefaultSettings()
+    s.verbose = False
+    s.presolve_enable = False  # in-place data updates need all three off
+    s.chordal_decomposition_enable = False
+    s.input_sparse_dropzeros = False
+    s.max_iter = max_iter
+    return s
+
+
+class ICOProblem:
+    """Data and fixed sparsity of the ICO SDP for one data set (and one supply rate or None).
+
+    **Arguments:** `x0` `[N, n]`, `uhat` `[N, 2, p]` (controller inputs $\\hat u = y$),
+    `target` `[N, 2, m]` ($-u$), `qsr` (None for ICO-NC), `eps` (KYP margin), `prox` ($\\mu$),
+    `reg` ($\\nu$).
+    """
+
+    def __init__(self, x0, uhat, target, qsr: QSR | None, *, eps=1e-6, prox=1e-4, reg=1e-6,
+                 window_cone: str = "soc"):
+        x0, uhat, target = (np.asarray(a, np.float64) for a in (x0, uhat, target))
+        N, n = x0.shape
+        p, m = uhat.shape[2], target.shape[2]
+        self.N, self.n, self.p, self.m = N, n, p, m
+        self.x0, self.u0, self.u1 = x0, uhat[:, 0], uhat[:, 1]
+        self.t0, self.t1 = target[:, 0], target[:, 1]
+        self.c = 1.0 / (2 * N)
+        self.eps, self.prox, self.reg = float(eps), float(prox), float(reg)
+        self.Nk = 0
+        self.zeta = np.concatenate([x0, self.u0], axis=1)  # [N, n+p]
+        G = self.zeta.T @ self.zeta
+        lam, V = np.linalg.eigh(G)
+        keep = lam > 1e-12 * max(1.0, lam.max())
+        self.F = V[:, keep] * np.sqrt(lam[keep])  # G = F F^T, [n+p, r]
+        r = self.F.shape[1]
+
+        # -- variable layout ------------------------------------------------------------
+        self.nA, self.nB, self.nC, self.nD = n * n, n * p, m * n, m * p
+        self.ntheta = nth = self.nA + self.nB + self.nC + self.nD
+        oA, oB, oC, oD = 0, self.nA, self.nA + self.nB, self.nA + self.nB + self.nC
+        self.qsr = qsr
+        self.lmi = ConvexifiedLMI(n, p, m, qsr) if qsr is not None else None
+        nP = self.lmi.nP if qsr is not None else 0
+        self.oP = nth
+        self.oY = nth + nP
+        if window_cone not in ("soc", "psd"):
+            raise ValueError(f"`window_cone` must be 'soc' or 'psd', got {window_cone!r}.")
+        self.window_cone = window_cone
+        soc = window_cone == "soc"
+        yi, yj = np.triu_indices(m)
+        self.y_rows, self.y_cols = yi, yj
+        nY = 1 if soc else len(yi)  # Y = y I, or a full symmetric Y
+        self.ow = self.oY + nY
+        self.otau = self.ow + 1
+        self.osig = self.otau + 1
+        self.nx = self.osig + N
+        colA = oA + np.arange(self.nA).reshape(n, n)
+        colB = oB + np.arange(self.nB).reshape(n, p)
+        colC = oC + np.arange(self.nC).reshape(m, n)
+        colD = oD + np.arange(self.nD).reshape(m, p)
+        colAB = np.concatenate([colA, colB], axis=1)  # [n, n+p]
+        colCD = np.concatenate([colC, colD], axis=1)  # [m, n+p]
+        colY = self.oY + np.arange(nY)
+        wY = np.where(yi == yj, 1.0, _SQRT2)
+        self._cols = dict(A=colA, B=colB, C=colC, D=colD)
+
+        rows, cols = [], []  # COO pattern, block by block; values come in the same order
+        row0 = 0
+        cones, spec = [], []
+        import clarabel
+
+        # -- (a) convexified KYP LMI (ICO only) ------------------------------------------
+        if qsr is not None:
+            lmi = self.lmi
+            self.Nk = lmi.N
+            Lk = _svec_len(lmi.N)
+            dense = np.ones((n, n)) + np.eye(n)  # generic P~: every possible nonzero present
+            _, J, _ = self._kyp_blocks(dense)
+            pattern = (lmi.svec(J) != 0) | (lmi.svec(lmi.J_fixed) != 0)  # [nx_lmi, Lk]
+            kc, kr = np.nonzero(pattern)  # kc: lmi variable (same offset in x), kr: svec row
+            self.kyp_var, self.kyp_row = kc, kr
+            rows.append(row0 + kr)
+            cols.append(kc)  # lmi variables (theta, P) sit at the same offsets in x
+            self.kyp_rows0 = row0
+            self.kyp_L = Lk
+            self.eye_svec = lmi.svec(np.eye(lmi.N))
+            row0 += Lk
+            cones.append(clarabel.PSDTriangleConeT(lmi.N))
+            spec.append(("psd", lmi.N))
+
+        # -- (b) rotated SOC: ||2 vec([dA dB] F)||^2 + (w - tau)^2 <= (w + tau)^2 -----------
+        self.soc_row0 = row0
+        d_soc = 2 + n * r
+        rows.append(row0 + np.array([0, 0, 1, 1]))
+        cols.append(np.array([self.ow, self.otau, self.ow, self.otau]))
+        # entry (i, l) of [dA dB] F: sum_j dAB[i, j] F[j, l]
+        ii, ll, jj = np.meshgrid(np.arange(n), np.arange(r), np.arange(n + p), indexing="ij")
+        rows.append(row0 + 2 + ii.ravel() * r + ll.ravel())
+        cols.append(colAB[ii.ravel(), jj.ravel()])
+        soc_vals = np.concatenate([[-1.0, -1.0, -1.0, 1.0], -2.0 * self.F[jj.ravel(), ll.ravel()]])
+        row0 += d_soc
+        cones.append(clarabel.SecondOrderConeT(d_soc))
+        spec.append(("soc", d_soc))
+
+        # -- (c) [[Y, dC], [dC^T, phi(w) I]] >= 0 ----------------------------------------
+        self.Yrow0 = row0
+        dY = m + n
+        rY = row0 + (_svec_pos(np.arange(m), np.arange(m)) if soc else _svec_pos(yi, yj))
+        colYb = np.full(m, colY[0]) if soc else colY
+        wYb = np.ones(m) if soc else wY
+        aa, jn = np.meshgrid(np.arange(m), np.arange(n), indexing="ij")
+        rC = row0 + _svec_pos(aa.ravel(), m + jn.ravel())
+        rW = row0 + _svec_pos(m + np.arange(n), m + np.arange(n))
+        rows += [rY, rC, rW]
+        cols += [colYb, colC[aa.ravel(), jn.ravel()], np.full(n, self.ow)]
+        yblock_vals = np.concatenate([-wYb, np.full(m * n, -_SQRT2)])
+        self.yw_rows = rW
+        self.LY = _svec_len(dY)
+        row0 += self.LY
+        cones.append(clarabel.PSDTriangleConeT(dY))
+        spec.append(("psd", dY))
+
+        # -- (d) per window: psd [[sigma_k, ebar_k^T], [ebar_k, I - Y]] >= 0, or (Y = y I)
+        #    the rotated SOC ||ebar_k||^2 <= sigma_k (1 - y): ||(2 ebar, sigma - 1 + y)|| <= sigma + 1 - y
+        self.win_row0 = row0
+        Lw = m + 2 if soc else _svec_len(1 + m)
+        self.Lw = Lw
+        kk = np.arange(N)
+        base = row0 + kk * Lw  # [N]
+        e_pos = 2 + np.arange(m) if soc else _svec_pos(0, 1 + np.arange(m))  # [m]
+        self.e_rows = base[:, None] + e_pos[None, :]  # [N, m]
+        self._escale = 2.0 if soc else _SQRT2
+        b_win = np.zeros((N, Lw))
+        if soc:
+            rows += [base, base + 1, base, base + 1]
+            cols += [self.osig + kk, self.osig + kk, np.full(N, colY[0]), np.full(N, colY[0])]
+            win_fixed = np.concatenate([-np.ones(2 * N), np.ones(N), -np.ones(N)])
+            b_win[:, 0], b_win[:, 1] = 1.0, -1.0
+        else:
+            rows.append(base)
+            cols.append(self.osig + kk)
+            rows.append((base[:, None] + _svec_pos(1 + yi, 1 + yj)[None]).ravel())
+            cols.append(np.tile(colY, N))
+            win_fixed = np.concatenate([-np.ones(N), np.tile(wY, N)])
+            b_win[:, _svec_pos(1 + np.arange(m), 1 + np.arange(m))] = 1.0
+        self._b_win = b_win.ravel()
+        # ebar_a depends on dA[i, j] (C0[a, i] x0[k, j]), dB[i, j] (C0[a, i] u0[k, j]),
+        # dC[a, j] (z[k, j]) and dD[a, j] (u1[k, j]).
+        er = self.e_rows
+        rows.append(np.broadcast_to(er[:, :, None, None], (N, m, n, n)).ravel())
+        cols.append(np.broadcast_to(colA[None, None], (N, m, n, n)).ravel())
+        rows.append(np.broadcast_to(er[:, :, None, None], (N, m, n, p)).ravel())
+        cols.append(np.broadcast_to(colB[None, None], (N, m, n, p)).ravel())
+        rows.append(np.broadcast_to(er[:, :, None], (N, m, n)).ravel())
+        cols.append(np.broadcast_to(colC[None], (N, m, n)).ravel())
+        rows.append(np.broadcast_to(er[:, :, None], (N, m, p)).ravel())
+        cols.append(np.broadcast_to(colD[None], (N, m, p)).ravel())
+        row0 += N * Lw
+        if soc:
+            cones += [clarabel.SecondOrderConeT(Lw)] * N
+            spec += [("soc", Lw)] * N
+        else:
+            cones += [clarabel.PSDTriangleConeT(1 + m)] * N
+            spec += [("psd", 1 + m)] * N
+        self.cone_spec = spec
+        self.nrows = row0
+        self.cones = cones
+
+        # -- constant values and the COO -> CSC permutation ---------------------------------
+        self._soc_vals, self._yblock_vals, self._win_fixed = soc_vals, yblock_vals, win_fixed
+        rows, cols = np.concatenate(rows), np.concatenate(cols)
+        order = np.lexsort((rows, cols))
+        rs, cs = rows[order], cols[order]
+        if np.any((rs[1:] == rs[:-1]) & (cs[1:] == cs[:-1])):  # pragma: no cover - a bug guard
+            raise AssertionError("duplicate entries in the ICO SDP pattern")
+        self.order = order
+        self.indices = rs.astype(np.int64)
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(cs, minlength=self.nx))])
+        self.nnz = len(rs)
+
+        # -- objective: 1/2 x^T H x + q^T x + const ---------------------------------------
+        H = sp.lil_matrix((self.nx, self.nx))
+        Gc = 2 * self.c * G
+        for a in range(m):  # step-0 residual: c * sum_k ||r_k + dCD zeta_k||^2
+            idx = colCD[a]
+            H[np.ix_(idx, idx)] = Gc
+        H = H.tocsr()
+        diag = np.zeros(self.nx)
+        diag[:nth] = self.prox
+        diag[self.oP:self.oY] = self.reg
+        H = H + sp.diags(diag)
+        self.H = sp.triu(H).tocsc()
+        self._colCD = colCD
+        self.q_fixed = np.zeros(self.nx)
+        self.q_fixed[self.otau] = self.c
+        self.q_fixed[self.osig:] = self.c
+        self._svec_idx_kyp = svec_indices(self.Nk) if qsr is not None else None
+
+    # -------------------------------------------------------------------------------------
+    def theta(self, A, B, C, D) -> np.ndarray:
+        return np.concatenate([np.asarray(M, np.float64).ravel() for M in (A, B, C, D)])
+
+    def mats(self, theta):
+        n, p, m = self.n, self.p, self.m
+        o = np.cumsum([0, self.nA, self.nB, self.nC, self.nD])
+        return (theta[o[0]:o[1]].reshape(n, n), theta[o[1]:o[2]].reshape(n, p),
+                theta[o[2]:o[3]].reshape(m, n), theta[o[3]:o[4]].reshape(m, p))
+
+    def loss(self, theta) -> float:
+        """The true two-step loss $J$ (= `dj.imitation_loss` for $h = 2$), float64."""
+        A, B, C, D = self.mats(theta)
+        r0 = self.t0 - self.x0 @ C.T - self.u0 @ D.T
+        z = self.x0 @ A.T + self.u0 @ B.T
+        e1 = self.t1 - z @ C.T - self.u1 @ D.T
+        return float(self.c * (np.sum(r0**2) + np.sum(e1**2)))
+
+    BALANCE = True
+
+    def _kyp_blocks(self, P_tilde):
+        """`(M0, J, E)`: the convexified KYP LMI $M_0 + \\sum_k x_k J_k \\preceq -\\varepsilon E$."""
+        n = self.n
+        P_tilde = np.asarray(P_tilde, np.float64)
+        M0, J = self.lmi.blocks(P_tilde)
+        E = np.eye(self.Nk)
+        E[-n:, -n:] = P_tilde @ P_tilde
+        if self.BALANCE:
+            lam, V = np.linalg.eigh(P_tilde)
+            Ph = (V / np.sqrt(lam)) @ V.T  # P~^{-1/2}
+            T = np.eye(self.Nk)
+            T[:n, :n] = Ph
+            T[-n:, -n:] = Ph
+            M0, E = T @ M0 @ T, T @ E @ T
+            J = np.einsum("ij,kjl,lm->kim", T, J, T)
+        return M0, J, E
+
+    def kyp_margin(self, theta, P) -> float:
+        """Margin $\\mu$ of δ = 0 at $\\tilde P = P$: $\\mathcal M \\preceq -\\mu\\,\\mathrm{diag}(I, P^2)$.
+
+        Equivalently $-\\lambda_{\\max}$ of the un-congruenced Schur form of the KYP LMI.
+        """
+        P = np.asarray(P, np.float64)
+        x = np.concatenate([theta, P[self.lmi.p_rows, self.lmi.p_cols]])
+        T = np.eye(self.Nk)
+        T[-self.n:, -self.n:] = np.linalg.inv(P)
+        M = T @ self.lmi.evaluate(x, P) @ T
+        return -float(np.linalg.eigvalsh((M + M.T) / 2)[-1])
+
+    def data(self, theta0, P_tilde, w_tilde, eps=None):
+        """Numbers of the SDP at this iterate: `(q, A_values_csc, b, const)`."""
+        n, m, N = self.n, self.m, self.N
+        A0, B0, C0, D0 = self.mats(theta0)
+        vals, b = [], np.zeros(self.nrows)
+        if self.qsr is not None:
+            eps = self.eps if eps is None else eps
+            M0, J, E = self._kyp_blocks(P_tilde)
+            sJ = svec(J, self._svec_idx_kyp)  # [nx_lmi, Lk]
+            vals.append(sJ[self.kyp_var, self.kyp_row])
+            sl = slice(self.kyp_rows0, self.kyp_rows0 + self.kyp_L)
+            b[sl] = (-svec(M0, self._svec_idx_kyp) - eps * svec(E, self._svec_idx_kyp)
+                     - theta0 @ sJ[:self.ntheta])
+        vals.append(self._soc_vals)
+        vals.append(self._yblock_vals)
+        vals.append(np.full(n, 1.0 / w_tilde**2))
+        b[self.yw_rows] = 2.0 / w_tilde
+        vals.append(self._win_fixed)
+        z = self.x0 @ A0.T + self.u0 @ B0.T  # [N, n]
+        es = self._escale
+        vals.append((es * C0[None, :, :, None] * self.x0[:, None, None, :]).ravel())
+        vals.append((es * C0[None, :, :, None] * self.u0[:, None, None, :]).ravel())
+        vals.append(np.broadcast_to(es * z[:, None, :], (N, m, n)).ravel())
+        vals.append(np.broadcast_to(es * self.u1[:, None, :], (N, m, self.p)).ravel())
+        ebar = self.t1 - z @ C0.T - self.u1 @ D0.T  # [N, m]
+        b[self.win_row0:] = self._b_win
+        b[self.e_rows] = self._escale * ebar
+        vals = np.concatenate(vals)[self.order]
+        # step-0: c * sum ||r0 - dCD zeta||^2, r0 = t0 - C0 x0 - D0 u0 (target minus prediction)
+        r0 = self.t0 - self.x0 @ C0.T - self.u0 @ D0.T
+        q = self.q_fixed.copy()
+        q[self._colCD] = -2 * self.c * (r0.T @ self.zeta)
+        if self.qsr is not None:
+            q[self.oP:self.oY] = -self.reg * np.asarray(P_tilde)[self.lmi.p_rows, self.lmi.p_cols]
+        const = self.c * np.sum(r0**2)
+        return q, vals, b, const
+
+    def matrix(self, vals):
+        return sp.csc_matrix((vals, self.indices, self.indptr), shape=(self.nrows, self.nx))
+
+    # -- checks (tests) ---------------------------------------------------------------------
+    def overbound(self, x, theta0, P_tilde, w_tilde, eps=None):
+        """The SDP objective at `x` without the proximal terms, and the cone slack `s = b - Ax`.
+
+        Returns `(value, s)`; the overbound of $J(\\theta_0 + \\delta\\theta)$ when `s` is in
+        the cones (see `cone_min`).
+        """
+        q, vals, b, const = self.data(theta0, P_tilde, w_tilde, eps)
+        H = self.H.copy().tolil()
+        H.setdiag(H.diagonal() - np.concatenate(
+            [np.full(self.ntheta, self.prox), np.full(self.oY - self.oP, self.reg),
+             np.zeros(self.nx - self.oY)]))
+        Hs = H.tocsc()
+        Hfull = Hs + sp.triu(Hs, 1).T
+        q = q.copy()
+        q[self.oP:self.oY] = 0.0
+        value = 0.5 * x @ (Hfull @ x) + q @ x + const
+        return float(value), b - self.matrix(vals) @ x
+
+    def cone_min(self, s) -> float:
+        """The smallest cone 'eigenvalue' of the slack `s` (>= 0 iff `s` is in every cone)."""
+        from .._lmi import smat
+
+        out, row = [], 0
+        for kind, d in self.cone_spec:
+            if kind == "psd":
+                L = _svec_len(d)
+                out.append(np.linalg.eigvalsh(smat(s[row:row + L], d))[0])
+                row += L
+            else:
+                out.append(s[row] - np.linalg.norm(s[row + 1:row + d]))
+                row += d
+        return float(min(out))
+
+    def feasible_point(self, dtheta, w, P, theta0, w_tilde):
+        """The cheapest feasible $(Y, \\tau, \\sigma)$ for a given step: tests of the bound."""
+        n, m = self.n, self.m
+        dA, dB, dC, dD = self.mats(dtheta)
+        A0, B0, C0, D0 = self.mats(theta0)
+        phi = 2.0 / w_tilde - w / w_tilde**2
+        if self.window_cone == "soc":
+            Y = np.linalg.norm(dC, 2) ** 2 / phi * np.eye(m)
+        else:
+            Y = dC @ dC.T / phi
+        dz = self.x0 @ dA.T + self.u0 @ dB.T
+        z = self.x0 @ A0.T + self.u0 @ B0.T
+        ebar = (self.t1 - z @ C0.T - self.u1 @ D0.T - dz @ C0.T - z @ dC.T - self.u1 @ dD.T)
+        sig = np.einsum("ka,ka->k", ebar, np.linalg.solve(np.eye(m) - Y, ebar.T).T)
+        tau = np.sum(dz**2) / w
+        x = np.zeros(self.nx)
+        x[:self.ntheta] = dtheta
+        if self.qsr is not None:
+            x[self.oP:self.oY] = np.asarray(P)[self.lmi.p_rows, self.lmi.p_cols]
+        x[self.oY:self.ow] = Y[0, 0] if self.window_cone == "soc" else Y[self.y_rows, self.y_cols]
+        x[self.ow], x[self.otau] = w, tau
+        x[self.osig:] = sig * (1 + 1e-12) + 1e-15
+        x[self.otau] = tau * (1 + 1e-12) + 1e-15
+        return x
+
+
+class ICOSolver:
+    """One Clarabel solver for one initialisation (not thread-safe: one per thread)."""
+
+    def __init__(self, problem: ICOProblem, max_iter: int = 200):
+        self.problem = problem
+        self.solver = None
+        self.max_iter = max_iter
+
+    def solve(self, theta0, P_tilde, w_tilde, eps=None):
+        """One ICO step. Returns `(dtheta, P, w, status, solve_time)`; None fields on failure."""
+        import clarabel
+
+        pb = self.problem
+        q, vals, b, _ = pb.data(theta0, P_tilde, w_tilde, eps)
+        if self.solver is None:
+            self.solver = clarabel.DefaultSolver(pb.H, q, pb.matrix(vals), b, pb.cones,
+                                                 settings(self.max_iter))
+        else:
+            self.solver.update(q=q, A=vals, b=b)
+        sol = self.solver.solve()
+        status = str(sol.status)
+        if status not in _OK:
+            return None, None, None, status, float(sol.solve_time)
+        x = np.asarray(sol.x)
+        P = None
+        if pb.qsr is not None:
+            P = np.zeros((pb.n, pb.n))
+            P[pb.lmi.p_rows, pb.lmi.p_cols] = x[pb.oP:pb.oY]
+            P = P + np.triu(P, 1).T
+        return x[:pb.ntheta], P, float(x[pb.ow]), status, float(sol.solve_time)

@@ -1,0 +1,179 @@
+"""The paper's neural-network baseline: a static ReLU MLP $\\hat y = f(\\hat u)$ (NN + GD)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from functools import partial
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import optax
+from jaxtyping import Array, Float, PRNGKeyArray
+
+from .._data import Windows
+from .result import FitResult
+
+
+class MLPController(eqx.Module):
+    """A memoryless controller $\\hat y = f(\\hat u)$, $f$ a ReLU MLP (paper §5, "NN").
+
+    It has the call signature of [`LTIController`][dissil_jax.LTIController] so closed-loop
+    code treats it like any controller: `__call__(xhat, uhat) -> (xhat, yhat)` passes the
+    controller state through unchanged. Unbatched; vmap for batches (the trainers return
+    it with a leading initialisation axis on every array).
+
+    **Arguments:** `n_in` ($p$), `n_out` ($m$), `hidden` (widths of the hidden layers, all
+    equal; paper: `(150, 150, 150)` linear example, `(25, 25, 25)` nonlinear), `key`,
+    optional `dtype`.
+    """
+
+    params: eqx.nn.MLP  # the array leaves of the MLP (weights and biases)
+    static: eqx.nn.MLP = eqx.field(static=True)  # everything else (activations, sizes)
+
+    def __init__(self, n_in: int, n_out: int, hidden: Sequence[int], *, key: PRNGKeyArray,
+                 dtype=None):
+        hidden = tuple(int(h) for h in hidden)
+        if len(set(hidden)) > 1:
+            raise ValueError(
+                f"`hidden` must list equal widths (eqx.nn.MLP has one width), got {hidden}.")
+        if any(h < 1 for h in hidden):
+            raise ValueError(f"`hidden` widths must be positive, got {hidden}.")
+        width = hidden[0] if hidden else 1
+        mlp = eqx.nn.MLP(n_in, n_out, width, len(hidden), activation=jax.nn.relu,
+                         dtype=dtype, key=key)
+        # Only arrays are leaves, so `jax.tree.map(lambda a: a[i], K)` indexes a batch.
+        self.params, self.static = eqx.partition(mlp, eqx.is_array)
+
+    @property
+    def mlp(self) -> eqx.nn.MLP:
+        """The `eqx.nn.MLP` $f$."""
+        return eqx.combine(self.params, self.static)
+
+    @property
+    def n_in(self) -> int:
+        return self.mlp.in_size
+
+    @property
+    def n_out(self) -> int:
+        return self.mlp.out_size
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        """Leading batch axes of the parameters (empty for one controller)."""
+        return self.params.layers[0].weight.shape[:-2]
+
+    def __call__(
+        self, xhat: Float[Array, " n"], uhat: Float[Array, " p"]
+    ) -> tuple[Float[Array, " n"], Float[Array, " m"]]:
+        """One step: returns $(\\hat x, f(\\hat u))$, the state unchanged. Unbatched."""
+        return xhat, self.mlp(uhat)
+
+
+def _pairs(windows: Windows):
+    """All (input, target) pairs of the windows: $\\hat u = y$, target $-u$ (DESIGN §1)."""
+    X = windows.y.reshape(-1, windows.n_in)
+    T = windows.target.reshape(-1, windows.n_out)
+    return X, T
+
+
+def mlp_loss(model: MLPController, X, T) -> Float[Array, ""]:
+    """Mean over pairs of $\\lVert f(\\hat u) - (-u)\\rVert^2$, the normalisation of
+    [`imitation_loss`][dissil_jax.imitation_loss]."""
+    pred = jax.vmap(model.mlp)(X)
+    return jnp.mean(jnp.sum((pred - T) ** 2, axis=-1))
+
+
+def _train_one(key, X, T, *, hidden, max_steps, learning_rate, tol):
+    """Train one MLP (pure; vmapped over `key` by `fit_mlp`).
+
+    Scans `max_steps + 1` gradient evaluations: at step k the loss $J_k$ of the current
+    parameters is recorded, the run stops when $|J_k - J_{k-1}| <$ `tol`, and otherwise
+    takes an Adam step (the last evaluation only records).
+    """
+    model = MLPController(X.shape[-1], T.shape[-1], hidden, key=key, dtype=X.dtype)
+    params, static = eqx.partition(model, eqx.is_inexact_array)
+    opt = optax.adam(learning_rate)
+    loss = lambda q: mlp_loss(eqx.combine(q, static), X, T)
+    value_and_grad = jax.value_and_grad(loss)
+
+    def step(carry, k):
+        params, opt_state, prev, done, steps, converged = carry
+        J, g = value_and_grad(params)
+        hist_k = jnp.where(done, jnp.nan, J)
+        small = ~done & (jnp.abs(J - prev) < tol)
+        converged = converged | small
+        stop = done | small | (k == max_steps) | ~jnp.isfinite(J)
+        updates, new_state = opt.update(g, opt_state, params)
+        new_params = optax.apply_updates(params, updates)
+        keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(stop, b, a), new, old)
+        params, opt_state = keep(new_params, params), keep(new_state, opt_state)
+        final = jnp.where(done, prev, J)
+        return (params, opt_state, final, done | stop, steps + (~stop).astype(jnp.int32),
+                converged), hist_k
+
+    init = (params, opt.init(params), jnp.asarray(jnp.inf, X.dtype), jnp.asarray(False),
+            jnp.asarray(0, jnp.int32), jnp.asarray(False))
+    (params, _, J, _, steps, converged), hist = jax.lax.scan(
+        step, init, jnp.arange(max_steps + 1))
+    return eqx.combine(params, static), hist, J, converged, steps
+
+
+@partial(eqx.filter_jit)
+def _train_batch(keys, X, T, hidden, max_steps, learning_rate, tol):
+    fn = partial(_train_one, hidden=hidden, max_steps=max_steps, learning_rate=learning_rate,
+                 tol=tol)
+    return eqx.filter_vmap(fn, in_axes=(0, None, None))(keys, X, T)
+
+
+def fit_mlp(
+    key, windows: Windows, *, hidden: Sequence[int] = (150, 150, 150), num_inits: int = 8,
+    max_steps: int = 2000, learning_rate: float = 1e-3, tol: float = 1e-7,
+) -> FitResult:
+    """Train the paper's NN baseline (NN + GD): a static ReLU MLP on the demonstration pairs.
+
+    Every time step of every window gives one pair $(\\hat u, -u)$ = $(y_k, -u_k)$, and
+
+    $$J(f) = \\frac{1}{Nh}\\sum_{i,k}\\lVert f(y^{(i)}_k) + u^{(i)}_k\\rVert^2$$
+
+    (the same normalisation as [`imitation_loss`][dissil_jax.imitation_loss]) is minimised by
+    full-batch Adam (`optax.adam`, a gradient method; the paper says "gradient descent"
+    without details). Initialisations are vmapped (`eqx.filter_vmap`) and the loop is one
+    compiled `lax.scan`; each run stops when $|\\Delta J| <$ `tol` or after `max_steps`.
+    The controller ignores $\\hat x$ (memoryless), so `windows.x0` is unused.
+
+    **Arguments:**
+
+    - `key`: PRNG key (split into `num_inits` initialisation keys).
+    - `windows`: demonstration windows (any horizon).
+    - `hidden`: hidden-layer widths, all equal (paper: 3 x 150 linear, 3 x 25 nonlinear).
+    - `num_inits`, `max_steps`, `learning_rate`, `tol`: as for the other trainers.
+
+    **Returns:** a [`FitResult`][dissil_jax.FitResult] whose `controllers` is an
+    [`MLPController`][dissil_jax.MLPController] with a leading `[num_inits]` axis; `P` and
+    `certified` are None.
+    """
+    if not isinstance(windows, Windows):
+        raise ValueError(f"`windows` must be a `dj.Windows`, got {type(windows).__name__}.")
+    if int(num_inits) != num_inits or num_inits < 1:
+        raise ValueError(f"`num_inits` must be a positive integer, got {num_inits!r}.")
+    if int(max_steps) != max_steps or max_steps < 0:
+        raise ValueError(f"`max_steps` must be a non-negative integer, got {max_steps!r}.")
+    for name, v in (("learning_rate", learning_rate), ("tol", tol)):
+        if not np.isfinite(v) or v < 0:
+            raise ValueError(f"`{name}` must be finite and non-negative, got {v!r}.")
+    hidden = tuple(int(h) for h in hidden)
+    start = time.perf_counter()
+    X, T = _pairs(windows)
+    keys = jr.split(key, num_inits)
+    model, hist, J, converged, steps = _train_batch(keys, X, T, hidden, int(max_steps),
+                                                    float(learning_rate), float(tol))
+    J = jax.block_until_ready(J)
+    wall = time.perf_counter() - start
+    return FitResult(
+        controllers=model, P=None, certified=None, loss_history=hist, final_loss=J,
+        converged=converged, steps=steps, wall_time=jnp.asarray(wall, X.dtype),
+    )
