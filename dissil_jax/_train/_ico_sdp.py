@@ -412,6 +412,8 @@ class ICOProblem:
         dz = self.x0 @ dA.T + self.u0 @ dB.T
         z = self.x0 @ A0.T + self.u0 @ B0.T
         ebar = (self.t1 - z @ C0.T - self.u1 @ D0.T - dz @ C0.T - z @ dC.T - self.u1 @ dD.T)
+        if not (phi > 0 and np.linalg.eigvalsh(np.eye(m) - Y)[0] > 0):
+            raise ValueError("this step is outside the SDP's domain: I - Y must be > 0.")
         sig = np.einsum("ka,ka->k", ebar, np.linalg.solve(np.eye(m) - Y, ebar.T).T)
         tau = np.sum(dz**2) / w
         x = np.zeros(self.nx)
@@ -432,6 +434,7 @@ class ICOSolver:
         self.problem = problem
         self.solver = None
         self.max_iter = max_iter
+        self.obj_val = np.nan
 
     def solve(self, theta0, P_tilde, w_tilde, eps=None):
         """One ICO step. Returns `(dtheta, P, w, status, solve_time)`; None fields on failure."""
@@ -446,6 +449,7 @@ class ICOSolver:
             self.solver.update(q=q, A=vals, b=b)
         sol = self.solver.solve()
         status = str(sol.status)
+        self.obj_val = float(sol.obj_val)
         if status not in _OK:
             return None, None, None, status, float(sol.solve_time)
         x = np.asarray(sol.x)

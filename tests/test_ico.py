@@ -1,0 +1,218 @@
+"""ICO / ICO-NC (paper Alg. 1): the overbound, monotone loss, certified iterates."""
+
+import threading
+import warnings
+
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+
+import dissil_jax as dj
+from dissil_jax._train import _ico_sdp, ico
+from dissil_jax._train._ico_sdp import ICOProblem, ICOSolver
+
+from helpers import independent_kyp_ok
+
+NONLINEAR_QSR = dj.QSR(-29.867, 3.556, 0.601)  # the paper's nonlinear-example controller
+
+
+def expert_windows(seed, n, p, m, N=12, noise=0.05):
+    """Two-step windows of a random (generally not dissipative) LTI expert plus noise."""
+    rng = np.random.default_rng(seed)
+    Ae = 0.5 * rng.normal(size=(n, n)) / np.sqrt(n)
+    Be, Ce, De = rng.normal(size=(n, p)), rng.normal(size=(m, n)), rng.normal(size=(m, p))
+    x0, y = rng.normal(size=(N, n)), rng.normal(size=(N, 2, p))
+    t0 = x0 @ Ce.T + y[:, 0] @ De.T
+    t1 = (x0 @ Ae.T + y[:, 0] @ Be.T) @ Ce.T + y[:, 1] @ De.T
+    target = np.stack([t0, t1], 1) + noise * rng.normal(size=(N, 2, m))
+    return dj.Windows(x0, y, -target)
+
+
+def _problem(windows, qsr, cone="soc"):
+    return ICOProblem(np.asarray(windows.x0), np.asarray(windows.y),
+                      np.asarray(windows.target), qsr, window_cone=cone)
+
+
+def _start(key, windows, qsr, scale=0.3):
+    K = dj.LTIController.random(key, windows.n_state, windows.n_in, windows.n_out, scale)
+    P = None
+    if qsr is not None:
+        K, P = dj.project(K, qsr)
+        P = np.asarray(P)
+    return K, P
+
+
+CASES = [
+    (1, 1, 1, dj.QSR.passive(1)),
+    (1, 1, 1, NONLINEAR_QSR),
+    (2, 2, 2, dj.QSR.conic(-0.5, 2.0, 2)),
+    (3, 2, 2, dj.QSR.passive(2)),
+]
+
+
+@pytest.mark.parametrize("cone", ["soc", "psd"])
+@pytest.mark.parametrize("n,p,m,qsr", CASES + [(3, 2, 2, None)])
+def test_overbound_exact_at_zero(getkey, n, p, m, qsr, cone):
+    windows = expert_windows(n + p, n, p, m)
+    pb = _problem(windows, qsr, cone)
+    K, P = _start(getkey(), windows, qsr)
+    theta = pb.theta(K.A, K.B, K.C, K.D)
+    assert pb.loss(theta) == pytest.approx(float(dj.imitation_loss(K, windows)), rel=1e-12)
+    w = 0.7
+    eps = None if qsr is None else min(pb.eps, 0.5 * pb.kyp_margin(theta, P))
+    x = pb.feasible_point(np.zeros(pb.ntheta), w, P, theta, w)
+    value, s = pb.overbound(x, theta, P, w, eps)
+    assert value == pytest.approx(pb.loss(theta), rel=1e-12, abs=1e-14)
+    assert pb.cone_min(s) >= -1e-12  # delta = 0 is feasible, including the KYP LMI
+    # The assembled A, b (CSC order, in-place values) reproduce the affine maps: moving
+    # sigma_1 below its minimum must leave the cones.
+    x_bad = x.copy()
+    x_bad[pb.osig] -= 1e-3 + 0.5 * x[pb.osig]
+    assert pb.cone_min(pb.overbound(x_bad, theta, P, w, eps)[1]) < 0
+
+
+@pytest.mark.parametrize("cone", ["soc", "psd"])
+@pytest.mark.parametrize("n,p,m", [(1, 1, 1), (3, 2, 2), (2, 3, 1)])
+def test_overbound_bounds_true_loss(getkey, n, p, m, cone):
+    windows = expert_windows(7 * n + m, n, p, m)
+    pb = _problem(windows, None, cone)
+    K, _ = _start(getkey(), windows, None)
+    theta = pb.theta(K.A, K.B, K.C, K.D)
+    rng = np.random.default_rng(n)
+    checked = 0
+    for scale in (1e-3, 0.05, 0.3):
+        for _ in range(5):
+            d = scale * rng.normal(size=pb.ntheta)
+            w_tilde = rng.uniform(0.1, 3.0)
+            w = w_tilde * rng.uniform(0.05, 1.95)
+            try:
+                x = pb.feasible_point(d, w, None, theta, w_tilde)
+            except ValueError:  # the step is outside the SDP's domain (I - Y not > 0)
+                continue
+            checked += 1
+            value, s = pb.overbound(x, theta, None, w_tilde)
+            assert pb.cone_min(s) >= -1e-9 * max(1.0, np.abs(s).max())
+            assert value >= pb.loss(theta + d) - 1e-12
+    assert checked >= 8
+
+
+def test_inplace_update_matches_fresh_solver(getkey):
+    """Clarabel's in-place update (fixed sparsity) gives the same step as a fresh build."""
+    windows = expert_windows(3, 3, 2, 2, N=15)
+    qsr = dj.QSR.passive(2)
+    pb = _problem(windows, qsr)
+    K, P = _start(getkey(), windows, qsr)
+    theta = pb.theta(K.A, K.B, K.C, K.D)
+    reused = ICOSolver(pb)
+    d, P1, w1, status, _ = reused.solve(theta, P, 1.0)
+    assert status in _ico_sdp._OK
+    theta2 = theta + d
+    d_upd, P_upd, w_upd, _, _ = reused.solve(theta2, P1, 0.5)
+    fresh = ICOSolver(pb)
+    d_new, P_new, w_new, _, _ = fresh.solve(theta2, P1, 0.5)
+    # Same optimum up to solver tolerance (a mis-ordered A would change it completely).
+    assert reused.obj_val == pytest.approx(fresh.obj_val, rel=1e-6, abs=1e-9)
+    np.testing.assert_allclose(d_upd, d_new, atol=1e-3 * np.abs(d_new).max())
+    assert pb.loss(theta2 + d_upd) == pytest.approx(pb.loss(theta2 + d_new), rel=1e-6)
+
+
+@pytest.mark.parametrize("n,p,m,qsr", CASES)
+def test_fit_ico_monotone_and_every_iterate_certified(getkey, n, p, m, qsr):
+    windows = expert_windows(n + 2 * m, n, p, m)
+    iterates, lock = [], threading.Lock()
+
+    def callback(i, step, K, P, loss):
+        with lock:
+            iterates.append((i, step, K, P, loss))
+
+    res = dj.fit_ico(getkey(), windows, qsr, num_inits=3, max_steps=12, tol=1e-6,
+                     init_scale=0.5, callback=callback)
+    hist = np.asarray(res.loss_history)
+    assert hist.shape == (3, 13)
+    steps = np.asarray(res.steps)
+    for i in range(3):
+        h = hist[i, : steps[i] + 1]
+        assert np.all(np.isfinite(h)) and np.all(np.isnan(hist[i, steps[i] + 1:]))
+        assert np.all(np.diff(h) <= 0.0), h  # exact monotonicity of the true loss
+        assert h[-1] == pytest.approx(float(res.final_loss[i]))
+        assert h[-1] < h[0] - 1e-3  # it actually learns
+    assert len(iterates) == int(steps.sum()) + 3  # initial points + accepted steps
+    for i, step, K, P, loss in iterates:
+        assert loss == pytest.approx(float(dj.imitation_loss(K, windows)), rel=1e-10)
+        assert loss == pytest.approx(hist[i, step], rel=1e-12)
+        assert dj.certify(K, qsr, P=P).holds
+        assert independent_kyp_ok(K, qsr, P)
+    assert bool(jnp.all(res.certified))
+    for i in range(3):
+        K = jax.tree.map(lambda a: a[i], res.controllers)
+        assert dj.certify(K, qsr, P=res.P[i]).holds
+        assert dj.certify(K, qsr).holds  # a fresh, independent KYP SDP
+
+
+def test_ico_nc_reaches_lower_loss_than_ico(getkey):
+    windows = expert_windows(11, 2, 2, 2, N=20)
+    key = getkey()
+    res = dj.fit_ico(key, windows, dj.QSR.passive(2), num_inits=2, max_steps=40, tol=1e-5)
+    res_nc = dj.fit_ico_nc(key, windows, num_inits=2, max_steps=40, tol=1e-5)
+    assert res_nc.P is None and res_nc.certified is None
+    assert res_nc.loss_history.shape == (2, 41)
+    assert float(jnp.min(res_nc.final_loss)) <= float(jnp.min(res.final_loss)) + 1e-9
+    # The expert is not passive: the unconstrained fit is much better here.
+    assert float(jnp.min(res_nc.final_loss)) < 0.5 * float(jnp.min(res.final_loss))
+    # ICO-NC converges to a stationary point of the true loss.
+    K = jax.tree.map(lambda a: a[int(jnp.argmin(res_nc.final_loss))], res_nc.controllers)
+    grads = jax.grad(dj.imitation_loss)(K, windows)
+    gnorm = max(float(jnp.abs(g).max()) for g in jax.tree.leaves(grads))
+    assert gnorm < 1e-2
+
+
+def test_rejected_step_keeps_certified_iterate(getkey, monkeypatch):
+    """Solver inaccuracy guard: a step that raises the true loss is refused and the run stops."""
+    windows = expert_windows(5, 1, 1, 1)
+    qsr = dj.QSR.passive(1)
+    original = ICOSolver.solve
+    calls = []
+
+    def bad_solve(self, theta0, P_tilde, w_tilde, eps=None):
+        d, P, w, status, t = original(self, theta0, P_tilde, w_tilde, eps)
+        calls.append(1)
+        if len(calls) == 2:  # second step: pretend the solver returned a bad point
+            d = d - 5.0 * np.sign(d + 1e-3)
+        return d, P, w, status, t
+
+    monkeypatch.setattr(ICOSolver, "solve", bad_solve)
+    with pytest.warns(UserWarning, match="loss increased|not certified"):
+        res = dj.fit_ico(getkey(), windows, qsr, num_inits=1, max_steps=10, tol=0.0)
+    assert int(res.steps[0]) == 1 and not bool(res.converged[0])
+    assert bool(res.certified[0])
+    hist = np.asarray(res.loss_history[0])
+    assert np.isfinite(hist[1]) and np.all(np.isnan(hist[2:]))
+    assert float(res.final_loss[0]) == pytest.approx(hist[1])
+
+
+def test_bad_input(getkey):
+    windows3 = dj.Windows(np.zeros((4, 1)), np.ones((4, 3, 1)), np.ones((4, 3, 1)))
+    with pytest.raises(ValueError, match="`windows`.*h = 2"):
+        dj.fit_ico(getkey(), windows3, dj.QSR.passive(1))
+    with pytest.raises(ValueError, match="`windows`"):
+        dj.fit_ico_nc(getkey(), windows3)
+    windows = expert_windows(0, 1, 1, 1)
+    with pytest.raises(ValueError, match="`qsr`"):
+        dj.fit_ico(getkey(), windows, dj.QSR.passive(2))
+    with pytest.raises(ValueError, match="`qsr.Q`"):
+        dj.fit_ico(getkey(), windows, dj.QSR(1.0, 0.5, 0.0))
+    with pytest.raises(ValueError, match="fit_ico_nc"):
+        dj.fit_ico(getkey(), windows, None)
+
+
+def test_converged_flag_and_no_warning(getkey):
+    windows = expert_windows(2, 1, 1, 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = dj.fit_ico_nc(getkey(), windows, num_inits=2, max_steps=50, tol=1e-4)
+    assert bool(jnp.all(res.converged))
+    assert np.all(np.asarray(res.steps) < 50)
+    assert res.wall_time.shape == () and float(res.wall_time) > 0
+    assert isinstance(ico, object)
