@@ -5,15 +5,13 @@ import warnings
 
 import jax
 import jax.numpy as jnp
-import jax.random as jr
 import numpy as np
 import pytest
+from helpers import independent_kyp_ok
 
 import dissil_jax as dj
 from dissil_jax._train import _ico_sdp, ico
 from dissil_jax._train._ico_sdp import ICOProblem, ICOSolver
-
-from helpers import independent_kyp_ok
 
 NONLINEAR_QSR = dj.QSR(-29.867, 3.556, 0.601)  # the paper's nonlinear-example controller
 

@@ -6,11 +6,10 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import pytest
+from helpers import random_windows, tree_allclose
 
 import dissil_jax as dj
 from dissil_jax._train.mlp import _pairs, _train_one
-
-from helpers import random_windows, tree_allclose
 
 
 def test_mlp_controller_is_memoryless(getkey):

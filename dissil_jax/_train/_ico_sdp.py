@@ -1,58 +1,62 @@
 """The convex overbound SDP of one ICO iteration, assembled straight into Clarabel's format.
 
-Host-side float64 numpy only. One [`ICOProblem`][] per (windows, supply rate) holds the data
-and the fixed sparsity pattern (shared read-only by all threads); one `ICOSolver` per
+Host-side float64 numpy only. One `ICOProblem` per (windows, supply rate) holds the data and
+the fixed sparsity pattern (shared read-only by all threads); one `ICOSolver` per
 initialisation owns a Clarabel solver whose numbers are updated in place every iteration
 (`solver.update(q=..., A=..., b=...)`, DESIGN §2).
 
-## The SDP (two-step loss, paper Problem 17 / eq. 18, DESIGN §3)
+## The SDP (two-step loss, paper Problem 17 / 18, DESIGN §3)
 
-Write $\\theta = (A, B, C, D)$, the current iterate $\\theta_0$, the step $\\delta\\theta$, and per
-window $k$: $\\zeta_k = (\\hat x_{k,0}, \\hat u_{k,0})$, targets $t_{k,0}, t_{k,1}$ ($t = -u$),
-$z_k = A_0\\hat x_{k,0} + B_0\\hat u_{k,0}$, $\\delta z_k = [\\delta A\\ \\delta B]\\zeta_k$. The residuals
-(target minus prediction) are
+Write $\theta = (A, B, C, D)$, the current iterate $\theta_0$, the step $\delta\theta$ and,
+per window $k$, $\zeta_k = (\hat x_{k,0}, \hat u_{k,0})$, targets $t_{k,0}, t_{k,1}$
+($t = -u$), $z_k = A_0\hat x_{k,0} + B_0\hat u_{k,0}$, $\delta z_k = [\delta A\ \delta B]
+\zeta_k$. The residuals (target minus prediction) are $r_k(\delta)$ (step 0, affine) and
 
-$$r_k(\\delta) = t_{k,0} - (C\\hat x_{k,0} + D\\hat u_{k,0}) \\quad\\text{(affine)}, \\qquad
-e_k(\\delta) = \\bar e_k(\\delta) - \\delta C\\,\\delta z_k,$$
+$$e_k(\delta) = \bar e_k(\delta) - \delta C\,\delta z_k,\quad \bar e_k(\delta) = t_{k,1}
+- C_0 z_k - D_0\hat u_{k,1} - C_0\delta z_k - \delta C z_k - \delta D\hat u_{k,1}.$$
 
-$$\\bar e_k(\\delta) = t_{k,1} - C_0 z_k - D_0\\hat u_{k,1} - C_0\\delta z_k - \\delta C z_k -
-\\delta D\\hat u_{k,1} \\quad\\text{(affine)}.$$
+Young's relation with $W = wI$ (the device of paper Lemmas 5-7) gives, for every $v$,
+$-2v^\top\delta C\delta z \le w\,v^\top\delta C\delta C^\top v + \lVert\delta z\rVert^2/w$,
+hence (maximise $2e^\top v - \lVert v\rVert^2 = \lVert e\rVert^2$ over $v$)
 
-Young's relation with $W = wI$ (the device of paper Lemmas 5-7) gives for every $v$
-$-2v^\\top\\delta C\\delta z \\le w\\,v^\\top\\delta C\\delta C^\\top v + \\lVert\\delta z\\rVert^2/w$, hence
-$\\lVert e\\rVert^2 = \\max_v 2e^\\top v - \\lVert v\\rVert^2 \\le \\bar e^\\top (I - w\\,\\delta C\\delta
-C^\\top)^{-1}\\bar e + \\lVert\\delta z\\rVert^2/w$. This is the DESIGN §3 LMI
-$\\bigl[\\begin{smallmatrix}-s & \\bar e^\\top & 0 & \\delta z^\\top\\\\ \\bar e & -I & \\delta C & 0\\\\ 0 &
-\\delta C^\\top & -W^{-1} & 0\\\\ \\delta z & 0 & 0 & -W\\end{smallmatrix}\\bigr]\\preceq 0$ after Schur
-complements on its last two blocks. We keep the same bound but lift its pieces so each
-window costs a $(1+m)$-dimensional cone instead of $(1+m+2\\hat n)$:
+$$\lVert e\rVert^2 \le \bar e^\top (I - Y)^{-1}\bar e + \lVert\delta z\rVert^2/w
+\quad\text{for any}\quad Y \succeq w\,\delta C\delta C^\top,\ Y \prec I.$$
 
-- $Y \\succeq w\\,\\delta C\\delta C^\\top$, one shared LMI $\\bigl[\\begin{smallmatrix} Y & \\delta C\\\\
-  \\delta C^\\top & \\phi(w) I\\end{smallmatrix}\\bigr]\\succeq 0$ with $\\phi(w) = 2/\\tilde w - w/\\tilde
-  w^2 \\le 1/w$ (the paper's overbound $W^{-1}\\succeq 2\\tilde W - \\tilde W W\\tilde W$, written for
-  the inverse weight; scalar $W=wI$);
-- $\\sigma_k \\ge \\bar e_k^\\top (I - Y)^{-1}\\bar e_k$: the per-window LMI
-  $\\bigl[\\begin{smallmatrix}\\sigma_k & \\bar e_k^\\top\\\\ \\bar e_k & I - Y\\end{smallmatrix}\\bigr]\\succeq0$;
-- $\\sum_k\\lVert\\delta z_k\\rVert^2 / w = \\lVert[\\delta A\\ \\delta B] F\\rVert_F^2/w \\le \\tau$ with
-  $FF^\\top = \\sum_k\\zeta_k\\zeta_k^\\top$: one rotated second-order cone, size independent of $N$.
+This is the DESIGN §3 LMI $[[-s, \bar e^\top, 0, \delta z^\top], [\bar e, -I, \delta C, 0],
+[0, \delta C^\top, -W^{-1}, 0], [\delta z, 0, 0, -W]] \preceq 0$ after Schur complements
+on its last two blocks, with the pieces lifted so that each window costs one small cone:
 
-Minimising over $Y$ (the LMIs are monotone in $Y$) recovers exactly the per-window bound, so
-the SDP
+- one shared LMI $[[Y, \delta C], [\delta C^\top, \phi(w) I]] \succeq 0$ with
+  $\phi(w) = 2/\tilde w - w/\tilde w^2 \le 1/w$ (the paper's overbound
+  $W^{-1} \succeq 2\tilde W - \tilde W W\tilde W$ for the scalar weight);
+- per window either the rotated SOC $\lVert\bar e_k\rVert^2 \le \sigma_k (1 - y)$ with
+  $Y = yI$ (`window_cone="soc"`, default: $y \ge w\lVert\delta C\rVert_2^2$, identical
+  bound when $m = 1$) or the LMI $[[\sigma_k, \bar e_k^\top], [\bar e_k, I - Y]] \succeq 0$
+  with a full symmetric $Y$ (`"psd"`; minimising over $Y$ recovers exactly the
+  per-window DESIGN LMI because every window's LMI is monotone in $Y$);
+- $\sum_k\lVert\delta z_k\rVert^2/w = \lVert[\delta A\ \delta B]F\rVert_F^2/w \le \tau$ with
+  $FF^\top = \sum_k\zeta_k\zeta_k^\top$: one rotated SOC whose size does not grow with $N$.
 
-$$\\min\\ \\frac{1}{2N}\\Bigl(\\sum_k\\lVert r_k(\\delta)\\rVert^2 + \\tau + \\sum_k \\sigma_k\\Bigr) +
-\\tfrac{\\mu}{2}\\lVert\\delta\\theta\\rVert^2 + \\tfrac{\\nu}{2}\\lVert P - \\tilde P\\rVert^2
-\\quad\\text{s.t. the cones above and}\\quad \\mathcal M(\\theta_0+\\delta\\theta, P;\\tilde P)\\preceq
--\\varepsilon I$$
+The program is
 
-overbounds the true two-step loss $J(\\theta_0+\\delta\\theta)$ and equals $J(\\theta_0)$ at
-$\\delta = 0$ ($Y = 0$, $\\tau = 0$, $w = \\tilde w$, $\\sigma_k = \\lVert\\bar e_k(0)\\rVert^2$). The
-$\\sum_k\\lVert r_k\\rVert^2$ term is a plain quadratic with Hessian $I_m\\otimes\\sum_k\\zeta_k\\zeta_k^\\top$,
-so it adds no per-window variables at all. $\\mathcal M$ is the convexified KYP LMI of DESIGN §2
-(`ConvexifiedLMI`, paper Corollary 1 + Remark 1), affine in $\\theta_0 + \\delta\\theta$.
+$$\min\ \frac{1}{2N}\Bigl(\sum_k\lVert r_k(\delta)\rVert^2 + \tau + \sum_k\sigma_k\Bigr)
++ \frac{\mu}{2}\lVert\delta\theta\rVert^2 + \frac{\nu}{2}\lVert P - \tilde P\rVert^2$$
 
-Variable vector: $x = (\\delta\\theta, P_{\\text{triu}}, Y_{\\text{triu}}, w, \\tau, \\sigma_{1..N})$
-(no $P$ for ICO-NC). Cones, in order: KYP PSD (ICO only), the rotated SOC, the $Y$ PSD
-(size $m+\\hat n$), then $N$ PSD cones of size $1+m$.
+subject to the cones above and the convexified KYP LMI of DESIGN §2 (`ConvexifiedLMI`, paper
+Corollary 1 + Remark 1) at $\theta_0 + \delta\theta$, in its congruence form
+$\mathcal M \preceq -\varepsilon\,\mathrm{diag}(I, \tilde P^2)$ (i.e. the un-congruenced Schur
+form $\preceq -\varepsilon I$, so the new iterate has the same margin at the next
+linearisation point), and then balanced by the congruence
+$\mathrm{diag}(\tilde P^{-1/2}, I, I, \tilde P^{-1/2})$, which keeps Clarabel accurate when
+$P$ becomes ill-conditioned. The objective (without the proximal terms) overbounds the true
+two-step loss $J(\theta_0 + \delta\theta)$ and equals $J(\theta_0)$ at $\delta = 0$ with
+$Y = 0$, $\tau = 0$, $w = \tilde w$, $\sigma_k = \lVert\bar e_k(0)\rVert^2$. The step-0 term is
+a plain quadratic with Hessian $I_m\otimes\sum_k\zeta_k\zeta_k^\top$: no per-window variables.
+
+Variables: $x = (\delta\theta, P_{\text{triu}}, Y, w, \tau, \sigma_{1..N})$ (no $P$ for
+ICO-NC). Cones in order: KYP PSD (ICO only), the $\tau$ SOC, the $Y$ PSD (size
+$m + \hat n$), then $N$ window cones. Only the numbers of $q$, $A$ and $b$ change between
+iterations; the sparsity pattern is built once.
 """
 
 from __future__ import annotations
@@ -201,7 +205,8 @@ class ICOProblem:
         spec.append(("psd", dY))
 
         # -- (d) per window: psd [[sigma_k, ebar_k^T], [ebar_k, I - Y]] >= 0, or (Y = y I)
-        #    the rotated SOC ||ebar_k||^2 <= sigma_k (1 - y): ||(2 ebar, sigma - 1 + y)|| <= sigma + 1 - y
+        #    the rotated SOC ||ebar_k||^2 <= sigma_k (1 - y), i.e.
+        #    ||(2 ebar, sigma - 1 + y)|| <= sigma + 1 - y
         self.win_row0 = row0
         Lw = m + 2 if soc else _svec_len(1 + m)
         self.Lw = Lw
@@ -297,7 +302,10 @@ class ICOProblem:
     BALANCE = True
 
     def _kyp_blocks(self, P_tilde):
-        """`(M0, J, E)`: the convexified KYP LMI $M_0 + \\sum_k x_k J_k \\preceq -\\varepsilon E$."""
+        """`(M0, J, E)` of the convexified KYP LMI $M_0 + \\sum_k x_k J_k \\preceq -\\varepsilon E$.
+
+        Balanced (see the module docstring) when `BALANCE` is True.
+        """
         n = self.n
         P_tilde = np.asarray(P_tilde, np.float64)
         M0, J = self.lmi.blocks(P_tilde)
@@ -314,7 +322,8 @@ class ICOProblem:
         return M0, J, E
 
     def kyp_margin(self, theta, P) -> float:
-        """Margin $\\mu$ of δ = 0 at $\\tilde P = P$: $\\mathcal M \\preceq -\\mu\\,\\mathrm{diag}(I, P^2)$.
+        """Margin $\\mu$ of δ = 0 at $\\tilde P = P$:
+        $\\mathcal M \\preceq -\\mu\\,\\mathrm{diag}(I, P^2)$.
 
         Equivalently $-\\lambda_{\\max}$ of the un-congruenced Schur form of the KYP LMI.
         """
@@ -401,7 +410,7 @@ class ICOProblem:
 
     def feasible_point(self, dtheta, w, P, theta0, w_tilde):
         """The cheapest feasible $(Y, \\tau, \\sigma)$ for a given step: tests of the bound."""
-        n, m = self.n, self.m
+        m = self.m
         dA, dB, dC, dD = self.mats(dtheta)
         A0, B0, C0, D0 = self.mats(theta0)
         phi = 2.0 / w_tilde - w / w_tilde**2

@@ -58,8 +58,8 @@ def _cast(x, dtype):
 
 
 def _young_scale(pb: ICOProblem, theta) -> float:
-    """$\\lVert z\\rVert / (\\lVert C\\rVert\\lVert e\\rVert)$: balances the two Young terms when the
-    step moves $C$ and $z = A\\hat x_0 + B\\hat u_0$ by the same relative amount."""
+    """$\\lVert z\\rVert / (\\lVert C\\rVert\\lVert e\\rVert)$: balances the two Young terms
+    when the step moves $C$ and $z = A\\hat x_0 + B\\hat u_0$ by the same relative amount."""
     A, B, C, D = pb.mats(theta)
     z = pb.x0 @ A.T + pb.u0 @ B.T
     e = pb.t1 - z @ C.T - pb.u1 @ D.T
@@ -205,19 +205,20 @@ def fit_ico(
 
     **The overbound.** The step-0 residual is affine in $\\delta\\theta$; its square enters the
     objective as a quadratic. The step-1 residual is $e = \\bar e(\\delta) - \\delta C\\,\\delta z$
-    with $\\bar e$ affine and $\\delta z = \\delta A\\hat x_0 + \\delta B\\hat u_0$; Young's relation
-    with $W = wI$ (paper Lemmas 5-7) gives
+    with $\\bar e$ affine and $\\delta z = \\delta A\\hat x_0 + \\delta B\\hat u_0$; Young's
+    relation with $W = wI$ (paper Lemmas 5-7) gives
 
-    $$\\lVert e\\rVert^2 \\le \\frac{\\lVert\\bar e\\rVert^2}{1 - y} + \\frac{\\lVert\\delta z\\rVert^2}{w},
-    \\qquad y \\ge w\\lVert\\delta C\\rVert_2^2,$$
+    $$\\lVert e\\rVert^2 \\le \\frac{\\lVert\\bar e\\rVert^2}{1 - y}
+    + \\frac{\\lVert\\delta z\\rVert^2}{w}, \\qquad y \\ge w\\lVert\\delta C\\rVert_2^2,$$
 
     one rotated second-order cone per window (cost linear in $N$), one shared LMI
     $\\bigl[\\begin{smallmatrix} yI & \\delta C\\\\ \\delta C^\\top & (2/\\tilde w - w/\\tilde w^2)I
-    \\end{smallmatrix}\\bigr]\\succeq 0$ and one cone for $\\sum_k\\lVert\\delta z_k\\rVert^2/w$ (see
-    `dissil_jax/_train/_ico_sdp.py` for the derivation). This is DESIGN §3's compact bound with
-    $\\delta C\\delta C^\\top$ replaced by $\\lVert\\delta C\\rVert_2^2 I$ (identical when $m = 1$; with
-    `window_cone="psd"` the exact per-window matrix form is used, about 1.5x slower per
-    iteration for $m = 3$ and no better in our runs). Unlike the paper's term-by-term
+    \\end{smallmatrix}\\bigr]\\succeq 0$ and one cone for
+    $\\sum_k\\lVert\\delta z_k\\rVert^2/w$ (derivation in `dissil_jax/_train/_ico_sdp.py`).
+    This is DESIGN §3's compact bound with $\\delta C\\delta C^\\top$ replaced by
+    $\\lVert\\delta C\\rVert_2^2 I$ (identical when $m = 1$). With `window_cone="psd"` the
+    exact per-window matrix form is used instead: about 1.5x slower per iteration for
+    $m = 3$ and no better in our runs. Unlike the paper's term-by-term
     Lemmas 4-7 it needs one small cone per window instead of seven LMIs.
 
     **The Young weight.** As in the paper, $w$ is a decision variable and $1/w$ (the
@@ -225,12 +226,12 @@ def fit_ico(
     $w\\in(0, 2\\tilde w]$ and the bound is exact for any $\\tilde w$ at $\\delta = 0$. The first
     $\\tilde w$ balances the two Young terms for a step that moves $C$ and
     $z = A\\hat x_0 + B\\hat u_0$ by the same relative amount,
-    $\\tilde w_0 = \\lVert z\\rVert/(\\lVert C\\rVert\\lVert e\\rVert)$; afterwards $\\tilde w$ is the
-    previous optimal $w$, clipped to $[\\tilde w/4, 2\\tilde w]$ and to $10^{\\pm4}\\tilde w_0$
+    $\\tilde w_0 = \\lVert z\\rVert/(\\lVert C\\rVert\\lVert e\\rVert)$; afterwards $\\tilde w$ is
+    the previous optimal $w$, clipped to $[\\tilde w/4, 2\\tilde w]$ and to $10^{\\pm4}\\tilde w_0$
     (so it cannot collapse when one step happens not to move $A, B$).
 
-    **Safeguards.** A tiny proximal term $\\frac{\\mu}{2}\\lVert\\delta\\theta\\rVert^2$ (`prox`) keeps
-    the step unique when the data do not determine every parameter (few windows); it can only
+    **Safeguards.** A small proximal term $\\frac{\\mu}{2}\\lVert\\delta\\theta\\rVert^2$ (`prox`)
+    keeps the step unique when the data do not determine every parameter (few windows); it can only
     lower the objective at the optimum below $J(\\theta_i)$, so monotonicity is kept. After
     every solve the new iterate is re-evaluated in float64 (after rounding to the data's
     dtype): the step is accepted only if the true loss did not increase and the exact KYP
