@@ -103,8 +103,8 @@ def certify(K: LTIController, qsr: QSR, *, P=None, tol: float = VERIFY_RTOL) -> 
 
 
 def _verdict(A, B, C, D, qsr, P, tol, status) -> Certificate:
-    margin = kyp_margin(A, B, C, D, qsr, P)
-    holds = bool(margin > tol * kyp_scale(A, B, C, D, qsr, P))
+    margin = float(kyp_margin(A, B, C, D, qsr, P))
+    holds = bool(margin > tol * float(kyp_scale(A, B, C, D, qsr, P)))
     return Certificate(holds, P, margin, status)
 
 

@@ -10,25 +10,41 @@ import numpy as np
 from ._supply import QSR
 
 
+def _T(M):
+    return np.swapaxes(M, -1, -2)
+
+
 def kyp_matrix(A, B, C, D, qsr: QSR, P) -> np.ndarray:
     """The discrete KYP matrix of paper Lemma 2 (float64); $K$ is dissipative iff it is $\\preceq 0$.
 
     $$\\begin{bmatrix} A^\\top PA - P - C^\\top QC & A^\\top PB - C^\\top S - C^\\top QD \\\\
     \\ast & B^\\top PB - D^\\top QD - D^\\top S - S^\\top D - R\\end{bmatrix}$$
+
+    Accepts stacks of controllers (leading batch axes on every matrix).
     """
     A, B, C, D, P = (np.asarray(M, np.float64) for M in (A, B, C, D, P))
     Q, S, R = qsr.Q, qsr.S, qsr.R
-    top = np.hstack([A.T @ P @ A - P - C.T @ Q @ C, A.T @ P @ B - C.T @ S - C.T @ Q @ D])
-    bot = B.T @ P @ B - D.T @ Q @ D - D.T @ S - S.T @ D - R
-    M = np.vstack([top, np.hstack([top[:, A.shape[0]:].T, bot])])
-    return (M + M.T) / 2
+    PA, PB = P @ A, P @ B
+    M11 = _T(A) @ PA - P - _T(C) @ Q @ C
+    M12 = _T(A) @ PB - _T(C) @ (S + Q @ D)
+    M22 = _T(B) @ PB - _T(D) @ Q @ D - _T(D) @ S - S.T @ D - R
+    M = np.concatenate([np.concatenate([M11, M12], -1), np.concatenate([_T(M12), M22], -1)], -2)
+    return (M + _T(M)) / 2
 
 
-def kyp_scale(A, B, C, D, qsr: QSR, P) -> float:
-    """A magnitude for relative tolerances on the KYP matrix (sum of the terms' sizes)."""
-    norms = [np.linalg.norm(np.asarray(M, np.float64), 2) for M in (A, B, C, D, P)]
-    nA, nB, nC, nD, nP = norms
-    q, s, r = (np.linalg.norm(M, 2) for M in (qsr.Q, qsr.S, qsr.R))
+def _fro(M) -> np.ndarray:
+    M = np.asarray(M, np.float64)
+    return np.sqrt(np.sum(M * M, axis=(-2, -1)))
+
+
+def kyp_scale(A, B, C, D, qsr: QSR, P):
+    """A magnitude for relative tolerances on the KYP matrix (batched like the inputs).
+
+    Built from Frobenius norms (upper bounds of spectral norms, cheap on the hot path), so
+    the allowance it scales can only be stricter than one built from spectral norms.
+    """
+    nA, nB, nC, nD, nP = (_fro(M) for M in (A, B, C, D, P))
+    q, s, r = (_fro(M) for M in (qsr.Q, qsr.S, qsr.R))
     return 1.0 + nP * (1 + (nA + nB) ** 2) + q * (nC + nD) ** 2 + 2 * s * (nC + nD) + r
 
 
@@ -36,23 +52,24 @@ def kyp_scale(A, B, C, D, qsr: QSR, P) -> float:
 VERIFY_RTOL = 1e-11
 
 
-def kyp_margin(A, B, C, D, qsr: QSR, P) -> float:
-    """$-\\lambda_{\\max}$ of the KYP matrix, capped by $\\lambda_{\\min}(P)$.
+def kyp_margin(A, B, C, D, qsr: QSR, P):
+    """$\\min(-\\lambda_{\\max}(\\mathrm{KYP}(P)), \\lambda_{\\min}(P))$ (batched like the inputs).
 
     Positive means certified (up to `VERIFY_RTOL` round-off, see `kyp_certified`).
     """
     P = np.asarray(P, np.float64)
-    lam = np.linalg.eigvalsh(kyp_matrix(A, B, C, D, qsr, P))[-1]
-    return float(min(-lam, np.linalg.eigvalsh((P + P.T) / 2)[0]))
+    lam = np.linalg.eigvalsh(kyp_matrix(A, B, C, D, qsr, P))[..., -1]
+    return np.minimum(-lam, np.linalg.eigvalsh((P + _T(P)) / 2)[..., 0])
 
 
-def kyp_certified(A, B, C, D, qsr: QSR, P) -> bool:
-    """Exact float64 check: $P\\succ0$ and KYP$(P)\\prec 0$ beyond round-off."""
-    P = np.asarray(P, np.float64)
-    if not (np.all(np.isfinite(P)) and all(np.all(np.isfinite(M)) for M in (A, B, C, D))):
-        return False
-    tol = VERIFY_RTOL * kyp_scale(A, B, C, D, qsr, P)
-    return kyp_margin(A, B, C, D, qsr, P) > tol
+def kyp_certified(A, B, C, D, qsr: QSR, P):
+    """Exact float64 check: $P\\succ0$ and KYP$(P)\\prec 0$ beyond round-off (batched)."""
+    mats = [np.asarray(M, np.float64) for M in (A, B, C, D, P)]
+    finite = np.all([np.all(np.isfinite(M), axis=(-2, -1)) for M in mats], axis=0)
+    safe = [np.where(finite[..., None, None], M, 0.0) for M in mats]
+    ok = kyp_margin(*safe[:4], qsr, safe[4]) > VERIFY_RTOL * kyp_scale(*safe[:4], qsr, safe[4])
+    ok = ok & finite
+    return bool(ok) if np.ndim(ok) == 0 else ok
 
 
 def svec_indices(N: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

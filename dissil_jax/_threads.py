@@ -7,17 +7,23 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 
 _POOL: ThreadPoolExecutor | None = None
+_CONTROLLER = None
 
 
 @contextlib.contextmanager
 def single_threaded_blas():
-    """Limit BLAS to one thread: threaded BLAS slows Clarabel's small dense cones badly."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - threadpoolctl is a dependency
-        yield
-        return
-    with threadpool_limits(limits=1, user_api="blas"):
+    """Limit BLAS to one thread: threaded BLAS slows Clarabel's small dense cones badly.
+
+    The threadpoolctl controller is built once (building it scans the loaded libraries,
+    about 2 ms, which would dominate a small projection).
+    """
+    global _CONTROLLER
+    if _CONTROLLER is None:
+        import clarabel  # noqa: F401  (load the solver's libraries before the scan)
+        from threadpoolctl import ThreadpoolController
+
+        _CONTROLLER = ThreadpoolController()
+    with _CONTROLLER.limit(limits=1, user_api="blas"):
         yield
 
 

@@ -1,0 +1,42 @@
+"""cvxpy references for the benchmarks: the same convexified projection, built in cvxpy."""
+
+import cvxpy as cp
+import numpy as np
+
+
+def cvxpy_projection_problem(qsr, n, eps=1e-6, reg=1e-6):
+    """A DPP-parametrised cvxpy problem of paper eq. 13 (target and P~ are Parameters)."""
+    m, p = qsr.S.shape
+    L = qsr.neg_q_factor()
+    r = L.shape[1]
+    A, B = cp.Variable((n, n)), cp.Variable((n, p))
+    C, D = cp.Variable((m, n)), cp.Variable((m, p))
+    P = cp.Variable((n, n), symmetric=True)
+    tA, tB = cp.Parameter((n, n)), cp.Parameter((n, p))
+    tC, tD = cp.Parameter((m, n)), cp.Parameter((m, p))
+    Pt = cp.Parameter((n, n), symmetric=True)
+    S, R = qsr.S, qsr.R
+    Dblk = -D.T @ S - S.T @ D - R
+    if r:
+        blocks = [
+            [-P, -C.T @ S, C.T @ L, (Pt @ A).T],
+            [-(C.T @ S).T, Dblk, D.T @ L, (Pt @ B).T],
+            [(C.T @ L).T, (D.T @ L).T, -np.eye(r), np.zeros((r, n))],
+            [Pt @ A, Pt @ B, np.zeros((n, r)), P - 2 * Pt],
+        ]
+    else:
+        blocks = [[-P, -C.T @ S, (Pt @ A).T], [-(C.T @ S).T, Dblk, (Pt @ B).T],
+                  [Pt @ A, Pt @ B, P - 2 * Pt]]
+    M = cp.bmat(blocks)
+    N = M.shape[0]
+    obj = (cp.sum_squares(A - tA) + cp.sum_squares(B - tB) + cp.sum_squares(C - tC)
+           + cp.sum_squares(D - tD) + reg * cp.sum_squares(P - Pt))
+    prob = cp.Problem(cp.Minimize(obj), [(M + M.T) / 2 << -eps * np.eye(N)])
+    return prob, (tA, tB, tC, tD, Pt), (A, B, C, D, P)
+
+
+def solve_reference(prob, params, variables, K, P_ref):
+    for par, val in zip(params, (*K, P_ref)):
+        par.value = np.asarray(val, np.float64)
+    prob.solve(solver=cp.CLARABEL)
+    return tuple(v.value for v in variables)
