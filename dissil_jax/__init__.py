@@ -29,6 +29,16 @@ from ._train.pgd import fit_gd as fit_gd, fit_pgd as fit_pgd, pgd_run as pgd_run
 from ._train.result import FitResult as FitResult
 
 # --- issue 3: systems, experts, evaluation, plant QSR ---
+from . import experts as experts, systems as systems
+from ._plant_qsr import (
+    input_passivity_qsr as input_passivity_qsr,
+    lti_cone_qsr as lti_cone_qsr,
+    output_passivity_qsr as output_passivity_qsr,
+    passivity_indices as passivity_indices,
+    sector_lemma_matrix as sector_lemma_matrix,
+    sector_plant_qsr as sector_plant_qsr,
+)
+from .systems import LinearPlant as LinearPlant, SectorPlant as SectorPlant
 
 # --- issue 4: ICO, ICO-NC, MLP ---
 from ._train.ico import fit_ico as fit_ico, fit_ico_nc as fit_ico_nc

@@ -1,0 +1,26 @@
+"""The paper's experiment protocols: demonstrations, closed-loop simulation, metrics (paper §5)."""
+
+from .data import (
+    demonstration_windows as demonstration_windows,
+    demonstrations as demonstrations,
+    initial_segments as initial_segments,
+    sliding_windows as sliding_windows,
+    windows_per_trajectory as windows_per_trajectory,
+)
+from .metrics import (
+    Evaluation as Evaluation,
+    Summary as Summary,
+    evaluate as evaluate,
+    lti_closed_loop_matrix as lti_closed_loop_matrix,
+    lti_spectral_radius as lti_spectral_radius,
+    rule_stable as rule_stable,
+    state_mse as state_mse,
+    summarize as summarize,
+)
+from .simulate import (
+    Noise as Noise,
+    Trajectories as Trajectories,
+    sample_noise as sample_noise,
+    simulate_controllers as simulate_controllers,
+    simulate_expert as simulate_expert,
+)
