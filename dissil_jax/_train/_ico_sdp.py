@@ -1,4 +1,4 @@
-"""The convex overbound SDP of one ICO iteration, assembled straight into Clarabel's format.
+r"""The convex overbound SDP of one ICO iteration, assembled straight into Clarabel's format.
 
 Host-side float64 numpy only. One `ICOProblem` per (windows, supply rate) holds the data and
 the fixed sparsity pattern (shared read-only by all threads); one `ICOSolver` per
