@@ -1,0 +1,148 @@
+"""The paper's experiment protocol (§5): one configuration = (example, data, method, N).
+
+A configuration trains `inits` controllers per plant on N expert windows, tests every
+controller in closed loop against the expert from the same test states and noise, and
+aggregates the paper's metrics. Training and test data depend only on the seed, the
+example, the data regime, N and the plant index, so every method sees the same data.
+
+Choices the paper leaves open (see `docs/problems.md`) are collected in `ExampleSpec`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import jax
+import jax.random as jr
+import numpy as np
+
+from .._supply import QSR
+from .data import REGIMES, demonstration_windows
+from .metrics import _quantiles as _q, evaluate
+
+METHODS = ("ico", "ico_nc", "pgd", "gd", "mlp")
+EXAMPLES = ("linear", "nonlinear")
+METHOD_LABELS = {"ico": "ICO", "ico_nc": "ICO-NC", "pgd": "PGD", "gd": "GD", "mlp": "GD+NN"}
+
+
+@dataclasses.dataclass(frozen=True)
+class ExampleSpec:
+    """Everything that defines one of the paper's two problems."""
+
+    name: str
+    qsr: QSR  # the controller's supply rate
+    num_plants: int  # paper: 10 random chains (linear), 1 (nonlinear)
+    train_std: float  # x0 ~ N(0, train_std^2) for demonstrations
+    test_std: float  # x0 ~ N(0, test_std^2) for testing
+    num_test: int  # test initial states per plant
+    test_steps: int  # closed-loop test horizon
+    tol: float  # stopping rule |dJ| < tol (paper: 1e-3 linear, 1e-5 nonlinear)
+    max_steps: int  # paper: 150
+    hidden: tuple[int, ...]  # MLP baseline widths (paper: 3 x 150 linear, 3 x 25 nonlinear)
+    pgd_learning_rate: float
+    pgd_decay: float
+    init_scale: float
+
+
+def example_spec(name: str, quick: bool = False) -> ExampleSpec:
+    """The paper's settings for `name` in {"linear", "nonlinear"}; `quick` shrinks sizes."""
+    if name == "linear":
+        spec = ExampleSpec(
+            name="linear", qsr=QSR.passive(3), num_plants=10, train_std=1.0, test_std=20.0,
+            num_test=100, test_steps=100, tol=1e-3, max_steps=150, hidden=(150, 150, 150),
+            pgd_learning_rate=0.1, pgd_decay=0.99, init_scale=0.1,
+        )
+    elif name == "nonlinear":
+        spec = ExampleSpec(
+            name="nonlinear", qsr=QSR(-29.867, 3.556, 0.601), num_plants=1, train_std=5.0,
+            test_std=15.0, num_test=1000, test_steps=30, tol=1e-5, max_steps=150,
+            hidden=(25, 25, 25), pgd_learning_rate=2e-3, pgd_decay=0.99, init_scale=0.1,
+        )
+    else:
+        raise ValueError(f"`example` must be one of {EXAMPLES}, got {name!r}.")
+    if quick:
+        spec = dataclasses.replace(spec, num_plants=min(spec.num_plants, 2),
+                                   num_test=min(spec.num_test, 50), max_steps=30)
+    return spec
+
+
+def make_problem(spec: ExampleSpec, plant_index: int, seed: int):
+    """(plant, expert) number `plant_index` of the example (deterministic in the seed)."""
+    from ..experts import lqr_expert, nmpc_expert
+    from ..systems import mass_spring_chain, paper_nonlinear_plant
+
+    if spec.name == "linear":
+        chain = mass_spring_chain(jr.fold_in(jr.PRNGKey(seed), 1000 + plant_index))
+        return chain.plant, lqr_expert(chain.Ac, chain.Bc, chain.Cc)
+    plant = paper_nonlinear_plant()
+    return plant, nmpc_expert(plant)
+
+
+def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
+    """Train `inits` controllers with `method` using the example's hyperparameters."""
+    import dissil_jax as dj
+
+    common = dict(num_inits=inits, max_steps=spec.max_steps, tol=spec.tol)
+    if method == "pgd":
+        return dj.fit_pgd(key, windows, spec.qsr, learning_rate=spec.pgd_learning_rate,
+                          decay=spec.pgd_decay, init_scale=spec.init_scale, **common)
+    if method == "gd":
+        return dj.fit_gd(key, windows, learning_rate=spec.pgd_learning_rate,
+                         decay=spec.pgd_decay, init_scale=spec.init_scale, **common)
+    if method == "ico":
+        return dj.fit_ico(key, windows, spec.qsr, init_scale=spec.init_scale, **common)
+    if method == "ico_nc":
+        return dj.fit_ico_nc(key, windows, init_scale=spec.init_scale, **common)
+    if method == "mlp":
+        return dj.fit_mlp(key, windows, hidden=spec.hidden, num_inits=inits)
+    raise ValueError(f"`method` must be one of {METHODS}, got {method!r}.")
+
+
+def _quantiles(values: np.ndarray) -> dict:
+    mn, q1, med, q3, mx = _q(values, (0.0, 0.25, 0.5, 0.75, 1.0))
+    return dict(mse_min=mn, mse_q1=q1, mse_median=med, mse_q3=q3, mse_max=mx)
+
+
+def run_config(example: str, data: str, method: str, segments: int, *, inits: int,
+               seed: int = 0, quick: bool = False, spec: ExampleSpec | None = None) -> dict:
+    """Run one configuration and return its summary record (see `summary.json`)."""
+    if data not in REGIMES:
+        raise ValueError(f"`data` must be one of {REGIMES}, got {data!r}.")
+    spec = spec or example_spec(example, quick)
+    mse, stable, pcc, certified = [], [], [], []
+    train_time = 0.0
+    for i in range(spec.num_plants):
+        plant, expert = make_problem(spec, i, seed)
+        base = jr.fold_in(jr.PRNGKey(seed), i)
+        k_data, k_fit, k_test, k_noise = jr.split(base, 4)
+        k_data = jr.fold_in(k_data, segments * 2 + REGIMES.index(data))
+        windows = demonstration_windows(k_data, plant, expert, segments, data,
+                                        x0_std=spec.train_std)
+        t = time.perf_counter()
+        res = fit(method, k_fit, windows, spec, inits)
+        jax.block_until_ready(res.final_loss)
+        train_time += time.perf_counter() - t
+        x0 = spec.test_std * jr.normal(k_test, (spec.num_test, plant.n_state), windows.y.dtype)
+        ev = evaluate(k_noise, plant, expert, res.controllers, x0, spec.test_steps)
+        mse.append(np.asarray(ev.mse))
+        stable.append(np.asarray(ev.stable, bool))
+        pcc.append(np.asarray(res.percent_change_cost))
+        if res.certified is not None:
+            certified.append(np.asarray(res.certified, bool))
+    mse, stable = np.concatenate(mse), np.concatenate(stable)
+    n_ctrl = len(mse)
+    record = dict(
+        example=example, data=data, method=method, segments=int(segments), inits=int(inits),
+        plants=spec.num_plants, controllers=n_ctrl, seed=int(seed), quick=bool(quick),
+        percent_stable=100.0 * float(stable.mean()),
+        percent_change_cost=float(np.nanmean(np.concatenate(pcc))),
+        train_time_s=train_time / n_ctrl,
+        certified=None if not certified else bool(np.concatenate(certified).all()),
+        **{k: float(v) for k, v in _quantiles(mse).items()},
+    )
+    return record
+
+
+__all__ = ["METHODS", "EXAMPLES", "METHOD_LABELS", "ExampleSpec", "example_spec",
+           "make_problem", "fit", "run_config"]
