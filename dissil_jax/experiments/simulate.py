@@ -25,6 +25,7 @@ import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._controller import LTIController
+from ..experts._linalg import solve
 
 PLANT_NOISE = 0.04
 CONTROL_NOISE = 0.02
@@ -158,7 +159,7 @@ def _loop_input(plant, controller, x, xhat, e, iterations: int, tol: float):
 
     u = e - controller(xhat, plant.output(x, jnp.zeros_like(e)))[1]
     for _ in range(iterations):
-        u = u - jnp.linalg.solve(jax.jacfwd(g)(u), g(u))
+        u = u - solve(jax.jacfwd(g)(u), g(u))
     ok = jnp.linalg.norm(g(u)) <= tol * (1 + jnp.linalg.norm(u) + jnp.linalg.norm(e))
     return jnp.where(ok, u, jnp.nan)
 

@@ -9,6 +9,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from ._linalg import spd_solve
+
 # Step sizes tried in parallel by the backtracking line search (vectorised, so the
 # Newton loop stays one `while_loop` under vmap).
 _LINE_SEARCH_STEPS = 16
@@ -113,10 +115,9 @@ class NMPCExpert(eqx.Module):
             # by its Frobenius norm, which makes it positive definite: a descent direction.
             eye = jnp.eye(Hv.shape[0], dtype=dtype)
             shift = self.hess_floor * jnp.maximum(jnp.linalg.norm(Hv), 1.0)
-            L = jnp.linalg.cholesky(Hv + shift * eye)
-            bad = ~jnp.all(jnp.isfinite(L))
-            L = jnp.where(bad, jnp.linalg.cholesky(Hv + (jnp.linalg.norm(Hv) + shift) * eye), L)
-            d = -jax.scipy.linalg.cho_solve((L, True), g)
+            d = -spd_solve(Hv + shift * eye, g)
+            bad = ~jnp.all(jnp.isfinite(d))
+            d = jnp.where(bad, -spd_solve(Hv + (jnp.linalg.norm(Hv) + shift) * eye, g), d)
             cand = v[None] + steps[:, None] * d[None]
             Jc = jax.vmap(J)(cand)
             # Near the optimum the predicted decrease falls below the round-off of J;

@@ -88,7 +88,7 @@ def mass_spring_chain(
     - `method`: python-control discretisation method.
     - `check_passive`: certify the discrete plant passive with
       [`certify`][dissil_jax.certify] (the KYP SDP of paper Lemma 2 with $Q=0$,
-      $S=\tfrac12 I$, $R=0$, applied to the plant $u\mapsto y$) and raise if it is not.
+      $S=\\tfrac12 I$, $R=0$, applied to the plant $u\\mapsto y$) and raise if it is not.
 
     **Returns:** a [`MassSpringChain`][dissil_jax.systems.MassSpringChain].
 
