@@ -1,0 +1,187 @@
+"""Reports of a set of configuration records: the paper's tables and figures, ours beside theirs."""
+
+from __future__ import annotations
+
+import json
+import math
+import pathlib
+
+import numpy as np
+
+from ._paper import FIGURES, SEGMENTS, TABLES
+from .protocol import METHOD_LABELS, METHODS
+
+_COLORS = {"ico": "#0047ab", "ico_nc": "#00bfff", "pgd": "#ff4000", "gd": "#ffa600",
+           "mlp": "#c05fa8"}
+_DATA_TITLES = {"initial": "Initial segments", "sliding": "Sliding window"}
+
+
+def _key(r: dict):
+    return (r["example"], r["data"], r["method"], int(r["segments"]))
+
+
+def load_records(path: pathlib.Path) -> list[dict]:
+    """Records of `summary.json` in `path` (empty when absent)."""
+    f = pathlib.Path(path) / "summary.json"
+    return json.loads(f.read_text()) if f.exists() else []
+
+
+def merge_records(old: list[dict], new: list[dict]) -> list[dict]:
+    """New records replace old ones of the same (example, data, method, segments)."""
+    merged = {_key(r): r for r in old}
+    merged.update({_key(r): r for r in new})
+    return sorted(merged.values(), key=lambda r: (r["example"], r["data"],
+                                                  METHODS.index(r["method"]), r["segments"]))
+
+
+def _fmt(x, kind: str) -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "–"
+    if isinstance(x, float) and math.isinf(x):
+        return "∞"
+    if kind == "pct":
+        return f"{x:.0f}"
+    if kind == "chg":
+        return f"{x:.2f}"
+    if kind == "time":
+        return f"{x:.3g}"
+    return f"{x:.3g}"
+
+
+def tables_markdown(records: list[dict]) -> str:
+    """The paper's Tables 1-4 layout, one table per (example, data) present in `records`.
+
+    Each cell reads `ours (paper)`; the paper's numbers come from its LaTeX source. A
+    second table per configuration gives the test-MSE statistics of Figures 1-6, with the
+    paper's median read from its figure data.
+    """
+    out = ["# Results", "",
+           "Each cell: **ours** (paper). Percent stable counts controllers whose closed loop "
+           "is stable in testing; percent change in cost is the mean relative change of the "
+           "training loss; training time is wall seconds per controller (ours: 2 CPU cores, "
+           "all initialisations of a configuration trained together). Test MSE: plant-state "
+           "MSE against the expert from the same test states and noise; unstable controllers "
+           "count as ∞.", ""]
+    groups = sorted({(r["example"], r["data"]) for r in records},
+                    key=lambda k: (k[0] != "linear", k[1] != "initial"))
+    for example, data in groups:
+        rows = [r for r in records if r["example"] == example and r["data"] == data]
+        segs = sorted({r["segments"] for r in rows})
+        methods = [m for m in METHODS if any(r["method"] == m for r in rows)]
+        by = {(r["method"], r["segments"]): r for r in rows}
+        paper = TABLES.get((example, data), {})
+        pseg = SEGMENTS[example]
+        out += [f"## {example.capitalize()} example — {_DATA_TITLES[data].lower()}", ""]
+        head = "| method | " + " | ".join(
+            f"{name} N={s}" for name in ("% stable", "% change in cost", "train time (s)")
+            for s in segs) + " |"
+        out += [head, "|" + " --- |" * (1 + 3 * len(segs))]
+        for m in methods:
+            cells = []
+            for field, idx, kind in (("percent_stable", 0, "pct"),
+                                     ("percent_change_cost", 1, "chg"),
+                                     ("train_time_s", 2, "time")):
+                for s in segs:
+                    r = by.get((m, s))
+                    ours = _fmt(r[field], kind) if r else "–"
+                    p = (paper[m][idx][pseg.index(s)]
+                         if m in paper and s in pseg else None)
+                    cells.append(f"**{ours}** ({_fmt(p, kind)})")
+            out.append(f"| {METHOD_LABELS[m]} | " + " | ".join(cells) + " |")
+        out += ["", f"Test MSE ({example}, {_DATA_TITLES[data].lower()}): median (paper's "
+                "median), quartiles and worst controller.", ""]
+        out += ["| method | N | median | paper median | q1 | q3 | max | paper max |",
+                "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+        pmed = dict(FIGURES.get((example, data, "median"), {}))
+        pmax = dict(FIGURES.get((example, data, "max"), {}))
+        for m in methods:
+            for s in segs:
+                r = by.get((m, s))
+                if r is None:
+                    continue
+                pm = dict(pmed.get(m, ())).get(s)
+                px = dict(pmax.get(m, ())).get(s)
+                out.append(f"| {METHOD_LABELS[m]} | {s} | **{_fmt(r['mse_median'], 'g')}** | "
+                           f"{_fmt(pm, 'g')} | {_fmt(r['mse_q1'], 'g')} | "
+                           f"{_fmt(r['mse_q3'], 'g')} | {_fmt(r['mse_max'], 'g')} | "
+                           f"{_fmt(px, 'g')} |")
+        out.append("")
+    return "\n".join(out)
+
+
+def _finite_or_ceiling(values, ceiling):
+    v = np.asarray(values, np.float64)
+    return np.where(np.isfinite(v), v, ceiling), ~np.isfinite(v)
+
+
+def plot_figures(records: list[dict], out_dir: pathlib.Path) -> list[pathlib.Path]:
+    """Figures 1-6 of the paper: median, worst and quartile test MSE against N.
+
+    One PNG per (example, statistic), one panel per data regime; solid lines are ours,
+    dashed lines the paper's (read from its figure data); unstable (infinite) values are
+    drawn as crosses on the top edge of the panel.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = pathlib.Path(out_dir)
+    paths = []
+    for example in sorted({r["example"] for r in records}):
+        datas = [d for d in ("initial", "sliding")
+                 if any(r["example"] == example and r["data"] == d for r in records)]
+        for stat, title in (("median", "Median"), ("max", "Worst"),
+                            ("quartiles", "Quartiles (q1-median-q3)")):
+            fig, axes = plt.subplots(1, len(datas), figsize=(6.5 * len(datas), 4.6),
+                                     squeeze=False)
+            for ax, data in zip(axes[0], datas):
+                rows = [r for r in records if r["example"] == example and r["data"] == data]
+                finite = [r[f"mse_{k}"] for r in rows for k in ("median", "max", "q1", "q3")
+                          if np.isfinite(r[f"mse_{k}"])]
+                ceiling = 10 * max(finite) if finite else 1.0
+                for m in METHODS:
+                    mr = sorted((r for r in rows if r["method"] == m), key=lambda r: r["segments"])
+                    if not mr:
+                        continue
+                    x = np.array([r["segments"] for r in mr], float)
+                    col = _COLORS[m]
+                    key = "mse_median" if stat != "max" else "mse_max"
+                    y, inf = _finite_or_ceiling([r[key] for r in mr], ceiling)
+                    ax.plot(x[~inf], y[~inf], "-o", color=col, label=f"{METHOD_LABELS[m]} (ours)")
+                    ax.plot(x[inf], y[inf], "x", color=col, ms=10, mew=2)
+                    if stat == "quartiles":
+                        lo, _ = _finite_or_ceiling([r["mse_q1"] for r in mr], ceiling)
+                        hi, _ = _finite_or_ceiling([r["mse_q3"] for r in mr], ceiling)
+                        ax.fill_between(x, lo, hi, color=col, alpha=0.15)
+                    ref = dict(FIGURES.get((example, data, stat), {})).get(m)
+                    if ref:
+                        px = np.array([p[0] for p in ref], float)
+                        py = np.array([p[1][1] if stat == "quartiles" else p[1] for p in ref])
+                        keep = py < ceiling
+                        ax.plot(px[keep], py[keep], "--", color=col, alpha=0.7, lw=1.2,
+                                label=f"{METHOD_LABELS[m]} (paper)")
+                ax.set_yscale("log")
+                ax.set_xlabel("number of training segments N")
+                ax.set_ylabel("test MSE of plant states vs expert")
+                ax.set_title(f"{_DATA_TITLES[data]}")
+                ax.grid(True, which="both", alpha=0.3)
+                ax.legend(fontsize=8)
+            fig.suptitle(f"{example.capitalize()} example: {title} test MSE over controllers "
+                         "(× = unstable, ∞)")
+            fig.tight_layout()
+            path = out_dir / f"{example}_{stat}.png"
+            fig.savefig(path, dpi=110)
+            plt.close(fig)
+            paths.append(path)
+    return paths
+
+
+def write_report(records: list[dict], out_dir) -> tuple[pathlib.Path, list[pathlib.Path]]:
+    """Write `summary.json`, `tables.md` and the figures into `out_dir`."""
+    out_dir = pathlib.Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "summary.json").write_text(json.dumps(records, indent=1))
+    tables = out_dir / "tables.md"
+    tables.write_text(tables_markdown(records))
+    return tables, plot_figures(records, out_dir)
