@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo install lint bench docs clean
+.PHONY: test demo reproduce install lint bench docs clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -17,7 +17,15 @@ test: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -m "not slow" tests
 
 demo: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python examples/quickstart.py
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m dissil_jax.experiments nonlinear --data initial \
+		--segments 25 --inits 10 --methods pgd gd ico ico_nc mlp --out runs/demo
+
+# The paper's full protocol (all sizes, both regimes, both examples); see README for its time.
+reproduce: $(STAMP)
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m dissil_jax.experiments nonlinear \
+		--data initial sliding --inits 100 --out runs/reproduce
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m dissil_jax.experiments linear \
+		--data initial sliding --inits 10 --out runs/reproduce
 
 lint: $(STAMP)
 	$(BIN)/ruff check dissil_jax tests examples benchmarks

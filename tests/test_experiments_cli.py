@@ -1,0 +1,81 @@
+"""The reproduction command line and its report, at small size."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from dissil_jax.experiments import __main__ as cli
+from dissil_jax.experiments._paper import FIGURES, TABLES
+from dissil_jax.experiments.protocol import example_spec, run_config
+from dissil_jax.experiments.report import merge_records, tables_markdown
+
+KEYS = {"example", "data", "method", "segments", "percent_stable", "percent_change_cost",
+        "train_time_s", "mse_median", "mse_max", "mse_q1", "mse_q3"}
+
+
+def test_cli_writes_summary_tables_and_figures(tmp_path, capsys):
+    out = tmp_path / "run"
+    argv = ["nonlinear", "--data", "initial", "--segments", "2", "--inits", "2",
+            "--methods", "pgd", "mlp", "--out", str(out), "--quick"]
+    assert cli.main(argv) == 0
+    records = json.loads((out / "summary.json").read_text())
+    assert {(r["method"], r["segments"]) for r in records} == {("pgd", 2), ("mlp", 2)}
+    for r in records:
+        assert KEYS <= set(r)
+        assert r["mse_q1"] <= r["mse_median"] <= r["mse_q3"] <= r["mse_max"]
+    pgd = next(r for r in records if r["method"] == "pgd")
+    assert pgd["percent_stable"] == 100.0 and pgd["certified"] is True
+    tables = (out / "tables.md").read_text()
+    # the paper's own PGD numbers for N = 2 appear beside ours
+    assert "(-96.90)" in tables and "(11.4)" in tables
+    for stat in ("median", "max", "quartiles"):
+        png = out / f"nonlinear_{stat}.png"
+        assert png.exists() and png.stat().st_size > 10_000
+    printed = capsys.readouterr().out
+    assert "tables:" in printed and "nonlinear_median.png" in printed
+    # a second invocation adds to the same report instead of replacing it
+    assert cli.main(["nonlinear", "--data", "initial", "--segments", "2", "--inits", "2",
+                     "--methods", "ico_nc", "--out", str(out), "--quick"]) == 0
+    methods = {r["method"] for r in json.loads((out / "summary.json").read_text())}
+    assert methods == {"pgd", "mlp", "ico_nc"}
+
+
+def test_cli_rejects_bad_arguments():
+    with pytest.raises(SystemExit):
+        cli.main(["quadratic"])
+    with pytest.raises(SystemExit):
+        cli.main(["linear", "--methods", "sgd"])
+    assert cli.main(["linear", "--segments", "0", "--out", "/nonexistent"]) == 2
+
+
+def test_protocol_rejects_bad_arguments():
+    with pytest.raises(ValueError, match="`example`"):
+        example_spec("quadratic")
+    with pytest.raises(ValueError, match="`data`"):
+        run_config("nonlinear", "random", "pgd", 2, inits=1)
+
+
+def test_tables_markdown_formats_infinity_and_merges():
+    base = dict(example="nonlinear", data="sliding", segments=25, percent_stable=50.0,
+                percent_change_cost=-99.0, train_time_s=0.5, mse_min=0.01, mse_q1=0.02,
+                mse_median=0.03, mse_q3=math.inf, mse_max=math.inf)
+    old = [dict(base, method="gd", percent_stable=0.0)]
+    new = [dict(base, method="gd"), dict(base, method="ico")]
+    merged = merge_records(old, new)
+    assert [r["method"] for r in merged] == ["ico", "gd"]
+    assert merged[1]["percent_stable"] == 50.0
+    md = tables_markdown(merged)
+    assert "∞" in md and "Sliding window".lower() in md
+    assert "**50** (32)" in md  # ours vs the paper's GD, sliding window, N = 25
+
+
+def test_paper_numbers_transcribed():
+    # spot checks against the paper's text: nonlinear initial segments, N = 25
+    assert TABLES[("nonlinear", "initial")]["ico"][1][1] == -96.31
+    med = dict(FIGURES[("nonlinear", "initial", "median")]["ico"])[25]
+    assert med == pytest.approx(0.0101, abs=1e-4)
+    q1, m, q3 = dict(FIGURES[("nonlinear", "initial", "quartiles")]["ico"])[25]
+    assert q1 < m < q3 and m == pytest.approx(med)
+    assert np.isfinite(dict(FIGURES[("linear", "initial", "max")]["pgd"])[200])
