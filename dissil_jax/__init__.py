@@ -24,11 +24,6 @@ from ._supply import (
 
 __version__ = "0.1.0"
 
-# --- trainers (PGD/GD) ---
-from ._train.pgd import fit_gd as fit_gd, fit_pgd as fit_pgd, pgd_run as pgd_run
-from ._train.result import FitResult as FitResult
-
-# --- issue 3: systems, experts, evaluation, plant QSR ---
 from . import experts as experts, systems as systems
 from ._plant_qsr import (
     input_passivity_qsr as input_passivity_qsr,
@@ -38,8 +33,8 @@ from ._plant_qsr import (
     sector_lemma_matrix as sector_lemma_matrix,
     sector_plant_qsr as sector_plant_qsr,
 )
-from .systems import LinearPlant as LinearPlant, SectorPlant as SectorPlant
-
-# --- issue 4: ICO, ICO-NC, MLP ---
 from ._train.ico import fit_ico as fit_ico, fit_ico_nc as fit_ico_nc
 from ._train.mlp import MLPController as MLPController, fit_mlp as fit_mlp
+from ._train.pgd import fit_gd as fit_gd, fit_pgd as fit_pgd, pgd_run as pgd_run
+from ._train.result import FitResult as FitResult
+from .systems import LinearPlant as LinearPlant, SectorPlant as SectorPlant

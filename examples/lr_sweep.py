@@ -13,9 +13,9 @@ import time
 
 import jax
 import jax.numpy as jnp
+from quickstart import demonstrations
 
 import dissil_jax as dj
-from quickstart import demonstrations
 
 
 def main(quick: bool = False):

@@ -1,9 +1,9 @@
 import control
 import numpy as np
 import pytest
+from helpers import independent_kyp_ok
 
 import dissil_jax as dj
-from helpers import independent_kyp_ok
 
 
 def _first_order(a, b, c, d):

@@ -3,9 +3,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import tree_allclose
 
 import dissil_jax as dj
-from helpers import tree_allclose
 
 
 def test_call_is_one_step(getkey):

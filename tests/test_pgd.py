@@ -2,10 +2,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import independent_kyp_ok, index, random_windows
 
 import dissil_jax as dj
 from dissil_jax._train import pgd
-from helpers import independent_kyp_ok, index, random_windows
 
 QSR = dj.QSR(-29.867, 3.556, 0.601)
 

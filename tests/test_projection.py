@@ -2,10 +2,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import independent_kyp_ok, index, tree_allclose
 from hypothesis import given, settings, strategies as st
 
 import dissil_jax as dj
-from helpers import independent_kyp_ok, index, tree_allclose
 
 CASES = [
     ("nonlinear-paper", dj.QSR(-29.867, 3.556, 0.601), 1),

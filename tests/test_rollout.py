@@ -1,5 +1,5 @@
-import jax.flatten_util  # noqa: F401
 import jax
+import jax.flatten_util  # noqa: F401
 import jax.numpy as jnp
 import numpy as np
 import pytest

@@ -16,6 +16,7 @@ from .._lmi import kyp_certified
 from .._projection import project
 from .._supply import QSR
 from .._threads import num_workers, pool, single_threaded_blas
+from ._checks import check_fit_args
 from ._ico_sdp import ICOProblem, ICOSolver
 from .result import FitResult
 
@@ -24,8 +25,7 @@ _W_RANGE = 1e4
 
 
 def _check_args(windows, qsr, num_inits, max_steps, tol, init_scale):
-    if not isinstance(windows, Windows):
-        raise ValueError(f"`windows` must be a `dj.Windows`, got {type(windows).__name__}.")
+    check_fit_args(windows, qsr, num_inits, max_steps, tol=tol, init_scale=init_scale)
     if windows.horizon != 2:
         raise ValueError(
             f"`windows` has horizon h = {windows.horizon}, but ICO overbounds the paper's "
@@ -33,23 +33,6 @@ def _check_args(windows, qsr, num_inits, max_steps, tol, init_scale):
             "windows (e.g. `dj.Windows(x0, y[:, :2], u[:, :2])`, or sliding 2-step windows with "
             "x0 the plant state at each window start), or use `dj.fit_pgd` for longer horizons."
         )
-    if qsr is not None:
-        if not isinstance(qsr, QSR):
-            raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
-        if qsr.S.shape != (windows.n_out, windows.n_in):
-            raise ValueError(
-                f"`qsr` has S of shape {qsr.S.shape} but `windows` has {windows.n_in} "
-                f"controller inputs and {windows.n_out} outputs; S must be "
-                f"{(windows.n_out, windows.n_in)}."
-            )
-        qsr.neg_q_factor()  # ValueError naming `qsr.Q` for a Q with a positive eigenvalue
-    if int(num_inits) != num_inits or num_inits < 1:
-        raise ValueError(f"`num_inits` must be a positive integer, got {num_inits!r}.")
-    if int(max_steps) != max_steps or max_steps < 0:
-        raise ValueError(f"`max_steps` must be a non-negative integer, got {max_steps!r}.")
-    for name, v in (("tol", tol), ("init_scale", init_scale)):
-        if not np.isfinite(v) or v < 0:
-            raise ValueError(f"`{name}` must be finite and non-negative, got {v!r}.")
 
 
 def _cast(x, dtype):

@@ -17,6 +17,7 @@ from .._lmi import kyp_certified
 from .._projection import MESSAGES, Status, project_with_status
 from .._rollout import imitation_loss
 from .._supply import QSR
+from ._checks import check_fit_args
 from .result import FitResult
 
 # Incremented each time the training loop is traced (tests assert no retracing).
@@ -97,31 +98,6 @@ def _loop(K0, P0, ok0, windows, learning_rate, decay, *, qsr, max_steps, tol, ep
     return c["K"], c["P"], c["hist"], c["loss"], c["converged"], c["steps"], c["ok"]
 
 
-def _check_args(windows, qsr, num_inits, max_steps, learning_rate, decay, tol, init_scale):
-    if not isinstance(windows, Windows):
-        raise ValueError(f"`windows` must be a `dj.Windows`, got {type(windows).__name__}.")
-    if qsr is not None:
-        if not isinstance(qsr, QSR):
-            raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
-        if qsr.S.shape != (windows.n_out, windows.n_in):
-            raise ValueError(
-                f"`qsr` has S of shape {qsr.S.shape} but `windows` has {windows.n_in} "
-                f"controller inputs and {windows.n_out} outputs; S must be "
-                f"{(windows.n_out, windows.n_in)}."
-            )
-        qsr.neg_q_factor()
-    if int(num_inits) != num_inits or num_inits < 1:
-        raise ValueError(f"`num_inits` must be a positive integer, got {num_inits!r}.")
-    if int(max_steps) != max_steps or max_steps < 0:
-        raise ValueError(f"`max_steps` must be a non-negative integer, got {max_steps!r}.")
-    for name, v in (("learning_rate", learning_rate), ("decay", decay), ("tol", tol),
-                    ("init_scale", init_scale)):
-        if isinstance(v, jax.core.Tracer):
-            continue
-        if not np.all(np.isfinite(v)) or np.any(np.asarray(v) < 0):
-            raise ValueError(f"`{name}` must be finite and non-negative, got {v!r}.")
-
-
 def pgd_run(
     key, windows: Windows, qsr: QSR | None, *, learning_rate=1e-3, decay=0.99,
     init_scale=0.1, num_inits: int = 8, max_steps: int = 150, tol: float = 1e-3,
@@ -141,7 +117,8 @@ def pgd_run(
     res = sweep(lrs)            # every field gains a leading axis of size 5
     ```
     """
-    _check_args(windows, qsr, num_inits, max_steps, learning_rate, decay, tol, init_scale)
+    check_fit_args(windows, qsr, num_inits, max_steps, learning_rate=learning_rate, decay=decay,
+                   tol=tol, init_scale=init_scale)
     K0 = init_controllers(key, num_inits, windows, init_scale)
     if qsr is None:
         P0, ok0 = None, jnp.ones(num_inits, bool)
@@ -174,7 +151,8 @@ def _compiled_loop(qsr, max_steps, tol, eps):
 
 def _fit(key, windows, qsr, *, num_inits, max_steps, learning_rate, decay, tol, init_scale,
          eps):
-    _check_args(windows, qsr, num_inits, max_steps, learning_rate, decay, tol, init_scale)
+    check_fit_args(windows, qsr, num_inits, max_steps, learning_rate=learning_rate, decay=decay,
+                   tol=tol, init_scale=init_scale)
     start = time.perf_counter()
     K0 = init_controllers(key, num_inits, windows, init_scale)
     if qsr is None:
@@ -214,8 +192,8 @@ def fit_pgd(
     For each of `num_inits` random initialisations $K_0$ (entries
     $\\mathcal N(0,\\sigma^2)$, $\\sigma=$ `init_scale`, then projected), iterate
 
-    $$\\tilde K_{i} = K_i - \\eta_i\\nabla J(K_i),\\qquad K_{i+1} = \\Pi_{\\tilde P = P_i}(\\tilde K_i),
-    \\qquad \\eta_i = \\eta_0\\,\\rho^{\\,i},$$
+    $$\\tilde K_{i} = K_i - \\eta_i\\nabla J(K_i),\\qquad
+    K_{i+1} = \\Pi_{\\tilde P = P_i}(\\tilde K_i), \\qquad \\eta_i = \\eta_0\\,\\rho^{\\,i},$$
 
     with $J$ the imitation MSE ([`imitation_loss`][dissil_jax.imitation_loss]) and
     $\\Pi$ the projection of paper eq. 13 ([`project`][dissil_jax.project]) linearised at

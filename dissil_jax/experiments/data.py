@@ -19,7 +19,7 @@ import math
 
 import jax.numpy as jnp
 import jax.random as jr
-from jaxtyping import Array, Float, PRNGKeyArray
+from jaxtyping import PRNGKeyArray
 
 from .._data import Windows
 from .simulate import (
