@@ -1,0 +1,156 @@
+"""Plant supply rates: paper Lemma 8 and LTI passivity indices / cones (issue 3)."""
+
+import numpy as np
+import pytest
+
+import dissil_jax as dj
+from dissil_jax.systems import mass_spring_chain
+
+OMEGAS = np.linspace(0.0, np.pi, 4001)
+
+
+def frequency_supply_min(A, B, C, D, qsr, omegas=OMEGAS):
+    """min over w of lambda_min(G^H Q G + G^H S + S^T G + R): >= 0 iff dissipative (stable G)."""
+    n = A.shape[0]
+    out = np.inf
+    for w in omegas:
+        G = C @ np.linalg.solve(np.exp(1j * w) * np.eye(n) - A, B) + D
+        M = G.conj().T @ qsr.Q @ G + G.conj().T @ qsr.S + qsr.S.T @ G + qsr.R
+        out = min(out, np.linalg.eigvalsh((M + M.conj().T) / 2)[0])
+    return out
+
+
+def test_sector_lemma_paper_numbers():
+    qsr = dj.sector_plant_qsr(0.5, 1.0, 1.0, -2.0, 0.4)
+    np.testing.assert_allclose(qsr.Q, [[-1.0]])
+    np.testing.assert_allclose(qsr.S, [[32 / 9]], rtol=1e-6)
+    np.testing.assert_allclose(qsr.R, [[88 / 3]], rtol=1e-6)
+    np.testing.assert_allclose(np.round([qsr.Q[0, 0], qsr.S[0, 0], qsr.R[0, 0]], 3),
+                               [-1.0, 3.556, 29.333])
+    # The chain of the paper: Theorem 1 recipe with alpha = 1 and margins (0.399, 0.534).
+    ctrl = dj.stabilising_qsr(qsr, alpha=1.0, margins=(0.399, 0.534))
+    np.testing.assert_allclose([ctrl.Q[0, 0], ctrl.S[0, 0], ctrl.R[0, 0]],
+                               [-29.867, 3.556, 0.601], atol=1e-3)
+    assert dj.closed_loop_certificate(qsr, ctrl).holds
+
+
+def test_sector_lemma_is_the_minimal_radius():
+    """Independent reference: for the scalar plant, r^2(P, c) in closed form, minimised on a grid.
+
+    The 2x2 Lemma 8 matrix [[a, b], [b, d]] >= 0 with a = -1 + 0.18 P, b = 2 + c - P,
+    d = -4 - 4c + r^2 - c^2 - 2P needs a > 0 and r^2 >= 4 + 4c + c^2 + 2P + b^2 / a.
+    """
+    qsr = dj.sector_plant_qsr(0.5, 1.0, 1.0, -2.0, 0.4)
+    r2 = qsr.R[0, 0] + qsr.S[0, 0] ** 2
+    P = np.linspace(50 / 9 + 1e-3, 12, 1200)[:, None]
+    c = np.linspace(0, 8, 1601)[None, :]
+    a, b = -1 + 0.18 * P, 2 + c - P
+    r2_grid = (4 + 4 * c + c**2 + 2 * P + b**2 / a).min()
+    assert r2 <= r2_grid + 1e-9
+    assert r2 >= r2_grid - 1e-2  # the grid is fine enough to be close
+
+
+@pytest.mark.parametrize("case", ["paper", "vector"])
+def test_sector_lemma_sampled_supply_inequality(case):
+    """w(u, y) - (V(x+) - V(x)) >= 0 at random (x, u) with the returned P, true sin dynamics."""
+    rng = np.random.default_rng(0)
+    if case == "paper":
+        A, B, C, D, alpha = 0.5, 1.0, 1.0, -2.0, 0.4
+    else:
+        A = np.array([[0.3, 0.1], [0.0, 0.2]])
+        B = np.array([[1.0], [0.5]])
+        C = np.array([[1.0, -1.0]])
+        D = np.array([[0.5]])
+        alpha = 0.3
+    qsr, P = dj.sector_plant_qsr(A, B, C, D, alpha, return_storage=True)
+    A, B, C, D = (np.atleast_2d(M) for M in (A, B, C, D))
+    n, m = A.shape[0], B.shape[1]
+    assert np.linalg.eigvalsh(P)[0] >= -1e-9
+    assert np.linalg.eigvalsh(dj.sector_lemma_matrix(A, B, C, D, alpha, qsr, P))[0] >= -1e-7
+    scale = rng.choice([0.01, 1.0, 30.0], size=(100_000, 1))
+    x = scale * rng.normal(size=(100_000, n))
+    u = scale * rng.normal(size=(100_000, m))
+    x1 = x @ A.T + alpha * np.sin(x) + u @ B.T
+    y = x @ C.T + u @ D.T
+    dV = np.einsum("ki,ij,kj->k", x1, P, x1) - np.einsum("ki,ij,kj->k", x, P, x)
+    slack = qsr.supply(u, y) - dV
+    size = (x**2).sum(1) + (u**2).sum(1)
+    assert slack.min() >= -1e-7 * size.max()
+    assert np.all(slack >= -1e-8 * (1 + size))
+    # The inequality is not vacuous: a 10% smaller radius is violated somewhere.
+    tighter = dj.QSR(qsr.Q, qsr.S, qsr.R - 0.1 * (qsr.R + qsr.S.T @ qsr.S))
+    assert (tighter.supply(u, y) - dV).min() < 0 or case == "vector"
+
+
+def test_sector_lemma_bad_input():
+    with pytest.raises(ValueError, match="`alpha`"):
+        dj.sector_plant_qsr(0.5, 1.0, 1.0, -2.0, np.nan)
+    with pytest.raises(ValueError, match="`A, B, C, D.B`"):
+        dj.sector_plant_qsr(np.eye(2), np.ones((3, 1)), np.ones((1, 2)), 0.0, 0.1)
+
+
+@pytest.fixture(scope="module")
+def chain():
+    return mass_spring_chain(0)
+
+
+def test_input_index_is_phi(chain):
+    A, B, C, D = chain.plant.matrices()
+    qsr = dj.input_passivity_qsr(chain.plant)
+    nu = -qsr.R[0, 0]
+    np.testing.assert_allclose(qsr.R, -nu * np.eye(3))
+    assert chain.phi * (1 - 3e-3) <= nu < chain.phi  # backed off by 1e-3 (relative)
+    assert dj.certify(dj.LTIController(A, B, C, D), qsr).holds
+    assert frequency_supply_min(A, B, C, D, qsr) >= 0
+    over = dj.QSR(qsr.Q, qsr.S, -1.01 * chain.phi * np.eye(3))
+    assert frequency_supply_min(A, B, C, D, over) < 0
+
+
+def test_output_index_against_frequency_domain(chain):
+    A, B, C, D = chain.plant.matrices()
+    qsr = dj.output_passivity_qsr(chain.plant)
+    rho = -qsr.Q[0, 0]
+    assert rho > 0 and np.allclose(qsr.R, 0)
+    assert frequency_supply_min(A, B, C, D, qsr) >= 0
+    over = dj.QSR(-1.02 * rho * np.eye(3), qsr.S, qsr.R)
+    assert frequency_supply_min(A, B, C, D, over) < 0
+
+
+def test_joint_indices_cover_passive_controllers(chain):
+    A, B, C, D = chain.plant.matrices()
+    qsr = dj.passivity_indices(chain.plant)
+    rho, nu = -qsr.Q[0, 0], -qsr.R[0, 0]
+    assert rho > 0 and nu > 0
+    assert frequency_supply_min(A, B, C, D, qsr) >= 0
+    cert = dj.closed_loop_certificate(qsr, dj.QSR.passive(3))
+    assert cert.holds
+    # A given nu trades off against rho.
+    q_small_nu = dj.passivity_indices((A, B, C, D), nu=0.1 * nu)
+    assert -q_small_nu.Q[0, 0] > rho
+    np.testing.assert_allclose(-q_small_nu.R[0, 0], 0.1 * nu)
+
+
+def test_cone_of_a_static_gain_and_of_the_chain(chain):
+    d = 1.7
+    qsr = dj.lti_cone_qsr((np.zeros((1, 1)), np.zeros((1, 1)), np.zeros((1, 1)), [[d]]))
+    np.testing.assert_allclose(qsr.S, [[d]], atol=1e-4)
+    r2 = qsr.R[0, 0] + qsr.S[0, 0] ** 2
+    assert 0 < r2 < 1e-3
+    A, B, C, D = chain.plant.matrices()
+    cone = dj.lti_cone_qsr(chain.plant)
+    np.testing.assert_allclose(cone.Q, -np.eye(3))
+    assert frequency_supply_min(A, B, C, D, cone) >= 0
+    r2 = np.linalg.eigvalsh(cone.R + cone.S.T @ cone.S)
+    smaller = dj.QSR(cone.Q, cone.S, cone.R - 0.02 * r2.max() * np.eye(3))
+    assert frequency_supply_min(A, B, C, D, smaller) < 0
+
+
+def test_lti_qsr_bad_input():
+    with pytest.raises(ValueError, match="square"):
+        dj.input_passivity_qsr((np.eye(2), np.ones((2, 1)), np.ones((2, 2)), np.zeros((2, 1))))
+    with pytest.raises(ValueError, match="`plant`"):
+        dj.passivity_indices(object())
+    batched = dj.LTIController(np.zeros((2, 1, 1)), np.zeros((2, 1, 1)), np.zeros((2, 1, 1)),
+                               np.ones((2, 1, 1)))
+    with pytest.raises(ValueError, match="`plant.A`"):
+        dj.lti_cone_qsr(batched)
