@@ -157,7 +157,7 @@ def test_perfect_imitation_has_zero_mse(linear):
 
 
 class StaticGain(eqx.Module):
-    """A memoryless nonlinear controller yhat = k tanh(uhat / k) (slope 1 at the origin... times g)."""
+    """A memoryless nonlinear controller yhat = g tanh(uhat) (state passed through)."""
 
     g: jax.Array
 
