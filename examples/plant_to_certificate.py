@@ -1,6 +1,6 @@
 """From coarse plant knowledge to a closed-loop certificate, for both of the paper's problems.
 
-    python examples/plant_to_certificate.py [--small]
+    python examples/plant_to_certificate.py [--quick]
 
 1. Nonlinear plant x+ = 0.5x + 0.4 sin x + u, y = x - 2u: the sector lemma (paper Lemma 8)
    gives the plant's cone supply rate (-1, 3.556, 29.333); Theorem 1's recipe gives the
@@ -10,7 +10,7 @@
    Theorem 1 hold with *every* passive controller, e.g. the (passive) static gain yhat = 0.5 y.
 """
 
-import sys
+import argparse
 
 import jax
 import numpy as np
@@ -50,6 +50,8 @@ def linear(seeds) -> None:
 
 
 if __name__ == "__main__":
-    small = "--small" in sys.argv
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="two chains instead of ten (CI)")
+    quick = parser.parse_args().quick
     nonlinear()
-    linear(range(2) if small else range(10))
+    linear(range(2) if quick else range(10))
