@@ -43,9 +43,9 @@ def test_vmapped_training_equals_python_loop(getkey, qsr):
                                   0.95, 12, 1e-4)
         n = len(hist)
         assert int(res.steps[i]) == n - 1
-        np.testing.assert_allclose(res.loss_history[i, :n], hist, rtol=1e-4, atol=1e-8)
+        np.testing.assert_allclose(res.loss_history[i, :n], hist, rtol=1e-9, atol=1e-12)
         assert np.all(np.isnan(res.loss_history[i, n:]))
-        np.testing.assert_allclose(index(res.controllers, i).D, Ki.D, rtol=1e-3, atol=1e-5)
+        np.testing.assert_allclose(index(res.controllers, i).D, Ki.D, rtol=1e-9, atol=1e-12)
 
 
 def test_pgd_controllers_certified_and_loss_decreases(getkey):
@@ -84,7 +84,7 @@ def test_learning_rate_sweep_with_vmap_equals_loop(getkey):
     assert swept.loss_history.shape == (3, 2, 9)
     for j, lr in enumerate(lrs):
         single = jax.jit(run)(lr)
-        np.testing.assert_allclose(swept.loss_history[j], single.loss_history, rtol=1e-4,
+        np.testing.assert_allclose(swept.loss_history[j], single.loss_history, rtol=1e-9,
                                    atol=1e-8, equal_nan=True)
         np.testing.assert_array_equal(swept.steps[j], single.steps)
         for i in range(2):

@@ -27,9 +27,9 @@ def test_projection_certified_eager_jit_vmap(getkey, name, qsr, n):
     K0 = index(Ks, 0)
     eager = dj.project(K0, qsr)
     jitted = jax.jit(lambda K: dj.project(K, qsr))(K0)
-    # Runs agree to solver accuracy, not bitwise: the solver object is reused with in-place
-    # updates and, without P_ref, the re-linearisation rounds amplify tiny differences in P.
-    assert tree_allclose(eager[0], jitted[0], rtol=1e-4, atol=1e-4)  # P is only weakly unique
+    # Solvers are reused across calls and threads with in-place updates; results must not
+    # depend on which solver object handled which target.
+    assert tree_allclose(eager, jitted, rtol=1e-10, atol=1e-12)
     batch = jax.jit(jax.vmap(lambda K: dj.project(K, qsr)))(Ks)
     leading = dj.project(Ks, qsr)  # leading batch axes without an explicit vmap
     for i in range(4):
@@ -37,8 +37,8 @@ def test_projection_certified_eager_jit_vmap(getkey, name, qsr, n):
         assert independent_kyp_ok(Ki, qsr, Pi)
         assert dj.certify(Ki, qsr).holds
         # the batched host path equals the one-at-a-time path
-        assert tree_allclose(index(leading, i)[0], Ki, rtol=1e-4, atol=1e-4)
-    assert tree_allclose(index(batch, 0)[0], eager[0], rtol=1e-4, atol=1e-4)
+        assert tree_allclose(index(leading, i), (Ki, Pi), rtol=1e-10, atol=1e-12)
+    assert tree_allclose(index(batch, 0), eager, rtol=1e-10, atol=1e-12)
 
 
 @pytest.mark.parametrize("name, qsr, n", CASES[:3], ids=[c[0] for c in CASES[:3]])
