@@ -79,3 +79,18 @@ def test_paper_numbers_transcribed():
     q1, m, q3 = dict(FIGURES[("nonlinear", "initial", "quartiles")]["ico"])[25]
     assert q1 < m < q3 and m == pytest.approx(med)
     assert np.isfinite(dict(FIGURES[("linear", "initial", "max")]["pgd"])[200])
+
+
+@pytest.mark.slow
+def test_demo_configuration_matches_the_papers_claims(tmp_path):
+    """`make demo`'s configuration: dissipative methods always stable, ICO close to the paper."""
+    out = tmp_path / "demo"
+    assert cli.main(["nonlinear", "--data", "initial", "--segments", "25", "--inits", "10",
+                     "--out", str(out)]) == 0
+    by = {r["method"]: r for r in json.loads((out / "summary.json").read_text())}
+    assert set(by) == {"pgd", "gd", "ico", "ico_nc", "mlp"}
+    for m in ("pgd", "ico"):
+        assert by[m]["percent_stable"] == 100.0 and by[m]["certified"] is True
+    # paper, Fig. 4: median test MSE 0.010 (ICO), 0.11 (PGD) at 25 initial segments
+    assert by["ico"]["mse_median"] < 0.05
+    assert by["pgd"]["mse_median"] < 0.2

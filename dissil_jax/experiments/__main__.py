@@ -42,7 +42,11 @@ def main(argv=None) -> int:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     import jax
 
-    jax.config.update("jax_enable_x64", True)  # the application's choice: float64 numerics
+    with jax.enable_x64(True):  # float64 numerics for this run only; global config untouched
+        return _run(args)
+
+
+def _run(args) -> int:
     from tqdm import tqdm
 
     from ._paper import SEGMENTS
