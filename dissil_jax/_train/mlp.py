@@ -10,11 +10,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
-import numpy as np
 import optax
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._data import Windows
+from ._checks import check_fit_args
 from .result import FitResult
 
 
@@ -156,15 +156,7 @@ def fit_mlp(
     [`MLPController`][dissil_jax.MLPController] with a leading `[num_inits]` axis; `P` and
     `certified` are None.
     """
-    if not isinstance(windows, Windows):
-        raise ValueError(f"`windows` must be a `dj.Windows`, got {type(windows).__name__}.")
-    if int(num_inits) != num_inits or num_inits < 1:
-        raise ValueError(f"`num_inits` must be a positive integer, got {num_inits!r}.")
-    if int(max_steps) != max_steps or max_steps < 0:
-        raise ValueError(f"`max_steps` must be a non-negative integer, got {max_steps!r}.")
-    for name, v in (("learning_rate", learning_rate), ("tol", tol)):
-        if not np.isfinite(v) or v < 0:
-            raise ValueError(f"`{name}` must be finite and non-negative, got {v!r}.")
+    check_fit_args(windows, None, num_inits, max_steps, learning_rate=learning_rate, tol=tol)
     hidden = tuple(int(h) for h in hidden)
     start = time.perf_counter()
     X, T = _pairs(windows)
