@@ -33,7 +33,42 @@ def _check_abcd(A, B, C, D) -> None:
             )
 
 
-class LinearPlant(eqx.Module):
+class _ABCDPlant(eqx.Module):
+    """Shared part of the plants: the matrices (A, B, C, D), sizes and the output map."""
+
+    A: Float[Array, "n n"]
+    B: Float[Array, "n m"]
+    C: Float[Array, "p n"]
+    D: Float[Array, "p m"]
+
+    def __check_init__(self):
+        _check_abcd(self.A, self.B, self.C, self.D)
+
+    @property
+    def n_state(self) -> int:
+        """State dimension $n$."""
+        return self.A.shape[0]
+
+    @property
+    def n_in(self) -> int:
+        """Input dimension $m$."""
+        return self.B.shape[1]
+
+    @property
+    def n_out(self) -> int:
+        """Output dimension $p$."""
+        return self.C.shape[0]
+
+    def output(self, x: Float[Array, " n"], u: Float[Array, " m"]) -> Float[Array, " p"]:
+        """$y_k = Cx_k + Du_k$. Unbatched; vmap for batches."""
+        return self.C @ x + self.D @ u
+
+    def matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """`(A, B, C, D)` as float64 numpy arrays (for host-side SDPs and python-control)."""
+        return tuple(np.asarray(M, np.float64) for M in (self.A, self.B, self.C, self.D))
+
+
+class LinearPlant(_ABCDPlant):
     """A discrete-time LTI plant $G = (A, B, C, D)$.
 
     $$x_{k+1} = Ax_k + Bu_k, \\qquad y_k = Cx_k + Du_k,$$
@@ -52,43 +87,12 @@ class LinearPlant(eqx.Module):
     ```
     """
 
-    A: Float[Array, "n n"]
-    B: Float[Array, "n m"]
-    C: Float[Array, "p n"]
-    D: Float[Array, "p m"]
-
     def __init__(self, A, B, C, D):
         self.A, self.B, self.C, self.D = (_matrix(k, M) for k, M in zip("ABCD", (A, B, C, D)))
-
-    def __check_init__(self):
-        _check_abcd(self.A, self.B, self.C, self.D)
-
-    @property
-    def n_state(self) -> int:
-        """State dimension $n$."""
-        return self.A.shape[0]
-
-    @property
-    def n_in(self) -> int:
-        """Input dimension $m$."""
-        return self.B.shape[1]
-
-    @property
-    def n_out(self) -> int:
-        """Output dimension $p$."""
-        return self.C.shape[0]
 
     def step(self, x: Float[Array, " n"], u: Float[Array, " m"]) -> Float[Array, " n"]:
         """$x_{k+1} = Ax_k + Bu_k$ (noise free). Unbatched; vmap for batches."""
         return self.A @ x + self.B @ u
-
-    def output(self, x: Float[Array, " n"], u: Float[Array, " m"]) -> Float[Array, " p"]:
-        """$y_k = Cx_k + Du_k$. Unbatched; vmap for batches."""
-        return self.C @ x + self.D @ u
-
-    def matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """`(A, B, C, D)` as float64 numpy arrays (for host-side SDPs and python-control)."""
-        return tuple(np.asarray(M, np.float64) for M in (self.A, self.B, self.C, self.D))
 
     def to_statespace(self, dt=True):
         """The plant as a discrete-time `control.StateSpace` (`dt=True`: unspecified)."""
@@ -97,7 +101,7 @@ class LinearPlant(eqx.Module):
         return control.ss(*self.matrices(), dt=dt)
 
 
-class SectorPlant(eqx.Module):
+class SectorPlant(_ABCDPlant):
     """The paper's nonlinear plant (paper eq. 20), sector bounded through $|\\sin x|\\le|x|$.
 
     $$x_{k+1} = Ax_k + \\alpha\\sin(x_k) + Bu_k, \\qquad y_k = Cx_k + Du_k,$$
@@ -105,16 +109,13 @@ class SectorPlant(eqx.Module):
     with $\\sin$ applied elementwise. The paper's example is
     `SectorPlant(0.5, 1, 1, -2, 0.4)` (see `dj.systems.paper_nonlinear_plant`). Its
     supply rate from coarse knowledge is [`sector_plant_qsr`][dissil_jax.sector_plant_qsr]
-    (paper Lemma 8). Noise free, unbatched; vmap for batches.
+    (paper Lemma 8). Noise free, unbatched; vmap for batches. `matrices()` returns the
+    linear part.
 
     **Arguments:** `A`, `B`, `C`, `D` as for [`LinearPlant`][dissil_jax.LinearPlant] and the
     scalar gain `alpha` of the nonlinearity.
     """
 
-    A: Float[Array, "n n"]
-    B: Float[Array, "n m"]
-    C: Float[Array, "p n"]
-    D: Float[Array, "p m"]
     alpha: Float[Array, ""]
 
     def __init__(self, A, B, C, D, alpha):
@@ -125,32 +126,6 @@ class SectorPlant(eqx.Module):
         if not isinstance(alpha, jax.core.Tracer) and not bool(jnp.isfinite(alpha)):
             raise ValueError("`alpha` must be finite.")
         self.alpha = alpha
-
-    def __check_init__(self):
-        _check_abcd(self.A, self.B, self.C, self.D)
-
-    @property
-    def n_state(self) -> int:
-        """State dimension $n$."""
-        return self.A.shape[0]
-
-    @property
-    def n_in(self) -> int:
-        """Input dimension $m$."""
-        return self.B.shape[1]
-
-    @property
-    def n_out(self) -> int:
-        """Output dimension $p$."""
-        return self.C.shape[0]
-
-    def output(self, x: Float[Array, " n"], u: Float[Array, " m"]) -> Float[Array, " p"]:
-        """$y_k = Cx_k + Du_k$. Unbatched; vmap for batches."""
-        return self.C @ x + self.D @ u
-
-    def matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """`(A, B, C, D)` as float64 numpy arrays (the linear part, for host-side SDPs)."""
-        return tuple(np.asarray(M, np.float64) for M in (self.A, self.B, self.C, self.D))
 
     def step(self, x: Float[Array, " n"], u: Float[Array, " m"]) -> Float[Array, " n"]:
         """$x_{k+1} = Ax_k + \\alpha\\sin x_k + Bu_k$ (noise free). Unbatched; vmap for batches."""
