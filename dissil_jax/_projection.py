@@ -368,7 +368,10 @@ def project(
       `refine` times; each round can only move closer to the target.
 
     Works eagerly, under `jax.jit` and under `jax.vmap` (the host then solves the whole
-    batch on a thread pool). `qsr` must be closed over, not traced.
+    batch on a thread pool). `qsr` must be closed over, not traced. For float64 enable x64
+    globally (`jax.config.update("jax_enable_x64", True)` in your application, or
+    `JAX_ENABLE_X64=1`); the thread-local `jax.enable_x64` context does not reach the
+    host-callback thread.
 
     **Arguments:**
 

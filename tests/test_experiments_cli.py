@@ -94,3 +94,20 @@ def test_demo_configuration_matches_the_papers_claims(tmp_path):
     # paper, Fig. 4: median test MSE 0.010 (ICO), 0.11 (PGD) at 25 initial segments
     assert by["ico"]["mse_median"] < 0.05
     assert by["pgd"]["mse_median"] < 0.2
+
+
+def test_command_line_entry_point_runs(tmp_path):
+    """`python -m dissil_jax.experiments` as `make demo` calls it (float64 set up by the CLI)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    proc = subprocess.run(
+        [sys.executable, "-m", "dissil_jax.experiments", "nonlinear", "--segments", "2",
+         "--inits", "2", "--methods", "pgd", "--out", str(tmp_path), "--quick"],
+        capture_output=True, text=True, timeout=600, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    records = json.loads((tmp_path / "summary.json").read_text())
+    assert records[0]["method"] == "pgd" and records[0]["certified"] is True
+    assert "nonlinear_median.png" in proc.stdout

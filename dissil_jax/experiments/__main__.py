@@ -39,11 +39,19 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     import jax
 
-    with jax.enable_x64(True):  # float64 numerics for this run only; global config untouched
-        return _run(args)
+    if not jax.config.jax_enable_x64:
+        # The experiments run in float64. `jax.enable_x64` is thread-local and does not reach
+        # the host-callback threads, and the library never flips global config, so a
+        # command-line run re-executes itself with JAX_ENABLE_X64=1 set before jax loads.
+        if argv is not None:
+            raise ValueError("run the experiments with float64 enabled: set JAX_ENABLE_X64=1 "
+                             "before importing jax (or use the command line).")
+        env = dict(os.environ, JAX_ENABLE_X64="1", OPENBLAS_NUM_THREADS="1")
+        os.execve(sys.executable, [sys.executable, "-m", "dissil_jax.experiments",
+                                   *sys.argv[1:]], env)
+    return _run(args)
 
 
 def _run(args) -> int:
