@@ -72,6 +72,12 @@ def tables_markdown(records: list[dict]) -> str:
         paper = TABLES.get((example, data), {})
         pseg = SEGMENTS[example]
         out += [f"## {example.capitalize()} example — {_DATA_TITLES[data].lower()}", ""]
+        counts = ", ".join(
+            f"{METHOD_LABELS[m]} {r['controllers']} ({r['plants']} plant(s) × {r['inits']})"
+            for m in methods for r in [next(r for r in rows if r["method"] == m)]
+            if "controllers" in r)
+        if counts:
+            out += [f"Controllers per configuration: {counts}.", ""]
         head = "| method | " + " | ".join(
             f"{name} N={s}" for name in ("% stable", "% change in cost", "train time (s)")
             for s in segs) + " |"
