@@ -37,11 +37,7 @@ def _controller_arrays(K: LTIController, qsr: QSR):
         raise ValueError("`K` must be a single controller; certify batch members one by one.")
     if not isinstance(qsr, QSR):
         raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
-    if qsr.S.shape != (K.n_out, K.n_in):
-        raise ValueError(
-            f"`qsr` has S of shape {qsr.S.shape}; for a controller with {K.n_in} inputs and "
-            f"{K.n_out} outputs it must be {(K.n_out, K.n_in)}."
-        )
+    qsr.check_sizes(K.n_in, K.n_out)
     return tuple(np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
 
 

@@ -122,11 +122,7 @@ class ConvexifiedLMI:
     """
 
     def __init__(self, n: int, p: int, m: int, qsr: QSR):
-        if qsr.S.shape != (m, p):
-            raise ValueError(
-                f"`qsr` has S of shape {qsr.S.shape}, but the controller maps R^{p} -> R^{m}; "
-                f"S must be {m}x{p}."
-            )
+        qsr.check_sizes(p, m)
         L = qsr.neg_q_factor()
         r = L.shape[1]
         self.n, self.p, self.m, self.r = n, p, m, r

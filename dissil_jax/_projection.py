@@ -293,11 +293,7 @@ def _check_qsr(K: LTIController, qsr: QSR) -> None:
     if not isinstance(qsr.Q, np.ndarray):
         raise ValueError("`qsr` must be concrete host data: close over it instead of passing it "
                          "as a traced argument of `jax.jit`/`jax.vmap`.")
-    if qsr.S.shape != (K.n_out, K.n_in):
-        raise ValueError(
-            f"`qsr` has S of shape {qsr.S.shape}; the controller maps R^{K.n_in} -> "
-            f"R^{K.n_out}, so S must be {(K.n_out, K.n_in)}."
-        )
+    qsr.check_sizes(K.n_in, K.n_out)
     qsr.neg_q_factor()  # raises a ValueError naming `qsr.Q` if Q has a positive eigenvalue
 
 
@@ -368,10 +364,9 @@ def project(
       `refine` times; each round can only move closer to the target.
 
     Works eagerly, under `jax.jit` and under `jax.vmap` (the host then solves the whole
-    batch on a thread pool). `qsr` must be closed over, not traced. For float64 enable x64
-    globally (`jax.config.update("jax_enable_x64", True)` in your application, or
-    `JAX_ENABLE_X64=1`); the thread-local `jax.enable_x64` context does not reach the
-    host-callback thread.
+    batch on a thread pool). `qsr` must be closed over, not traced. For float64 set JAX's
+    `jax_enable_x64` flag globally in your application (or `JAX_ENABLE_X64=1`); the
+    thread-local `jax.enable_x64` context does not reach the host-callback thread.
 
     **Arguments:**
 

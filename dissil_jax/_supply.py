@@ -130,6 +130,14 @@ class QSR(eqx.Module):
             + np.einsum("...i,ij,...j->...", u, self.R, u)
         )
 
+    def check_sizes(self, n_in: int, n_out: int) -> None:
+        """Raise a ValueError naming `qsr` unless it fits a map $\\mathbb R^{n_{in}}\\to\\mathbb R^{n_{out}}$."""
+        if self.S.shape != (n_out, n_in):
+            raise ValueError(
+                f"`qsr` has S of shape {self.S.shape}, but the controller maps R^{n_in} -> "
+                f"R^{n_out}; S must be {(n_out, n_in)}."
+            )
+
     def neg_q_factor(self) -> np.ndarray:
         """Return $L$ ($m\\times r$, $r=\\operatorname{rank} Q$) with $-Q = LL^\\top$.
 

@@ -19,12 +19,7 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
     if qsr is not None:
         if not isinstance(qsr, QSR):
             raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
-        if qsr.S.shape != (windows.n_out, windows.n_in):
-            raise ValueError(
-                f"`qsr` has S of shape {qsr.S.shape} but `windows` has {windows.n_in} "
-                f"controller inputs and {windows.n_out} outputs; S must be "
-                f"{(windows.n_out, windows.n_in)}."
-            )
+        qsr.check_sizes(windows.n_in, windows.n_out)
         qsr.neg_q_factor()  # ValueError naming `qsr.Q` for a Q with a positive eigenvalue
     if int(num_inits) != num_inits or num_inits < 1:
         raise ValueError(f"`num_inits` must be a positive integer, got {num_inits!r}.")
