@@ -20,6 +20,7 @@ Usage: python benchmarks/bench_ico.py [--quick]
 
 import argparse
 import os
+import sys
 import time
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -36,19 +37,16 @@ from dissil_jax._threads import single_threaded_blas  # noqa: E402
 from dissil_jax._train import ico  # noqa: E402
 from dissil_jax._train._ico_sdp import ICOProblem, ICOSolver  # noqa: E402
 
+# The synthetic expert data are shared with the ICO tests.
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), os.pardir, "tests"))
+from helpers import expert_windows  # noqa: E402
+
 PAPER = {2: 28.0, 25: None, 100: None, 200: 2760.0}  # s per ICO controller (paper §5.1)
 
 
 def synthetic_windows(N, n=6, p=3, m=3, seed=0):
     """Two-step windows of a random LTI expert plus noise (sizes of the linear example)."""
-    rng = np.random.default_rng(seed)
-    Ae = 0.5 * rng.normal(size=(n, n)) / np.sqrt(n)
-    Be, Ce, De = rng.normal(size=(n, p)), rng.normal(size=(m, n)), rng.normal(size=(m, p))
-    x0, y = rng.normal(size=(N, n)), rng.normal(size=(N, 2, p))
-    t0 = x0 @ Ce.T + y[:, 0] @ De.T
-    t1 = (x0 @ Ae.T + y[:, 0] @ Be.T) @ Ce.T + y[:, 1] @ De.T
-    target = np.stack([t0, t1], 1) + 0.05 * rng.normal(size=(N, 2, m))
-    return dj.Windows(x0, y, -target)
+    return expert_windows(seed, n, p, m, N=N)
 
 
 def cvxpy_step(pb: ICOProblem, theta0, P_tilde, w_tilde, eps):

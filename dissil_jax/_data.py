@@ -87,13 +87,3 @@ class Windows(eqx.Module):
         """The imitation target of the controller output, $\\hat y_k = -u_k$."""
         return -self.u
 
-
-def check_compatible(windows: Windows, n_state: int, n_in: int, n_out: int) -> None:
-    """Raise a ValueError naming `windows` when its sizes do not fit a controller."""
-    if not isinstance(windows, Windows):
-        raise ValueError(f"`windows` must be a `dj.Windows`, got {type(windows).__name__}.")
-    got = (windows.n_state, windows.n_in, windows.n_out)
-    if got != (n_state, n_in, n_out):
-        raise ValueError(
-            f"`windows` has (n, p, m) = {got} but the controller has {(n_state, n_in, n_out)}."
-        )

@@ -81,7 +81,6 @@ class _ProjectionSolver:
 
         self.lmi, self.eps, self.reg = lmi, eps, reg
         n, N = lmi.n, lmi.N
-        idx = lmi._svec_idx
         # Cone s = b - A x in PSD: s = svec(-M(x) - eps I) => A = svec(J_k) columns.
         fixed = np.stack([lmi.svec(Jk) for Jk in lmi.J_fixed], axis=1)  # [L, nx]
         Gs = lmi.svec(lmi.G)  # [nAB, n, n, L]
@@ -107,7 +106,6 @@ class _ProjectionSolver:
                 sel[c * n + a, i3 + c, i3 + a] = 2.0
         self.b_g = lmi.svec(sel).T  # [L, n*n]
         self.eps_svec = lmi.svec(np.eye(N))
-        self._idx = idx
         nth, nP = lmi.ntheta, lmi.nP
         diag = np.concatenate([np.ones(nth), np.full(nP, reg)])
         self.P_obj = sp.diags(diag).tocsc()

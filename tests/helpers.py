@@ -36,3 +36,15 @@ def random_windows(key, N=10, h=2, n=1, p=1, m=1, gain=0.5):
     y = jax.random.normal(k2, (N, h, p))
     u = -gain * y[..., :m] if m <= p else -gain * jnp.tile(y, (1, 1, m))[..., :m]
     return dj.Windows(x0, y, u)
+
+
+def expert_windows(seed, n, p, m, N=12, noise=0.05):
+    """Two-step windows of a random (generally not dissipative) LTI expert plus noise."""
+    rng = np.random.default_rng(seed)
+    Ae = 0.5 * rng.normal(size=(n, n)) / np.sqrt(n)
+    Be, Ce, De = rng.normal(size=(n, p)), rng.normal(size=(m, n)), rng.normal(size=(m, p))
+    x0, y = rng.normal(size=(N, n)), rng.normal(size=(N, 2, p))
+    t0 = x0 @ Ce.T + y[:, 0] @ De.T
+    t1 = (x0 @ Ae.T + y[:, 0] @ Be.T) @ Ce.T + y[:, 1] @ De.T
+    target = np.stack([t0, t1], 1) + noise * rng.normal(size=(N, 2, m))
+    return dj.Windows(x0, y, -target)

@@ -7,25 +7,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import independent_kyp_ok
+from helpers import expert_windows, independent_kyp_ok
 
 import dissil_jax as dj
 from dissil_jax._train import _ico_sdp, ico
 from dissil_jax._train._ico_sdp import ICOProblem, ICOSolver
 
 NONLINEAR_QSR = dj.QSR(-29.867, 3.556, 0.601)  # the paper's nonlinear-example controller
-
-
-def expert_windows(seed, n, p, m, N=12, noise=0.05):
-    """Two-step windows of a random (generally not dissipative) LTI expert plus noise."""
-    rng = np.random.default_rng(seed)
-    Ae = 0.5 * rng.normal(size=(n, n)) / np.sqrt(n)
-    Be, Ce, De = rng.normal(size=(n, p)), rng.normal(size=(m, n)), rng.normal(size=(m, p))
-    x0, y = rng.normal(size=(N, n)), rng.normal(size=(N, 2, p))
-    t0 = x0 @ Ce.T + y[:, 0] @ De.T
-    t1 = (x0 @ Ae.T + y[:, 0] @ Be.T) @ Ce.T + y[:, 1] @ De.T
-    target = np.stack([t0, t1], 1) + noise * rng.normal(size=(N, 2, m))
-    return dj.Windows(x0, y, -target)
 
 
 def _problem(windows, qsr, cone="soc"):
