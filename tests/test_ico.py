@@ -16,7 +16,7 @@ from dissil_jax._train._ico_sdp import ICOProblem, ICOSolver
 NONLINEAR_QSR = dj.QSR(-29.867, 3.556, 0.601)  # the paper's nonlinear-example controller
 
 
-def _problem(windows, qsr, cone="soc"):
+def _problem(windows, qsr, cone="stacked"):
     return ICOProblem(np.asarray(windows.x0), np.asarray(windows.y),
                       np.asarray(windows.target), qsr, window_cone=cone)
 
@@ -38,7 +38,7 @@ CASES = [
 ]
 
 
-@pytest.mark.parametrize("cone", ["soc", "psd"])
+@pytest.mark.parametrize("cone", _ico_sdp.WINDOW_CONES)
 @pytest.mark.parametrize("n,p,m,qsr", CASES + [(3, 2, 2, None)])
 def test_overbound_exact_at_zero(getkey, n, p, m, qsr, cone):
     windows = expert_windows(n + p, n, p, m)
@@ -59,7 +59,7 @@ def test_overbound_exact_at_zero(getkey, n, p, m, qsr, cone):
     assert pb.cone_min(pb.overbound(x_bad, theta, P, w, eps)[1]) < 0
 
 
-@pytest.mark.parametrize("cone", ["soc", "psd"])
+@pytest.mark.parametrize("cone", _ico_sdp.WINDOW_CONES)
 @pytest.mark.parametrize("n,p,m", [(1, 1, 1), (3, 2, 2), (2, 3, 1)])
 def test_overbound_bounds_true_loss(getkey, n, p, m, cone):
     windows = expert_windows(7 * n + m, n, p, m)
@@ -82,6 +82,55 @@ def test_overbound_bounds_true_loss(getkey, n, p, m, cone):
             assert pb.cone_min(s) >= -1e-9 * max(1.0, np.abs(s).max())
             assert value >= pb.loss(theta + d) - 1e-12
     assert checked >= 8
+
+
+@pytest.mark.parametrize("qsr", [dj.QSR.passive(2), None])
+def test_stacked_cone_equals_per_window_cones(getkey, qsr):
+    """The QR-compressed stacked cone has the optimum of one SOC per window (same bound)."""
+    windows = expert_windows(4, 3, 2, 2, N=40)  # N m = 80 > n_theta = 31: compressed
+    K, P = _start(getkey(), windows, qsr)
+    out = {}
+    for cone in ("stacked", "soc"):
+        pb = _problem(windows, qsr, cone)
+        theta = pb.theta(K.A, K.B, K.C, K.D)
+        solver = ICOSolver(pb)
+        d, _, w, status, _ = solver.solve(theta, P, 0.8)
+        assert status in _ico_sdp._OK
+        out[cone] = (solver.obj_val, d, w, pb)
+    (obj_s, d_s, w_s, pb_s), (obj_w, d_w, w_w, pb_w) = out["stacked"], out["soc"]
+    assert pb_s.nrows < pb_w.nrows - 2 * 40  # the point of stacking
+    assert obj_s == pytest.approx(obj_w, rel=1e-6, abs=1e-9)
+    np.testing.assert_allclose(d_s, d_w, atol=1e-4 * np.abs(d_w).max())
+    assert w_s == pytest.approx(w_w, rel=1e-3)
+
+
+def test_stacked_factor_chunks_agree(getkey):
+    """The chunked QR (TSQR) of the stacked residual is that of one big factorisation."""
+    windows = expert_windows(6, 2, 2, 2, N=30)
+    pb = _problem(windows, None)
+    K, _ = _start(getkey(), windows, None)
+    A, B, C, D = (np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
+    z = pb.x0 @ A.T + pb.u0 @ B.T
+    ebar = pb.t1 - z @ C.T - pb.u1 @ D.T
+    R1, g1, c1 = pb._stacked_factor(C, z, ebar)
+    R7, g7, c7 = pb._stacked_factor(C, z, ebar, chunk=7)
+
+    def e_of(d):  # the affine part of the step-1 residual, written out directly
+        dA, dB, dC, dD = pb.mats(d)
+        dz = pb.x0 @ dA.T + pb.u0 @ dB.T
+        return ebar - dz @ C.T - z @ dC.T - pb.u1 @ dD.T
+
+    L = np.stack([ebar.ravel() - e_of(np.eye(pb.ntheta)[j]).ravel()
+                  for j in range(pb.ntheta)], axis=1)  # ebar(delta) = ebar - L delta
+    rng = np.random.default_rng(0)
+    for R, g, c in ((R1, g1, c1), (R7, g7, c7)):
+        np.testing.assert_allclose(R.T @ R, L.T @ L, rtol=1e-5, atol=1e-5 * np.abs(L).max()**2)
+        np.testing.assert_allclose(R.T @ g, L.T @ ebar.ravel(), rtol=1e-5, atol=1e-6)
+        # The identity the cone relies on, ||ebar(delta)||^2 = ||g - R delta||^2 + c^2 (c
+        # itself is not unique when L is rank deficient, e.g. zero controller states).
+        for d in [np.zeros(pb.ntheta)] + [rng.normal(size=pb.ntheta) for _ in range(3)]:
+            exact = np.sum(e_of(d) ** 2)
+            assert np.sum((g - R @ d) ** 2) + c**2 == pytest.approx(exact, rel=1e-10)
 
 
 def test_inplace_update_matches_fresh_solver(getkey):

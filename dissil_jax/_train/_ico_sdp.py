@@ -24,16 +24,20 @@ $$\lVert e\rVert^2 \le \bar e^\top (I - Y)^{-1}\bar e + \lVert\delta z\rVert^2/w
 
 This is the DESIGN §3 LMI $[[-s, \bar e^\top, 0, \delta z^\top], [\bar e, -I, \delta C, 0],
 [0, \delta C^\top, -W^{-1}, 0], [\delta z, 0, 0, -W]] \preceq 0$ after Schur complements
-on its last two blocks, with the pieces lifted so that each window costs one small cone:
+on its last two blocks, with the pieces lifted into a few small cones:
 
 - one shared LMI $[[Y, \delta C], [\delta C^\top, \phi(w) I]] \succeq 0$ with
   $\phi(w) = 2/\tilde w - w/\tilde w^2 \le 1/w$ (the paper's overbound
   $W^{-1} \succeq 2\tilde W - \tilde W W\tilde W$ for the scalar weight);
-- per window either the rotated SOC $\lVert\bar e_k\rVert^2 \le \sigma_k (1 - y)$ with
-  $Y = yI$ (`window_cone="soc"`, default: $y \ge w\lVert\delta C\rVert_2^2$, identical
-  bound when $m = 1$) or the LMI $[[\sigma_k, \bar e_k^\top], [\bar e_k, I - Y]] \succeq 0$
-  with a full symmetric $Y$ (`"psd"`; minimising over $Y$ recovers exactly the
-  per-window DESIGN LMI because every window's LMI is monotone in $Y$);
+- with $Y = yI$ ($y \ge w\lVert\delta C\rVert_2^2$, identical bound when $m = 1$), the
+  rotated SOC $\lVert\bar e\rVert^2 \le \sigma (1 - y)$ for the stacked residual
+  $\bar e = (\bar e_1, \dots, \bar e_N)$, compressed by a QR factorisation of its Jacobian to
+  $\min(Nm, n_\theta) + 3$ rows (`window_cone="stacked"`, default; see `_stacked_pattern`);
+  or the same bound window by window, $\lVert\bar e_k\rVert^2 \le \sigma_k (1 - y)$ (`"soc"`,
+  the same optimum with $N$ cones; kept as a reference); or, with a full symmetric $Y$, the
+  per-window LMI $[[\sigma_k, \bar e_k^\top], [\bar e_k, I - Y]] \succeq 0$ (`"psd"`;
+  minimising over $Y$ recovers exactly the per-window DESIGN LMI because every window's LMI
+  is monotone in $Y$);
 - $\sum_k\lVert\delta z_k\rVert^2/w = \lVert[\delta A\ \delta B]F\rVert_F^2/w \le \tau$ with
   $FF^\top = \sum_k\zeta_k\zeta_k^\top$: one rotated SOC whose size does not grow with $N$.
 
@@ -50,12 +54,14 @@ linearisation point), and then balanced by the congruence
 $\mathrm{diag}(\tilde P^{-1/2}, I, I, \tilde P^{-1/2})$, which keeps Clarabel accurate when
 $P$ becomes ill-conditioned. The objective (without the proximal terms) overbounds the true
 two-step loss $J(\theta_0 + \delta\theta)$ and equals $J(\theta_0)$ at $\delta = 0$ with
-$Y = 0$, $\tau = 0$, $w = \tilde w$, $\sigma_k = \lVert\bar e_k(0)\rVert^2$. The step-0 term is
+$Y = 0$, $\tau = 0$, $w = \tilde w$, $\sigma_k = \lVert\bar e_k(0)\rVert^2$ (or
+$\sigma = \lVert\bar e(0)\rVert^2$). The step-0 term is
 a plain quadratic with Hessian $I_m\otimes\sum_k\zeta_k\zeta_k^\top$: no per-window variables.
 
-Variables: $x = (\delta\theta, P_{\text{triu}}, Y, w, \tau, \sigma_{1..N})$ (no $P$ for
-ICO-NC). Cones in order: KYP PSD (ICO only), the $\tau$ SOC, the $Y$ PSD (size
-$m + \hat n$), then $N$ window cones. Only the numbers of $q$, $A$ and $b$ change between
+Variables: $x = (\delta\theta, P_{\text{triu}}, Y, w, \tau, \sigma)$ with one $\sigma$
+(`"stacked"`) or $\sigma_{1..N}$ (no $P$ for ICO-NC). Cones in order: KYP PSD (ICO only),
+the $\tau$ SOC, the $Y$ PSD (size $m + \hat n$), then the window cone(s). With the default
+the SDP's size does not depend on $N$ at all. Only the numbers of $q$, $A$ and $b$ change between
 iterations; the sparsity pattern is built once.
 """
 
@@ -68,6 +74,7 @@ from .._lmi import ConvexifiedLMI, svec, svec_indices
 from .._supply import QSR
 
 _OK = {"Solved", "AlmostSolved"}
+WINDOW_CONES = ("stacked", "soc", "psd")
 _SQRT2 = np.sqrt(2.0)
 
 
@@ -101,7 +108,7 @@ class ICOProblem:
     """
 
     def __init__(self, x0, uhat, target, qsr: QSR | None, *, eps=1e-6, prox=1e-4, reg=1e-6,
-                 window_cone: str = "soc"):
+                 window_cone: str = "stacked"):
         x0, uhat, target = (np.asarray(a, np.float64) for a in (x0, uhat, target))
         N, n = x0.shape
         p, m = uhat.shape[2], target.shape[2]
@@ -127,17 +134,20 @@ class ICOProblem:
         nP = self.lmi.nP if qsr is not None else 0
         self.oP = nth
         self.oY = nth + nP
-        if window_cone not in ("soc", "psd"):
-            raise ValueError(f"`window_cone` must be 'soc' or 'psd', got {window_cone!r}.")
+        if window_cone not in WINDOW_CONES:
+            raise ValueError(
+                f"`window_cone` must be one of {WINDOW_CONES}, got {window_cone!r}.")
         self.window_cone = window_cone
-        soc = window_cone == "soc"
+        stacked = window_cone == "stacked"
+        soc = window_cone != "psd"  # Y = y I
+        n_sig = 1 if stacked else N
         yi, yj = np.triu_indices(m)
         self.y_rows, self.y_cols = yi, yj
         nY = 1 if soc else len(yi)  # Y = y I, or a full symmetric Y
         self.ow = self.oY + nY
         self.otau = self.ow + 1
         self.osig = self.otau + 1
-        self.nx = self.osig + N
+        self.nx = self.osig + n_sig
         colA = oA + np.arange(self.nA).reshape(n, n)
         colB = oB + np.arange(self.nB).reshape(n, p)
         colC = oC + np.arange(self.nC).reshape(m, n)
@@ -204,55 +214,18 @@ class ICOProblem:
         cones.append(clarabel.PSDTriangleConeT(dY))
         spec.append(("psd", dY))
 
-        # -- (d) per window: psd [[sigma_k, ebar_k^T], [ebar_k, I - Y]] >= 0, or (Y = y I)
-        #    the rotated SOC ||ebar_k||^2 <= sigma_k (1 - y), i.e.
-        #    ||(2 ebar, sigma - 1 + y)|| <= sigma + 1 - y
+        # -- (d) the windows' step-1 bound ------------------------------------------------
         self.win_row0 = row0
-        Lw = m + 2 if soc else _svec_len(1 + m)
-        self.Lw = Lw
-        kk = np.arange(N)
-        base = row0 + kk * Lw  # [N]
-        e_pos = 2 + np.arange(m) if soc else _svec_pos(0, 1 + np.arange(m))  # [m]
-        self.e_rows = base[:, None] + e_pos[None, :]  # [N, m]
-        self._escale = 2.0 if soc else _SQRT2
-        b_win = np.zeros((N, Lw))
-        if soc:
-            rows += [base, base + 1, base, base + 1]
-            cols += [self.osig + kk, self.osig + kk, np.full(N, colY[0]), np.full(N, colY[0])]
-            win_fixed = np.concatenate([-np.ones(2 * N), np.ones(N), -np.ones(N)])
-            b_win[:, 0], b_win[:, 1] = 1.0, -1.0
+        if stacked:
+            row0 = self._stacked_pattern(row0, rows, cols, cones, spec, colY[0])
         else:
-            rows.append(base)
-            cols.append(self.osig + kk)
-            rows.append((base[:, None] + _svec_pos(1 + yi, 1 + yj)[None]).ravel())
-            cols.append(np.tile(colY, N))
-            win_fixed = np.concatenate([-np.ones(N), np.tile(wY, N)])
-            b_win[:, _svec_pos(1 + np.arange(m), 1 + np.arange(m))] = 1.0
-        self._b_win = b_win.ravel()
-        # ebar_a depends on dA[i, j] (C0[a, i] x0[k, j]), dB[i, j] (C0[a, i] u0[k, j]),
-        # dC[a, j] (z[k, j]) and dD[a, j] (u1[k, j]).
-        er = self.e_rows
-        rows.append(np.broadcast_to(er[:, :, None, None], (N, m, n, n)).ravel())
-        cols.append(np.broadcast_to(colA[None, None], (N, m, n, n)).ravel())
-        rows.append(np.broadcast_to(er[:, :, None, None], (N, m, n, p)).ravel())
-        cols.append(np.broadcast_to(colB[None, None], (N, m, n, p)).ravel())
-        rows.append(np.broadcast_to(er[:, :, None], (N, m, n)).ravel())
-        cols.append(np.broadcast_to(colC[None], (N, m, n)).ravel())
-        rows.append(np.broadcast_to(er[:, :, None], (N, m, p)).ravel())
-        cols.append(np.broadcast_to(colD[None], (N, m, p)).ravel())
-        row0 += N * Lw
-        if soc:
-            cones += [clarabel.SecondOrderConeT(Lw)] * N
-            spec += [("soc", Lw)] * N
-        else:
-            cones += [clarabel.PSDTriangleConeT(1 + m)] * N
-            spec += [("psd", 1 + m)] * N
+            row0 = self._window_pattern(row0, rows, cols, cones, spec, colY, wY, soc)
         self.cone_spec = spec
         self.nrows = row0
         self.cones = cones
 
         # -- constant values and the COO -> CSC permutation ---------------------------------
-        self._soc_vals, self._yblock_vals, self._win_fixed = soc_vals, yblock_vals, win_fixed
+        self._soc_vals, self._yblock_vals = soc_vals, yblock_vals
         rows, cols = np.concatenate(rows), np.concatenate(cols)
         order = np.lexsort((rows, cols))
         rs, cs = rows[order], cols[order]
@@ -280,6 +253,112 @@ class ICOProblem:
         self.q_fixed[self.otau] = self.c
         self.q_fixed[self.osig:] = self.c
         self._svec_idx_kyp = svec_indices(self.Nk) if qsr is not None else None
+
+    def _window_pattern(self, row0, rows, cols, cones, spec, colY, wY, soc):
+        """Per window: psd $[[\\sigma_k, \\bar e_k^\\top], [\\bar e_k, I - Y]] \\succeq 0$, or
+        ($Y = yI$) the rotated SOC $\\lVert\\bar e_k\\rVert^2 \\le \\sigma_k(1 - y)$, i.e.
+        $\\lVert(2\\bar e_k, \\sigma_k - 1 + y)\\rVert \\le \\sigma_k + 1 - y$."""
+        import clarabel
+
+        N, n, p, m = self.N, self.n, self.p, self.m
+        colA, colB, colC, colD = (self._cols[k] for k in "ABCD")
+        yi, yj = self.y_rows, self.y_cols
+        Lw = m + 2 if soc else _svec_len(1 + m)
+        self.Lw = Lw
+        kk = np.arange(N)
+        base = row0 + kk * Lw  # [N]
+        e_pos = 2 + np.arange(m) if soc else _svec_pos(0, 1 + np.arange(m))  # [m]
+        self.e_rows = base[:, None] + e_pos[None, :]  # [N, m]
+        self._escale = 2.0 if soc else _SQRT2
+        b_win = np.zeros((N, Lw))
+        if soc:
+            rows += [base, base + 1, base, base + 1]
+            cols += [self.osig + kk, self.osig + kk, np.full(N, colY[0]), np.full(N, colY[0])]
+            win_fixed = np.concatenate([-np.ones(2 * N), np.ones(N), -np.ones(N)])
+            b_win[:, 0], b_win[:, 1] = 1.0, -1.0
+        else:
+            rows.append(base)
+            cols.append(self.osig + kk)
+            rows.append((base[:, None] + _svec_pos(1 + yi, 1 + yj)[None]).ravel())
+            cols.append(np.tile(colY, N))
+            win_fixed = np.concatenate([-np.ones(N), np.tile(wY, N)])
+            b_win[:, _svec_pos(1 + np.arange(m), 1 + np.arange(m))] = 1.0
+        self._b_win = b_win.ravel()
+        self._win_fixed = win_fixed
+        # ebar_a depends on dA[i, j] (C0[a, i] x0[k, j]), dB[i, j] (C0[a, i] u0[k, j]),
+        # dC[a, j] (z[k, j]) and dD[a, j] (u1[k, j]).
+        er = self.e_rows
+        rows.append(np.broadcast_to(er[:, :, None, None], (N, m, n, n)).ravel())
+        cols.append(np.broadcast_to(colA[None, None], (N, m, n, n)).ravel())
+        rows.append(np.broadcast_to(er[:, :, None, None], (N, m, n, p)).ravel())
+        cols.append(np.broadcast_to(colB[None, None], (N, m, n, p)).ravel())
+        rows.append(np.broadcast_to(er[:, :, None], (N, m, n)).ravel())
+        cols.append(np.broadcast_to(colC[None], (N, m, n)).ravel())
+        rows.append(np.broadcast_to(er[:, :, None], (N, m, p)).ravel())
+        cols.append(np.broadcast_to(colD[None], (N, m, p)).ravel())
+        row0 += N * Lw
+        if soc:
+            cones += [clarabel.SecondOrderConeT(Lw)] * N
+            spec += [("soc", Lw)] * N
+        else:
+            cones += [clarabel.PSDTriangleConeT(1 + m)] * N
+            spec += [("psd", 1 + m)] * N
+        return row0
+
+    def _stacked_pattern(self, row0, rows, cols, cones, spec, col_y):
+        r"""All windows in one rotated SOC, $\lVert\bar e\rVert^2 \le \sigma(1 - y)$.
+
+        $\bar e = (\bar e_1, \dots, \bar e_N) = \bar e_0 - L\,\delta\theta$ is affine with
+        $L \in \mathbb R^{Nm \times n_\theta}$. With a thin QR factorisation $L = QR$,
+        $\lVert\bar e\rVert^2 = \lVert Q^\top\bar e_0 - R\,\delta\theta\rVert^2 + c^2$,
+        $c = \lVert(I - QQ^\top)\bar e_0\rVert$, so the cone
+        $\lVert(2(Q^\top\bar e_0 - R\delta\theta), 2c, \sigma - 1 + y)\rVert
+        \le \sigma + 1 - y$ has $\min(Nm, n_\theta) + 3$ rows whatever $N$ is. Its optimum
+        equals the per-window SOC form's ($\sum_k\sigma_k$ with $\sigma_k = \lVert\bar e_k
+        \rVert^2/(1 - y)$); only the QR, done in numpy every iteration, grows with $N$.
+        """
+        import clarabel
+
+        nth = self.ntheta
+        self.r_e = r_e = min(self.N * self.m, nth)
+        Lw = r_e + 3
+        rows += [row0 + np.array([0, 1, 0, 1])]
+        cols += [np.array([self.osig, self.osig, col_y, col_y])]
+        self._win_fixed = np.array([-1.0, -1.0, 1.0, -1.0])
+        ri, cj = np.triu_indices(r_e, m=nth)  # R is upper trapezoidal
+        self._r_idx = (ri, cj)
+        rows.append(row0 + 2 + ri)
+        cols.append(cj)  # theta sits at columns 0..n_theta-1 of x
+        self.g_rows = row0 + 2 + np.arange(r_e)
+        self.c_row = row0 + 2 + r_e
+        cones.append(clarabel.SecondOrderConeT(Lw))
+        spec.append(("soc", Lw))
+        return row0 + Lw
+
+    def _stacked_factor(self, C0, z, ebar, chunk: int = 4096):
+        r"""`(R, g, c)` of the stacked cone: $R$, $g = Q^\top\bar e_0$ and $c$ (see
+        `_stacked_pattern`), by a QR factorisation of $L$ taken `chunk` windows at a time
+        (memory $O(\text{chunk}\cdot m\cdot n_\theta)$)."""
+        N, m = self.N, self.m
+        eye = np.eye(m)
+        R = np.zeros((0, self.ntheta))
+        g = np.zeros(0)
+        c2 = 0.0
+        for k0 in range(0, N, chunk):
+            sl = slice(k0, min(N, k0 + chunk))
+            k = sl.stop - sl.start
+            L = np.concatenate([  # rows (window, output a); columns theta = (A, B, C, D)
+                (C0[None, :, :, None] * self.x0[sl, None, None, :]).reshape(k, m, -1),
+                (C0[None, :, :, None] * self.u0[sl, None, None, :]).reshape(k, m, -1),
+                (eye[None, :, :, None] * z[sl, None, None, :]).reshape(k, m, -1),
+                (eye[None, :, :, None] * self.u1[sl, None, None, :]).reshape(k, m, -1),
+            ], axis=2).reshape(k * m, -1)
+            M = np.concatenate([R, L])
+            v = np.concatenate([g, ebar[sl].ravel()])
+            Q, R = np.linalg.qr(M)
+            g = Q.T @ v
+            c2 += float(np.sum((v - Q @ g) ** 2))
+        return R, g, np.sqrt(c2)
 
     # -------------------------------------------------------------------------------------
     def theta(self, A, B, C, D) -> np.ndarray:
@@ -318,7 +397,7 @@ class ICOProblem:
             T[:n, :n] = Ph
             T[-n:, -n:] = Ph
             M0, E = T @ M0 @ T, T @ E @ T
-            J = np.einsum("ij,kjl,lm->kim", T, J, T)
+            J = T @ J @ T  # broadcast over the variables (einsum here was 10x slower)
         return M0, J, E
 
     def kyp_margin(self, theta, P) -> float:
@@ -353,14 +432,21 @@ class ICOProblem:
         b[self.yw_rows] = 2.0 / w_tilde
         vals.append(self._win_fixed)
         z = self.x0 @ A0.T + self.u0 @ B0.T  # [N, n]
-        es = self._escale
-        vals.append((es * C0[None, :, :, None] * self.x0[:, None, None, :]).ravel())
-        vals.append((es * C0[None, :, :, None] * self.u0[:, None, None, :]).ravel())
-        vals.append(np.broadcast_to(es * z[:, None, :], (N, m, n)).ravel())
-        vals.append(np.broadcast_to(es * self.u1[:, None, :], (N, m, self.p)).ravel())
         ebar = self.t1 - z @ C0.T - self.u1 @ D0.T  # [N, m]
-        b[self.win_row0:] = self._b_win
-        b[self.e_rows] = self._escale * ebar
+        if self.window_cone == "stacked":
+            R, g, c = self._stacked_factor(C0, z, ebar)
+            vals.append(2.0 * R[self._r_idx])
+            b[self.win_row0:self.win_row0 + 2] = 1.0, -1.0
+            b[self.g_rows] = 2.0 * g
+            b[self.c_row] = 2.0 * c
+        else:
+            es = self._escale
+            vals.append((es * C0[None, :, :, None] * self.x0[:, None, None, :]).ravel())
+            vals.append((es * C0[None, :, :, None] * self.u0[:, None, None, :]).ravel())
+            vals.append(np.broadcast_to(es * z[:, None, :], (N, m, n)).ravel())
+            vals.append(np.broadcast_to(es * self.u1[:, None, :], (N, m, self.p)).ravel())
+            b[self.win_row0:] = self._b_win
+            b[self.e_rows] = self._escale * ebar
         vals = np.concatenate(vals)[self.order]
         # step-0: c * sum ||r0 - dCD zeta||^2, r0 = t0 - C0 x0 - D0 u0 (target minus prediction)
         r0 = self.t0 - self.x0 @ C0.T - self.u0 @ D0.T
@@ -414,7 +500,7 @@ class ICOProblem:
         dA, dB, dC, dD = self.mats(dtheta)
         A0, B0, C0, D0 = self.mats(theta0)
         phi = 2.0 / w_tilde - w / w_tilde**2
-        if self.window_cone == "soc":
+        if self.window_cone != "psd":
             Y = np.linalg.norm(dC, 2) ** 2 / phi * np.eye(m)
         else:
             Y = dC @ dC.T / phi
@@ -429,8 +515,10 @@ class ICOProblem:
         x[:self.ntheta] = dtheta
         if self.qsr is not None:
             x[self.oP:self.oY] = np.asarray(P)[self.lmi.p_rows, self.lmi.p_cols]
-        x[self.oY:self.ow] = Y[0, 0] if self.window_cone == "soc" else Y[self.y_rows, self.y_cols]
+        x[self.oY:self.ow] = Y[0, 0] if self.window_cone != "psd" else Y[self.y_rows, self.y_cols]
         x[self.ow], x[self.otau] = w, tau
+        if self.window_cone == "stacked":
+            sig = np.sum(sig, keepdims=True)
         x[self.osig:] = sig * (1 + 1e-12) + 1e-15
         x[self.otau] = tau * (1 + 1e-12) + 1e-15
         return x

@@ -168,7 +168,7 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, tol, init_scale, eps, prox,
 def fit_ico(
     key, windows: Windows, qsr: QSR, *, num_inits: int = 8, max_steps: int = 150,
     tol: float = 1e-3, init_scale: float = 0.1, eps: float = 1e-6, prox: float = 1e-4,
-    window_cone: str = "soc", callback: Callable | None = None,
+    window_cone: str = "stacked", callback: Callable | None = None,
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers by iterative convex overbounding (paper Alg. 1).
 
@@ -194,15 +194,22 @@ def fit_ico(
     $$\\lVert e\\rVert^2 \\le \\frac{\\lVert\\bar e\\rVert^2}{1 - y}
     + \\frac{\\lVert\\delta z\\rVert^2}{w}, \\qquad y \\ge w\\lVert\\delta C\\rVert_2^2,$$
 
-    one rotated second-order cone per window (cost linear in $N$), one shared LMI
-    $\\bigl[\\begin{smallmatrix} yI & \\delta C\\\\ \\delta C^\\top & (2/\\tilde w - w/\\tilde w^2)I
-    \\end{smallmatrix}\\bigr]\\succeq 0$ and one cone for
-    $\\sum_k\\lVert\\delta z_k\\rVert^2/w$ (derivation in `dissil_jax/_train/_ico_sdp.py`).
-    This is DESIGN §3's compact bound with $\\delta C\\delta C^\\top$ replaced by
-    $\\lVert\\delta C\\rVert_2^2 I$ (identical when $m = 1$). With `window_cone="psd"` the
-    exact per-window matrix form is used instead: about 1.5x slower per iteration for
-    $m = 3$ and no better in our runs. Unlike the paper's term-by-term
-    Lemmas 4-7 it needs one small cone per window instead of seven LMIs.
+    one shared LMI
+    $\bigl[\begin{smallmatrix} yI & \delta C\\ \delta C^\top & (2/\tilde w - w/\tilde w^2)I
+    \end{smallmatrix}\bigr]\succeq 0$, one cone for $\sum_k\lVert\delta z_k\rVert^2/w$
+    and one rotated second-order cone for $\sum_k\lVert\bar e_k\rVert^2/(1 - y)$, the
+    stacked residual compressed by a QR factorisation of its Jacobian to at most
+    $n_\theta + 3$ rows (derivation in `dissil_jax/_train/_ico_sdp.py`). The SDP's size
+    therefore does not depend on the number of windows $N$; only the QR (numpy, linear in
+    $N$) does. This is DESIGN §3's compact bound with $\delta C\delta C^\top$ replaced by
+    $\lVert\delta C\rVert_2^2 I$ (identical when $m = 1$). Unlike the paper's term-by-term
+    Lemmas 4-7 it needs three small cones in all instead of seven LMIs per window.
+
+    `window_cone` selects the window part: `"stacked"` (default, as above); `"soc"`, the same
+    bound with one cone per window (the same optimum, an SDP that grows with $N$; kept as a
+    reference); or `"psd"`, the exact per-window matrix form with a full symmetric $Y$
+    instead of $yI$ (about 1.5x slower per iteration than `"soc"` for $m = 3$ and no better in
+    our runs).
 
     **The Young weight.** As in the paper, $w$ is a decision variable and $1/w$ (the
     $W^{-1}$ block) is replaced by its tangent $2/\\tilde w - w/\\tilde w^2 \\le 1/w$, so
@@ -237,7 +244,7 @@ def fit_ico(
     - `init_scale`: standard deviation of the random initial entries.
     - `eps`: margin of the dissipativity LMI (never more than the current iterate has).
     - `prox`: proximal weight $\\mu$ on the step.
-    - `window_cone`: `"soc"` (default) or `"psd"`, see above.
+    - `window_cone`: `"stacked"` (default), `"soc"` or `"psd"`, see above.
     - `callback`: optional `callback(init_index, step, K, P, loss)` called for the initial
       point (step 0) and every accepted iterate, from worker threads.
 
@@ -257,7 +264,7 @@ def fit_ico(
 
 def fit_ico_nc(
     key, windows: Windows, *, num_inits: int = 8, max_steps: int = 150, tol: float = 1e-3,
-    init_scale: float = 0.1, prox: float = 1e-4, window_cone: str = "soc",
+    init_scale: float = 0.1, prox: float = 1e-4, window_cone: str = "stacked",
     callback: Callable | None = None,
 ) -> FitResult:
     """ICO without the dissipativity constraint (the paper's ICO-NC baseline).
