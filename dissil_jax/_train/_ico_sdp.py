@@ -335,15 +335,18 @@ class ICOProblem:
         spec.append(("soc", Lw))
         return row0 + Lw
 
-    def _stacked_factor(self, C0, z, ebar, chunk: int = 4096):
-        r"""`(R, g, c)` of the stacked cone: $R$, $g = Q^\top\bar e_0$ and $c$ (see
-        `_stacked_pattern`), by a QR factorisation of $L$ taken `chunk` windows at a time
-        (memory $O(\text{chunk}\cdot m\cdot n_\theta)$)."""
-        N, m = self.N, self.m
+    def _stacked_factor(self, C0, z, ebar, chunk: int = 2048):
+        r"""`(R, g, c)` of the stacked cone (see `_stacked_pattern`).
+
+        The triangular factor of the augmented matrix $[L\ \bar e_0] = Q
+        \bigl[\begin{smallmatrix} R & g\\ 0 & c\end{smallmatrix}\bigr]$ gives all three
+        without forming $Q$, since $\bar e_0 - L\delta = [L\ \bar e_0](-\delta, 1)$. It is
+        accumulated `chunk` windows at a time (memory $O(\text{chunk}\cdot m\cdot
+        n_\theta)$, time linear in $N$).
+        """
+        N, m, nth = self.N, self.m, self.ntheta
         eye = np.eye(m)
-        R = np.zeros((0, self.ntheta))
-        g = np.zeros(0)
-        c2 = 0.0
+        Raug = np.zeros((0, nth + 1))
         for k0 in range(0, N, chunk):
             sl = slice(k0, min(N, k0 + chunk))
             k = sl.stop - sl.start
@@ -352,13 +355,12 @@ class ICOProblem:
                 (C0[None, :, :, None] * self.u0[sl, None, None, :]).reshape(k, m, -1),
                 (eye[None, :, :, None] * z[sl, None, None, :]).reshape(k, m, -1),
                 (eye[None, :, :, None] * self.u1[sl, None, None, :]).reshape(k, m, -1),
+                ebar[sl, :, None],
             ], axis=2).reshape(k * m, -1)
-            M = np.concatenate([R, L])
-            v = np.concatenate([g, ebar[sl].ravel()])
-            Q, R = np.linalg.qr(M)
-            g = Q.T @ v
-            c2 += float(np.sum((v - Q @ g) ** 2))
-        return R, g, np.sqrt(c2)
+            Raug = np.linalg.qr(np.concatenate([Raug, L]), mode="r")
+        r_e = self.r_e
+        c = abs(Raug[r_e, nth]) if Raug.shape[0] > r_e else 0.0
+        return Raug[:r_e, :nth], Raug[:r_e, nth], float(c)
 
     # -------------------------------------------------------------------------------------
     def theta(self, A, B, C, D) -> np.ndarray:
