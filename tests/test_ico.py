@@ -223,6 +223,7 @@ def test_rejected_step_keeps_certified_iterate(getkey, monkeypatch):
     with pytest.warns(UserWarning, match="loss increased|not certified"):
         res = dj.fit_ico(getkey(), windows, qsr, num_inits=1, max_steps=10, tol=0.0)
     assert int(res.steps[0]) == 1 and not bool(res.converged[0])
+    assert res.stop_reasons()[0] in ("loss_increased", "not_certified")
     assert bool(res.certified[0])
     hist = np.asarray(res.loss_history[0])
     assert np.isfinite(hist[1]) and np.all(np.isnan(hist[2:]))
@@ -249,7 +250,7 @@ def test_converged_flag_and_no_warning(getkey):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         res = dj.fit_ico_nc(getkey(), windows, num_inits=2, max_steps=50, tol=1e-4)
-    assert bool(jnp.all(res.converged))
+    assert bool(jnp.all(res.converged)) and res.stop_reasons() == ["converged"] * 2
     assert np.all(np.asarray(res.steps) < 50)
     assert res.wall_time.shape == () and float(res.wall_time) > 0
     assert isinstance(ico, object)

@@ -58,20 +58,21 @@ def test_vmapped_training_equals_loop(getkey):
     X, T = _pairs(windows)
     one = eqx.filter_jit(lambda k: _train_one(k, X, T, **kwargs))
     for i, k in enumerate(jr.split(key, 4)):
-        model, hist, J, converged, steps = one(k)
+        model, hist, J, converged, steps, reason = one(k)
         assert tree_allclose(model, jax.tree.map(lambda a: a[i], res.controllers),
                              rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(hist, res.loss_history[i], rtol=1e-9, equal_nan=True)
         assert float(J) == pytest.approx(float(res.final_loss[i]), rel=1e-9)
         assert bool(converged) == bool(res.converged[i])
         assert int(steps) == int(res.steps[i])
+        assert int(reason) == int(res.stop_reason[i])
 
 
 def test_stopping_rule(getkey):
     windows = random_windows(getkey(), N=10, h=2)
     res = dj.fit_mlp(getkey(), windows, hidden=(4,), num_inits=2, max_steps=200,
                      learning_rate=1e-3, tol=1e-2)
-    assert bool(jnp.all(res.converged))
+    assert bool(jnp.all(res.converged)) and res.stop_reasons() == ["converged"] * 2
     steps = np.asarray(res.steps)
     hist = np.asarray(res.loss_history)
     for i in range(2):

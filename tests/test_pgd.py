@@ -59,6 +59,7 @@ def test_pgd_controllers_certified_and_loss_decreases(getkey):
         assert dj.certify(Ki, QSR).holds
     assert bool(jnp.all(res.final_loss < res.initial_loss))
     assert bool(jnp.all(res.steps == 60)) and not bool(jnp.any(res.converged))
+    assert res.stop_reasons() == ["max_steps"] * 4
     assert res.loss_history.shape == (4, 61) and not bool(jnp.any(jnp.isnan(res.loss_history)))
     assert float(res.wall_time) > 0
     np.testing.assert_allclose(res.final_loss, res.loss_history[:, -1])
@@ -87,6 +88,7 @@ def test_learning_rate_sweep_with_vmap_equals_loop(getkey):
         np.testing.assert_allclose(swept.loss_history[j], single.loss_history, rtol=1e-9,
                                    atol=1e-8, equal_nan=True)
         np.testing.assert_array_equal(swept.steps[j], single.steps)
+        np.testing.assert_array_equal(swept.stop_reason[j], single.stop_reason)
         for i in range(2):
             assert independent_kyp_ok(index(index(swept.controllers, j), i), QSR, swept.P[j, i])
 
@@ -98,6 +100,24 @@ def test_gd_has_no_certificate_and_fits_better(getkey):
     pg = dj.fit_pgd(getkey(), w, QSR, **kw)
     assert gd.P is None and gd.certified is None
     assert float(gd.final_loss.min()) < float(pg.final_loss.min())
+
+
+def test_stop_reasons(getkey):
+    """Every stopping rule is reported: converged, max_steps and a diverging run."""
+    w = random_windows(getkey(), N=10, gain=0.2)
+    res = dj.fit_gd(getkey(), w, num_inits=2, max_steps=500, learning_rate=0.05, tol=1e-9)
+    conv = dj.fit_gd(getkey(), w, num_inits=2, max_steps=500, learning_rate=0.05, tol=1e-3)
+    assert conv.stop_reasons() == ["converged"] * 2 and bool(jnp.all(conv.converged))
+    assert bool(jnp.all(conv.steps < 500))
+    assert set(res.stop_reasons()) <= {"converged", "max_steps"}
+    # Divergence: a huge learning rate on unconstrained GD drives the loss to inf/NaN.
+    big = dj.fit_gd(getkey(), random_windows(getkey(), N=10, gain=2.0), num_inits=2,
+                    max_steps=200, learning_rate=1e6, tol=0.0, init_scale=1.0)
+    assert big.stop_reasons() == ["non_finite"] * 2
+    assert not bool(jnp.any(big.converged))
+    with pytest.raises(ValueError, match="stop_reason"):
+        dj.FitResult(None, None, None, big.loss_history, big.final_loss, big.converged,
+                     big.steps, big.wall_time).stop_reasons()
 
 
 def test_trainer_bad_input(getkey):

@@ -18,7 +18,13 @@ from .._supply import QSR
 from .._threads import num_workers, pool, single_threaded_blas
 from ._checks import check_fit_args
 from ._ico_sdp import ICOProblem, ICOSolver
-from .result import FitResult
+from .result import FitResult, stop_code
+
+# `_run_one`'s reasons (the solver's status follows "solver:") -> FitResult.stop_reason
+_REASON_CODE = {"converged": stop_code("converged"), "max_steps": stop_code("max_steps"),
+                "solver": stop_code("solver_failed"),
+                "loss increased": stop_code("loss_increased"),
+                "not certified": stop_code("not_certified")}
 
 # Bounds on the Young weight's linearisation point, relative to its data-derived scale.
 _W_RANGE = 1e4
@@ -162,6 +168,8 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, tol, init_scale, eps, prox,
         converged=jnp.asarray([r["converged"] for r in results]),
         steps=jnp.asarray([r["steps"] for r in results], jnp.int32),
         wall_time=jnp.asarray(wall, dtype),
+        stop_reason=jnp.asarray([_REASON_CODE[r["reason"].split(":")[0]] for r in results],
+                                jnp.int32),
     )
 
 
@@ -195,14 +203,14 @@ def fit_ico(
     + \\frac{\\lVert\\delta z\\rVert^2}{w}, \\qquad y \\ge w\\lVert\\delta C\\rVert_2^2,$$
 
     one shared LMI
-    $\bigl[\begin{smallmatrix} yI & \delta C\\ \delta C^\top & (2/\tilde w - w/\tilde w^2)I
-    \end{smallmatrix}\bigr]\succeq 0$, one cone for $\sum_k\lVert\delta z_k\rVert^2/w$
-    and one rotated second-order cone for $\sum_k\lVert\bar e_k\rVert^2/(1 - y)$, the
+    $\\bigl[\\begin{smallmatrix} yI & \\delta C\\\\ \\delta C^\\top & (2/\\tilde w - w/\\tilde w^2)I
+    \\end{smallmatrix}\\bigr]\\succeq 0$, one cone for $\\sum_k\\lVert\\delta z_k\\rVert^2/w$
+    and one rotated second-order cone for $\\sum_k\\lVert\\bar e_k\\rVert^2/(1 - y)$, the
     stacked residual compressed by a QR factorisation of its Jacobian to at most
-    $n_\theta + 3$ rows (derivation in `dissil_jax/_train/_ico_sdp.py`). The SDP's size
+    $n_\\theta + 3$ rows (derivation in `dissil_jax/_train/_ico_sdp.py`). The SDP's size
     therefore does not depend on the number of windows $N$; only the QR (numpy, linear in
-    $N$) does. This is DESIGN §3's compact bound with $\delta C\delta C^\top$ replaced by
-    $\lVert\delta C\rVert_2^2 I$ (identical when $m = 1$). Unlike the paper's term-by-term
+    $N$) does. This is DESIGN §3's compact bound with $\\delta C\\delta C^\\top$ replaced by
+    $\\lVert\\delta C\\rVert_2^2 I$ (identical when $m = 1$). Unlike the paper's term-by-term
     Lemmas 4-7 it needs three small cones in all instead of seven LMIs per window.
 
     `window_cone` selects the window part: `"stacked"` (default, as above); `"soc"`, the same

@@ -15,7 +15,10 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._data import Windows
 from ._checks import check_fit_args
-from .result import FitResult
+from .result import FitResult, stop_code
+
+_CONVERGED, _MAX_STEPS, _NON_FINITE = (
+    stop_code(r) for r in ("converged", "max_steps", "non_finite"))
 
 
 class MLPController(eqx.Module):
@@ -101,25 +104,28 @@ def _train_one(key, X, T, *, hidden, max_steps, learning_rate, tol):
     value_and_grad = jax.value_and_grad(loss)
 
     def step(carry, k):
-        params, opt_state, prev, done, steps, converged = carry
+        params, opt_state, prev, done, steps, converged, reason = carry
         J, g = value_and_grad(params)
         hist_k = jnp.where(done, jnp.nan, J)
         small = ~done & (jnp.abs(J - prev) < tol)
         converged = converged | small
-        stop = done | small | (k == max_steps) | ~jnp.isfinite(J)
+        finite = jnp.isfinite(J)
+        stop = done | small | (k == max_steps) | ~finite
+        code = jnp.where(~finite, _NON_FINITE, jnp.where(small, _CONVERGED, _MAX_STEPS))
+        reason = jnp.where(done, reason, jnp.where(stop, code, reason))
         updates, new_state = opt.update(g, opt_state, params)
         new_params = optax.apply_updates(params, updates)
         keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(stop, b, a), new, old)
         params, opt_state = keep(new_params, params), keep(new_state, opt_state)
         final = jnp.where(done, prev, J)
         return (params, opt_state, final, done | stop, steps + (~stop).astype(jnp.int32),
-                converged), hist_k
+                converged, reason), hist_k
 
     init = (params, opt.init(params), jnp.asarray(jnp.inf, X.dtype), jnp.asarray(False),
-            jnp.asarray(0, jnp.int32), jnp.asarray(False))
-    (params, _, J, _, steps, converged), hist = jax.lax.scan(
+            jnp.asarray(0, jnp.int32), jnp.asarray(False), jnp.asarray(_MAX_STEPS, jnp.int32))
+    (params, _, J, _, steps, converged, reason), hist = jax.lax.scan(
         step, init, jnp.arange(max_steps + 1))
-    return eqx.combine(params, static), hist, J, converged, steps
+    return eqx.combine(params, static), hist, J, converged, steps, reason
 
 
 @partial(eqx.filter_jit)
@@ -161,11 +167,12 @@ def fit_mlp(
     start = time.perf_counter()
     X, T = _pairs(windows)
     keys = jr.split(key, num_inits)
-    model, hist, J, converged, steps = _train_batch(keys, X, T, hidden, int(max_steps),
-                                                    float(learning_rate), float(tol))
+    model, hist, J, converged, steps, reason = _train_batch(
+        keys, X, T, hidden, int(max_steps), float(learning_rate), float(tol))
     J = jax.block_until_ready(J)
     wall = time.perf_counter() - start
     return FitResult(
         controllers=model, P=None, certified=None, loss_history=hist, final_loss=J,
         converged=converged, steps=steps, wall_time=jnp.asarray(wall, X.dtype),
+        stop_reason=reason,
     )

@@ -18,7 +18,10 @@ from .._projection import MESSAGES, Status, project_with_status
 from .._rollout import imitation_loss
 from .._supply import QSR
 from ._checks import check_fit_args
-from .result import FitResult
+from .result import FitResult, stop_code
+
+_CONVERGED, _MAX_STEPS, _NON_FINITE, _SOLVER_FAILED = (
+    stop_code(r) for r in ("converged", "max_steps", "non_finite", "solver_failed"))
 
 # Incremented each time the training loop is traced (tests assert no retracing).
 TRACE_COUNT = {"pgd_loop": 0}
@@ -62,7 +65,7 @@ def _loop(K0, P0, ok0, windows, learning_rate, decay, *, qsr, max_steps, tol, ep
     carry = dict(
         step=jnp.zeros((), jnp.int32), K=K0, P=P0, opt=opt.init(K0), loss=loss0, hist=hist,
         done=~ok0, converged=jnp.zeros(num_inits, bool), steps=jnp.zeros(num_inits, jnp.int32),
-        ok=ok0,
+        ok=ok0, reason=jnp.where(ok0, _MAX_STEPS, _SOLVER_FAILED).astype(jnp.int32),
     )
 
     def cond(c):
@@ -86,16 +89,20 @@ def _loop(K0, P0, ok0, windows, learning_rate, decay, *, qsr, max_steps, tol, ep
         loss_new, _ = _batched_loss(K_new, windows)
         loss_new = jnp.where(active, loss_new, c["loss"])
         small = jnp.abs(loss_new - c["loss"]) < tol
-        stop = active & (small | failed | ~jnp.isfinite(loss_new))
+        finite = jnp.isfinite(loss_new)
+        stop = active & (small | failed | ~finite)
+        code = jnp.where(failed, _SOLVER_FAILED, jnp.where(finite, _CONVERGED, _NON_FINITE))
         hist = c["hist"].at[:, c["step"] + 1].set(jnp.where(active, loss_new, jnp.nan))
         return dict(
             step=c["step"] + 1, K=K_new, P=P_new, opt=opt_state, loss=loss_new, hist=hist,
             done=c["done"] | stop, converged=c["converged"] | (active & small & ~failed),
             steps=c["steps"] + active.astype(jnp.int32), ok=c["ok"] & ~(active & failed),
+            reason=jnp.where(stop, code, c["reason"]).astype(jnp.int32),
         )
 
     c = jax.lax.while_loop(cond, body, carry)
-    return c["K"], c["P"], c["hist"], c["loss"], c["converged"], c["steps"], c["ok"]
+    return (c["K"], c["P"], c["hist"], c["loss"], c["converged"], c["steps"], c["ok"],
+            c["reason"])
 
 
 def pgd_run(
@@ -125,14 +132,14 @@ def pgd_run(
     else:
         K0, P0, status = project_with_status(K0, qsr, None, eps=eps)
         ok0 = status < int(Status.INFEASIBLE)
-    K, P, hist, loss, converged, steps, ok = _loop(
+    K, P, hist, loss, converged, steps, ok, reason = _loop(
         K0, P0, ok0, windows, learning_rate, decay, qsr=qsr, max_steps=max_steps, tol=tol,
         eps=eps,
     )
     return FitResult(
         controllers=K, P=P, certified=None if qsr is None else ok, loss_history=hist,
         final_loss=loss, converged=converged, steps=steps,
-        wall_time=jnp.asarray(jnp.nan, hist.dtype),
+        wall_time=jnp.asarray(jnp.nan, hist.dtype), stop_reason=reason,
     )
 
 
@@ -165,7 +172,7 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, learning_rate, decay, tol, 
     ok0 = jnp.ones(num_inits, bool)
     loop = _compiled_loop(qsr, int(max_steps), tol, eps)
     dtype = windows.y.dtype
-    K, P, hist, loss, converged, steps, ok = loop(
+    K, P, hist, loss, converged, steps, ok, reason = loop(
         K0, P0, ok0, windows, jnp.asarray(learning_rate, dtype), jnp.asarray(decay, dtype)
     )
     jax.block_until_ready(hist)
@@ -179,7 +186,7 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, learning_rate, decay, tol, 
         if not bool(jnp.all(certified)):  # pragma: no cover - guarded by the projection
             raise RuntimeError("internal error: a trained controller failed its KYP check")
     wall = time.perf_counter() - start
-    return FitResult(K, P, certified, hist, loss, converged, steps, jnp.asarray(wall))
+    return FitResult(K, P, certified, hist, loss, converged, steps, jnp.asarray(wall), reason)
 
 
 def fit_pgd(

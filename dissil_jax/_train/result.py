@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -24,7 +24,19 @@ class FitResult(eqx.Module):
     - `converged`: `[num_inits]` True when the stopping rule $|\\Delta J| <$ `tol` fired.
     - `steps`: `[num_inits]` number of steps taken.
     - `wall_time`: total training wall time in seconds (NaN inside a traced sweep).
+    - `stop_reason`: `[num_inits]` int, why each run stopped, an index into
+      `FitResult.STOP_REASONS` (decode with [`stop_reasons`][dissil_jax.FitResult.stop_reasons]):
+      `"converged"` ($|\\Delta J| <$ `tol`), `"max_steps"`, `"non_finite"` (the loss became
+      NaN or infinite; the last finite iterate is kept by the constrained trainers),
+      `"solver_failed"` (a projection or ICO SDP was infeasible or failed; the last
+      certified iterate is kept), `"loss_increased"` and `"not_certified"` (ICO's float64
+      guards against solver inaccuracy refused a step).
     """
+
+    STOP_REASONS: ClassVar[tuple[str, ...]] = (
+        "converged", "max_steps", "non_finite", "solver_failed", "loss_increased",
+        "not_certified",
+    )
 
     controllers: Any
     P: Float[Array, "inits n n"] | None
@@ -34,6 +46,7 @@ class FitResult(eqx.Module):
     converged: Bool[Array, " inits"]
     steps: Int[Array, " inits"]
     wall_time: Float[Array, ""]
+    stop_reason: Int[Array, " inits"] | None = None
 
     @property
     def initial_loss(self) -> Float[Array, " inits"]:
@@ -54,3 +67,17 @@ class FitResult(eqx.Module):
 
         i = int(jnp.nanargmin(self.final_loss))
         return jax.tree.map(lambda x: x[i], self.controllers)
+
+    def stop_reasons(self) -> list:
+        """`stop_reason` decoded into the names of `STOP_REASONS` (nested lists for sweeps)."""
+        import numpy as np
+
+        if self.stop_reason is None:
+            raise ValueError("this FitResult has no `stop_reason` (built by hand?).")
+        names = np.asarray(self.STOP_REASONS, dtype=object)
+        return names[np.asarray(self.stop_reason)].tolist()
+
+
+def stop_code(name: str) -> int:
+    """The `FitResult.stop_reason` code of a reason name."""
+    return FitResult.STOP_REASONS.index(name)
