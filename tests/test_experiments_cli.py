@@ -25,6 +25,8 @@ def test_cli_writes_summary_tables_and_figures(tmp_path, capsys):
     for r in records:
         assert KEYS <= set(r)
         assert r["mse_q1"] <= r["mse_median"] <= r["mse_q3"] <= r["mse_max"]
+        # every trained controller's stopping rule is counted
+        assert sum(r["stop_reasons"].values()) == r["controllers"]
     pgd = next(r for r in records if r["method"] == "pgd")
     assert pgd["percent_stable"] == 100.0 and pgd["certified"] is True
     tables = (out / "tables.md").read_text()

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections import Counter
 
 import jax
 import jax.random as jr
@@ -110,7 +111,7 @@ def run_config(example: str, data: str, method: str, segments: int, *, inits: in
     if data not in REGIMES:
         raise ValueError(f"`data` must be one of {REGIMES}, got {data!r}.")
     spec = spec or example_spec(example, quick)
-    mse, stable, pcc, certified = [], [], [], []
+    mse, stable, pcc, certified, reasons = [], [], [], [], []
     train_time = 0.0
     for i in range(spec.num_plants):
         plant, expert = make_problem(spec, i, seed)
@@ -128,6 +129,7 @@ def run_config(example: str, data: str, method: str, segments: int, *, inits: in
         mse.append(np.asarray(ev.mse))
         stable.append(np.asarray(ev.stable, bool))
         pcc.append(np.asarray(res.percent_change_cost))
+        reasons += res.stop_reasons()
         if res.certified is not None:
             certified.append(np.asarray(res.certified, bool))
     mse, stable = np.concatenate(mse), np.concatenate(stable)
@@ -140,6 +142,7 @@ def run_config(example: str, data: str, method: str, segments: int, *, inits: in
         train_time_s=train_time / n_ctrl,
         certified=None if not certified else bool(np.concatenate(certified).all()),
         **{k: float(v) for k, v in _quantiles(mse).items()},
+        stop_reasons=dict(sorted(Counter(reasons).items())),
     )
     return record
 
