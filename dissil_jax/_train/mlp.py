@@ -93,9 +93,10 @@ def mlp_loss(model: MLPController, X, T) -> Float[Array, ""]:
 def _train_one(key, X, T, *, hidden, max_steps, learning_rate, tol):
     """Train one MLP (pure; vmapped over `key` by `fit_mlp`).
 
-    Scans `max_steps + 1` gradient evaluations: at step k the loss $J_k$ of the current
-    parameters is recorded, the run stops when $|J_k - J_{k-1}| <$ `tol`, and otherwise
-    takes an Adam step (the last evaluation only records).
+    At most `max_steps + 1` gradient evaluations in a `lax.while_loop`: at step k the loss
+    $J_k$ of the current parameters is recorded, the run stops when
+    $|J_k - J_{k-1}| <$ `tol`, and otherwise takes an Adam step (the last evaluation only
+    records). Vmapped, the loop runs until every run has stopped, finished runs frozen.
     """
     model = MLPController(X.shape[-1], T.shape[-1], hidden, key=key, dtype=X.dtype)
     params, static = eqx.partition(model, eqx.is_inexact_array)
@@ -103,10 +104,10 @@ def _train_one(key, X, T, *, hidden, max_steps, learning_rate, tol):
     loss = lambda q: mlp_loss(eqx.combine(q, static), X, T)
     value_and_grad = jax.value_and_grad(loss)
 
-    def step(carry, k):
-        params, opt_state, prev, done, steps, converged, reason = carry
+    def body(carry):
+        k, params, opt_state, prev, done, steps, converged, reason, hist = carry
         J, g = value_and_grad(params)
-        hist_k = jnp.where(done, jnp.nan, J)
+        hist = hist.at[k].set(jnp.where(done, jnp.nan, J))
         small = ~done & (jnp.abs(J - prev) < tol)
         converged = converged | small
         finite = jnp.isfinite(J)
@@ -118,13 +119,15 @@ def _train_one(key, X, T, *, hidden, max_steps, learning_rate, tol):
         keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(stop, b, a), new, old)
         params, opt_state = keep(new_params, params), keep(new_state, opt_state)
         final = jnp.where(done, prev, J)
-        return (params, opt_state, final, done | stop, steps + (~stop).astype(jnp.int32),
-                converged, reason), hist_k
+        return (k + 1, params, opt_state, final, done | stop,
+                steps + (~stop).astype(jnp.int32), converged, reason, hist)
 
-    init = (params, opt.init(params), jnp.asarray(jnp.inf, X.dtype), jnp.asarray(False),
-            jnp.asarray(0, jnp.int32), jnp.asarray(False), jnp.asarray(_MAX_STEPS, jnp.int32))
-    (params, _, J, _, steps, converged, reason), hist = jax.lax.scan(
-        step, init, jnp.arange(max_steps + 1))
+    init = (jnp.asarray(0, jnp.int32), params, opt.init(params),
+            jnp.asarray(jnp.inf, X.dtype), jnp.asarray(False), jnp.asarray(0, jnp.int32),
+            jnp.asarray(False), jnp.asarray(_MAX_STEPS, jnp.int32),
+            jnp.full(max_steps + 1, jnp.nan, X.dtype))
+    _, params, _, J, _, steps, converged, reason, hist = jax.lax.while_loop(
+        lambda c: ~c[4], body, init)
     return eqx.combine(params, static), hist, J, converged, steps, reason
 
 
@@ -148,7 +151,7 @@ def fit_mlp(
     (the same normalisation as [`imitation_loss`][dissil_jax.imitation_loss]) is minimised by
     full-batch Adam (`optax.adam`, a gradient method; the paper says "gradient descent"
     without details). Initialisations are vmapped (`eqx.filter_vmap`) and the loop is one
-    compiled `lax.scan`; each run stops when $|\\Delta J| <$ `tol` or after `max_steps`.
+    compiled `lax.while_loop`; each run stops when $|\\Delta J| <$ `tol` or after `max_steps`.
     The controller ignores $\\hat x$ (memoryless), so `windows.x0` is unused.
 
     **Arguments:**
