@@ -105,11 +105,10 @@ def _train_one(key, X, T, *, hidden, max_steps, learning_rate, tol):
     value_and_grad = jax.value_and_grad(loss)
 
     def body(carry):
-        k, params, opt_state, prev, done, steps, converged, reason, hist = carry
+        k, params, opt_state, prev, done, steps, reason, hist = carry
         J, g = value_and_grad(params)
         hist = hist.at[k].set(jnp.where(done, jnp.nan, J))
         small = ~done & (jnp.abs(J - prev) < tol)
-        converged = converged | small
         finite = jnp.isfinite(J)
         stop = done | small | (k == max_steps) | ~finite
         code = jnp.where(~finite, _NON_FINITE, jnp.where(small, _CONVERGED, _MAX_STEPS))
@@ -120,15 +119,14 @@ def _train_one(key, X, T, *, hidden, max_steps, learning_rate, tol):
         params, opt_state = keep(new_params, params), keep(new_state, opt_state)
         final = jnp.where(done, prev, J)
         return (k + 1, params, opt_state, final, done | stop,
-                steps + (~stop).astype(jnp.int32), converged, reason, hist)
+                steps + (~stop).astype(jnp.int32), reason, hist)
 
     init = (jnp.asarray(0, jnp.int32), params, opt.init(params),
             jnp.asarray(jnp.inf, X.dtype), jnp.asarray(False), jnp.asarray(0, jnp.int32),
-            jnp.asarray(False), jnp.asarray(_MAX_STEPS, jnp.int32),
-            jnp.full(max_steps + 1, jnp.nan, X.dtype))
-    _, params, _, J, _, steps, converged, reason, hist = jax.lax.while_loop(
-        lambda c: ~c[4], body, init)
-    return eqx.combine(params, static), hist, J, converged, steps, reason
+            jnp.asarray(_MAX_STEPS, jnp.int32), jnp.full(max_steps + 1, jnp.nan, X.dtype))
+    _, params, _, J, _, steps, reason, hist = jax.lax.while_loop(
+        lambda c: ~c[4], body, init)  # c[4]: done
+    return eqx.combine(params, static), hist, J, reason == _CONVERGED, steps, reason
 
 
 @partial(eqx.filter_jit)

@@ -64,8 +64,8 @@ def _loop(K0, P0, ok0, windows, learning_rate, decay, *, qsr, max_steps, tol, ep
     hist = jnp.full((num_inits, max_steps + 1), jnp.nan, loss0.dtype).at[:, 0].set(loss0)
     carry = dict(
         step=jnp.zeros((), jnp.int32), K=K0, P=P0, opt=opt.init(K0), loss=loss0, hist=hist,
-        done=~ok0, converged=jnp.zeros(num_inits, bool), steps=jnp.zeros(num_inits, jnp.int32),
-        ok=ok0, reason=jnp.where(ok0, _MAX_STEPS, _SOLVER_FAILED).astype(jnp.int32),
+        done=~ok0, steps=jnp.zeros(num_inits, jnp.int32), ok=ok0,
+        reason=jnp.where(ok0, _MAX_STEPS, _SOLVER_FAILED).astype(jnp.int32),
     )
 
     def cond(c):
@@ -95,14 +95,15 @@ def _loop(K0, P0, ok0, windows, learning_rate, decay, *, qsr, max_steps, tol, ep
         hist = c["hist"].at[:, c["step"] + 1].set(jnp.where(active, loss_new, jnp.nan))
         return dict(
             step=c["step"] + 1, K=K_new, P=P_new, opt=opt_state, loss=loss_new, hist=hist,
-            done=c["done"] | stop, converged=c["converged"] | (active & small & ~failed),
+            done=c["done"] | stop,
             steps=c["steps"] + active.astype(jnp.int32), ok=c["ok"] & ~(active & failed),
             reason=jnp.where(stop, code, c["reason"]).astype(jnp.int32),
         )
 
     c = jax.lax.while_loop(cond, body, carry)
-    return (c["K"], c["P"], c["hist"], c["loss"], c["converged"], c["steps"], c["ok"],
-            c["reason"])
+    # A run converged iff it stopped on |dJ| < tol with a finite loss and no failed solve.
+    return (c["K"], c["P"], c["hist"], c["loss"], c["reason"] == _CONVERGED, c["steps"],
+            c["ok"], c["reason"])
 
 
 def pgd_run(
