@@ -74,11 +74,14 @@ def predict(K: LTIController, windows: Windows) -> Float[Array, "N h m"]:
 
 
 def imitation_loss(K: LTIController, windows: Windows) -> Float[Array, ""]:
-    """Mean squared imitation error (paper eq. 16), with the sign of DESIGN §1.
+    """The paper's imitation loss (paper eq. 16), with the target $-u$ fixed by `Windows`.
 
-    $$J(K) = \\frac{1}{Nh}\\sum_{i=1}^{N}\\sum_{k=0}^{h-1} \\lVert \\hat y^{(i)}_k - (-u^{(i)}_k) \\rVert_2^2$$
+    $$J(K) = \\frac{1}{N}\\sum_{i=1}^{N}\\sum_{k=0}^{h-1} \\lVert \\hat y^{(i)}_k - (-u^{(i)}_k) \\rVert_2^2$$
 
-    i.e. the squared 2-norm per sample, averaged over windows and time steps.
+    i.e. the squared 2-norm of each window's stacked error over the horizon, summed over the
+    $h$ time steps and averaged over the $N$ windows (paper eq. 16 compares the stacked
+    prediction of eq. 15 with the stacked inputs). The trainers' stopping rule
+    $|\\Delta J| <$ `tol` refers to this $J$.
     """
     err = predict(K, windows) - windows.target
-    return jnp.mean(jnp.sum(err**2, axis=-1))
+    return jnp.mean(jnp.sum(err**2, axis=(-2, -1)))

@@ -58,7 +58,8 @@ def test_loss_value_and_gradient_match_finite_differences(getkey):
     K = dj.LTIController.random(getkey(), 2, 2, 2, scale=0.5)
     w = dj.Windows(jax.random.normal(getkey(), (7, 2)), jax.random.normal(getkey(), (7, 3, 2)),
                    jax.random.normal(getkey(), (7, 3, 2)))
-    ref = np.mean([np.sum((_loop_outputs(K, w.x0[i], w.y[i]) + np.asarray(w.u[i])) ** 2, -1)
+    # Paper eq. 16: squared norm of each window's stacked error, averaged over windows.
+    ref = np.mean([np.sum((_loop_outputs(K, w.x0[i], w.y[i]) + np.asarray(w.u[i])) ** 2)
                    for i in range(7)])
     assert float(dj.imitation_loss(K, w)) == pytest.approx(ref, rel=1e-12)
     g = jax.grad(dj.imitation_loss)(K, w)
@@ -69,6 +70,20 @@ def test_loss_value_and_gradient_match_finite_differences(getkey):
     fd = np.array([(f(flat.at[i].add(h)) - f(flat.at[i].add(-h))) / (2 * h)
                    for i in range(flat.size)])
     np.testing.assert_allclose(gflat, fd, rtol=1e-6, atol=1e-8)
+
+
+def test_loss_is_the_papers_sum_over_the_horizon_by_hand():
+    """J = (1/N) sum_i sum_k ||yhat_k + u_k||^2 (paper eq. 16), computed by hand.
+
+    Static controller yhat = 2 uhat (D = 2, A = B = C = 0), N = 2 windows of h = 3 steps:
+    window 1 errors (2*1 + 1, 2*0 - 1, 2*2 + 0) = (3, -1, 4): 9 + 1 + 16 = 26;
+    window 2 errors (2*(-1) + 2, 2*1 + 0, 2*0 + 1) = (0, 2, 1): 0 + 4 + 1 = 5; J = 31 / 2.
+    """
+    K = dj.LTIController([[0.0]], [[0.0]], [[0.0]], [[2.0]])
+    y = jnp.array([[[1.0], [0.0], [2.0]], [[-1.0], [1.0], [0.0]]])
+    u = jnp.array([[[1.0], [-1.0], [0.0]], [[2.0], [0.0], [1.0]]])
+    w = dj.Windows(jnp.zeros((2, 1)), y, u)
+    assert float(dj.imitation_loss(K, w)) == pytest.approx(31 / 2, rel=1e-14)
 
 
 def test_windows_validation():

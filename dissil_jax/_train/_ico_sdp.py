@@ -43,7 +43,7 @@ on its last two blocks, with the pieces lifted into a few small cones:
 
 The program is
 
-$$\min\ \frac{1}{2N}\Bigl(\sum_k\lVert r_k(\delta)\rVert^2 + \tau + \sum_k\sigma_k\Bigr)
+$$\min\ \frac{1}{N}\Bigl(\sum_k\lVert r_k(\delta)\rVert^2 + \tau + \sum_k\sigma_k\Bigr)
 + \frac{\mu}{2}\lVert\delta\theta\rVert^2 + \frac{\nu}{2}\lVert P - \tilde P\rVert^2$$
 
 subject to the cones above and the convexified KYP LMI of DESIGN §2 (`ConvexifiedLMI`, paper
@@ -115,7 +115,7 @@ class ICOProblem:
         self.N, self.n, self.p, self.m = N, n, p, m
         self.x0, self.u0, self.u1 = x0, uhat[:, 0], uhat[:, 1]
         self.t0, self.t1 = target[:, 0], target[:, 1]
-        self.c = 1.0 / (2 * N)
+        self.c = 1.0 / N  # J = (1/N) sum over windows of both steps' errors (paper eq. 16)
         self.eps, self.prox, self.reg = float(eps), float(prox), float(reg)
         self.Nk = 0
         self.zeta = np.concatenate([x0, self.u0], axis=1)  # [N, n+p]
@@ -420,10 +420,12 @@ class ICOProblem:
         n, m, N = self.n, self.m, self.N
         A0, B0, C0, D0 = self.mats(theta0)
         vals, b = [], np.zeros(self.nrows)
+        ps = self.p_scale(P_tilde)
         if self.qsr is not None:
             eps = self.eps if eps is None else eps
             M0, J, E = self._kyp_blocks(P_tilde)
             sJ = svec(J, self._svec_idx_kyp)  # [nx_lmi, Lk]
+            sJ[self.ntheta:] *= ps  # the SDP's P variable is P / ps (see `p_scale`)
             vals.append(sJ[self.kyp_var, self.kyp_row])
             sl = slice(self.kyp_rows0, self.kyp_rows0 + self.kyp_L)
             b[sl] = (-svec(M0, self._svec_idx_kyp) - eps * svec(E, self._svec_idx_kyp)
@@ -455,9 +457,23 @@ class ICOProblem:
         q = self.q_fixed.copy()
         q[self._colCD] = -2 * self.c * (r0.T @ self.zeta)
         if self.qsr is not None:
-            q[self.oP:self.oY] = -self.reg * np.asarray(P_tilde)[self.lmi.p_rows, self.lmi.p_cols]
+            q[self.oP:self.oY] = -self.reg * np.asarray(P_tilde)[self.lmi.p_rows,
+                                                                   self.lmi.p_cols] / ps
         const = self.c * np.sum(r0**2)
-        return q, vals, b, const
+        return q, vals, b, const, ps
+
+    @staticmethod
+    def p_scale(P_tilde) -> float:
+        """The unit of the SDP's $P$ variable: $\\lambda_{\\max}(\\tilde P)$ (1 for ICO-NC).
+
+        The SDP solves for $P/\\lambda_{\\max}(\\tilde P)$, which is of order one however
+        small or large the certificate is (the projection of a large random controller
+        can return $P\\sim10^{-6}$, and the solver then stalls on the badly scaled columns).
+        The proximal term $\\frac\\nu2\\lVert P - \\tilde P\\rVert^2$ is measured in the same unit.
+        """
+        if P_tilde is None:
+            return 1.0
+        return float(np.linalg.eigvalsh(np.asarray(P_tilde, np.float64))[-1])
 
     def matrix(self, vals):
         return sp.csc_matrix((vals, self.indices, self.indptr), shape=(self.nrows, self.nx))
@@ -469,7 +485,7 @@ class ICOProblem:
         Returns `(value, s)`; the overbound of $J(\\theta_0 + \\delta\\theta)$ when `s` is in
         the cones (see `cone_min`).
         """
-        q, vals, b, const = self.data(theta0, P_tilde, w_tilde, eps)
+        q, vals, b, const, _ = self.data(theta0, P_tilde, w_tilde, eps)
         H = self.H.copy().tolil()
         H.setdiag(H.diagonal() - np.concatenate(
             [np.full(self.ntheta, self.prox), np.full(self.oY - self.oP, self.reg),
@@ -496,7 +512,7 @@ class ICOProblem:
                 row += d
         return float(min(out))
 
-    def feasible_point(self, dtheta, w, P, theta0, w_tilde):
+    def feasible_point(self, dtheta, w, P, theta0, w_tilde, P_tilde=None):
         """The cheapest feasible $(Y, \\tau, \\sigma)$ for a given step: tests of the bound."""
         m = self.m
         dA, dB, dC, dD = self.mats(dtheta)
@@ -516,7 +532,8 @@ class ICOProblem:
         x = np.zeros(self.nx)
         x[:self.ntheta] = dtheta
         if self.qsr is not None:
-            x[self.oP:self.oY] = np.asarray(P)[self.lmi.p_rows, self.lmi.p_cols]
+            x[self.oP:self.oY] = (np.asarray(P)[self.lmi.p_rows, self.lmi.p_cols]
+                                  / self.p_scale(P if P_tilde is None else P_tilde))
         x[self.oY:self.ow] = Y[0, 0] if self.window_cone != "psd" else Y[self.y_rows, self.y_cols]
         x[self.ow], x[self.otau] = w, tau
         if self.window_cone == "stacked":
@@ -540,7 +557,7 @@ class ICOSolver:
         import clarabel
 
         pb = self.problem
-        q, vals, b, _ = pb.data(theta0, P_tilde, w_tilde, eps)
+        q, vals, b, _, ps = pb.data(theta0, P_tilde, w_tilde, eps)
         if self.solver is None:
             self.solver = clarabel.DefaultSolver(pb.H, q, pb.matrix(vals), b, pb.cones,
                                                  settings(self.max_iter))
@@ -555,6 +572,6 @@ class ICOSolver:
         P = None
         if pb.qsr is not None:
             P = np.zeros((pb.n, pb.n))
-            P[pb.lmi.p_rows, pb.lmi.p_cols] = x[pb.oP:pb.oY]
+            P[pb.lmi.p_rows, pb.lmi.p_cols] = ps * x[pb.oP:pb.oY]
             P = P + np.triu(P, 1).T
         return x[:pb.ntheta], P, float(x[pb.ow]), status, float(sol.solve_time)

@@ -5,11 +5,10 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-import jax
 import jax.numpy as jnp
-import jax.random as jr
 import numpy as np
 
+from .._certify import certify
 from .._controller import LTIController
 from .._data import Windows
 from .._lmi import kyp_certified
@@ -18,6 +17,7 @@ from .._supply import QSR
 from .._threads import num_workers, pool, single_threaded_blas
 from ._checks import check_fit_args
 from ._ico_sdp import ICOProblem, ICOSolver
+from ._init import INIT_SCALE, init_controllers
 from .result import FitResult, stop_code
 
 # `_run_one`'s reasons (the solver's status follows "solver:") -> FitResult.stop_reason
@@ -59,6 +59,18 @@ def _young_scale(pb: ICOProblem, theta) -> float:
     return float(np.clip(w if np.isfinite(w) and w > 0 else 1.0, 1e-6, 1e6))
 
 
+def _step(pb: ICOProblem, solver: ICOSolver, theta, P, w_tilde):
+    """One ICO SDP around (theta, P): `(dtheta, P_new, w_new, status)`, None on failure."""
+    eps = None
+    if pb.qsr is not None:
+        # The margin is imposed on the un-congruenced LMI, so the new iterate has it again at
+        # the next linearisation point; only solver round-off can eat into it, and then
+        # delta = 0 must stay feasible: never ask for more margin than we have.
+        eps = min(pb.eps, (1 - 1e-3) * pb.kyp_margin(theta, P))
+    dtheta, P_new, w_new, status, _ = solver.solve(theta, P, w_tilde, eps)
+    return dtheta, P_new, w_new, status
+
+
 def _run_one(pb: ICOProblem, theta, P, *, max_steps, tol, dtype, index, callback):
     """Algorithm 1 for one initialisation (host, float64). Returns a dict of results."""
     qsr = pb.qsr
@@ -72,13 +84,16 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, tol, dtype, index, callback
     if callback is not None:
         callback(index, 0, theta, P, J)
     for step in range(1, max_steps + 1):
-        eps = None
-        if qsr is not None:
-            # The margin is imposed on the un-congruenced LMI, so the new iterate has it again
-            # at the next linearisation point; only solver round-off can eat into it, and
-            # then delta = 0 must stay feasible: never ask for more margin than we have.
-            eps = min(pb.eps, (1 - 1e-3) * pb.kyp_margin(theta, P))
-        dtheta, P_new, w_new, status, _ = solver.solve(theta, P, w_tilde, eps)
+        dtheta, P_new, w_new, status = _step(pb, solver, theta, P, w_tilde)
+        if dtheta is None and qsr is not None:
+            # A certificate P on the edge of the feasible set (e.g. the projection of a large
+            # random draw, which lands on the boundary) leaves the SDP almost no interior.
+            # Re-centre the linearisation point on the maximum-margin P of the exact
+            # certificate and try once more.
+            cert = certify(LTIController(*pb.mats(theta)), qsr)
+            if cert.holds:
+                P = np.asarray(cert.P, np.float64)
+                dtheta, P_new, w_new, status = _step(pb, solver, theta, P, w_tilde)
         if dtheta is None:
             reason = f"solver: {status}"
             break
@@ -108,19 +123,12 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, tol, dtype, index, callback
                 reason=reason)
 
 
-def _init_controllers(key, num_inits: int, windows: Windows, scale: float, dtype):
-    """Entries i.i.d. $\\mathcal N(0, \\text{scale}^2)$, one key per initialisation (as PGD)."""
-    n, p, m = windows.n_state, windows.n_in, windows.n_out
-    K = jax.vmap(lambda k: LTIController.random(k, n, p, m, 1.0, dtype))(jr.split(key, num_inits))
-    return jax.tree.map(lambda M: scale * M, K)
-
-
 def _fit(key, windows, qsr, *, num_inits, max_steps, tol, init_scale, eps, prox, window_cone,
          callback):
     _check_args(windows, qsr, num_inits, max_steps, tol, init_scale)
     dtype = windows.y.dtype
     start = time.perf_counter()
-    K0 = _init_controllers(key, num_inits, windows, init_scale, dtype)
+    K0 = init_controllers(key, num_inits, windows, init_scale, dtype)
     if qsr is not None:
         K0, P0 = project(K0, qsr)  # paper Alg. 1 "Init": random, then projected (eq. 13)
         P0 = np.asarray(P0, np.float64)
@@ -175,14 +183,14 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, tol, init_scale, eps, prox,
 
 def fit_ico(
     key, windows: Windows, qsr: QSR, *, num_inits: int = 8, max_steps: int = 150,
-    tol: float = 1e-3, init_scale: float = 0.1, eps: float = 1e-6, prox: float = 1e-4,
+    tol: float = 1e-3, init_scale: float = INIT_SCALE, eps: float = 1e-6, prox: float = 1e-4,
     window_cone: str = "stacked", callback: Callable | None = None,
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers by iterative convex overbounding (paper Alg. 1).
 
     Minimises the two-step imitation loss (paper eq. 17, with the target $-u$ of DESIGN §1)
 
-    $$J(\\theta) = \\frac{1}{2N}\\sum_{k=1}^N \\lVert t_{k,0} - C\\hat x_{k,0} - D\\hat u_{k,0}
+    $$J(\\theta) = \\frac{1}{N}\\sum_{k=1}^N \\lVert t_{k,0} - C\\hat x_{k,0} - D\\hat u_{k,0}
     \\rVert^2 + \\lVert t_{k,1} - C(A\\hat x_{k,0} + B\\hat u_{k,0}) - D\\hat u_{k,1}\\rVert^2$$
 
     over the dissipative set. Each iteration solves one convex program in the step
@@ -249,7 +257,8 @@ def fit_ico(
     - `num_inits`: number of random initialisations.
     - `max_steps`: maximum number of ICO iterations (paper: 150).
     - `tol`: stop when $|\\Delta J| <$ `tol` (paper: 1e-3 linear, 1e-5 nonlinear).
-    - `init_scale`: standard deviation of the random initial entries.
+    - `init_scale`: standard deviation of the random initial entries (default 1, the
+      paper's N(0, 1) draw, which is then projected as in paper Alg. 1).
     - `eps`: margin of the dissipativity LMI (never more than the current iterate has).
     - `prox`: proximal weight $\\mu$ on the step.
     - `window_cone`: `"stacked"` (default), `"soc"` or `"psd"`, see above.
@@ -272,7 +281,7 @@ def fit_ico(
 
 def fit_ico_nc(
     key, windows: Windows, *, num_inits: int = 8, max_steps: int = 150, tol: float = 1e-3,
-    init_scale: float = 0.1, prox: float = 1e-4, window_cone: str = "stacked",
+    init_scale: float = INIT_SCALE, prox: float = 1e-4, window_cone: str = "stacked",
     callback: Callable | None = None,
 ) -> FitResult:
     """ICO without the dissipativity constraint (the paper's ICO-NC baseline).

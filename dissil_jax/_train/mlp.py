@@ -30,8 +30,11 @@ class MLPController(eqx.Module):
     it with a leading initialisation axis on every array).
 
     **Arguments:** `n_in` ($p$), `n_out` ($m$), `hidden` (widths of the hidden layers, all
-    equal; paper: `(150, 150, 150)` linear example, `(25, 25, 25)` nonlinear), `key`,
-    optional `dtype`.
+    equal), `key`, optional `dtype`. The network has `len(hidden) + 1` weight matrices. The
+    paper's baseline is "a three layer network" whose weights are
+    "$(\\mathbf W_1, \\mathbf W_2, \\mathbf W_3)$" (paper §5.2), i.e. three weight matrices
+    and so two hidden layers: `hidden=(150, 150)` for the linear example and `(25, 25)`
+    for the nonlinear one.
     """
 
     params: eqx.nn.MLP  # the array leaves of the MLP (weights and biases)
@@ -77,17 +80,17 @@ class MLPController(eqx.Module):
 
 
 def _pairs(windows: Windows):
-    """All (input, target) pairs of the windows: $\\hat u = y$, target $-u$ (DESIGN §1)."""
-    X = windows.y.reshape(-1, windows.n_in)
-    T = windows.target.reshape(-1, windows.n_out)
-    return X, T
+    """Inputs $\\hat u = y$ `[N, h, p]` and targets $-u$ `[N, h, m]` of every window."""
+    return windows.y, windows.target
 
 
 def mlp_loss(model: MLPController, X, T) -> Float[Array, ""]:
-    """Mean over pairs of $\\lVert f(\\hat u) - (-u)\\rVert^2$, the normalisation of
-    [`imitation_loss`][dissil_jax.imitation_loss]."""
-    pred = jax.vmap(model.mlp)(X)
-    return jnp.mean(jnp.sum((pred - T) ** 2, axis=-1))
+    """The paper's loss (eq. 16) for the static network: $\\frac1N\\sum_i\\sum_k
+    \\lVert f(\\hat u^{(i)}_k) - (-u^{(i)}_k)\\rVert^2$, as
+    [`imitation_loss`][dissil_jax.imitation_loss]: summed over the horizon, averaged over
+    windows. `X` `[N, h, p]`, `T` `[N, h, m]`."""
+    pred = jax.vmap(jax.vmap(model.mlp))(X)
+    return jnp.mean(jnp.sum((pred - T) ** 2, axis=(-2, -1)))
 
 
 def _train_one(key, X, T, *, hidden, max_steps, learning_rate, tol):
@@ -137,14 +140,14 @@ def _train_batch(keys, X, T, hidden, max_steps, learning_rate, tol):
 
 
 def fit_mlp(
-    key, windows: Windows, *, hidden: Sequence[int] = (150, 150, 150), num_inits: int = 8,
+    key, windows: Windows, *, hidden: Sequence[int] = (150, 150), num_inits: int = 8,
     max_steps: int = 2000, learning_rate: float = 1e-3, tol: float = 1e-7,
 ) -> FitResult:
     """Train the paper's NN baseline (NN + GD): a static ReLU MLP on the demonstration pairs.
 
     Every time step of every window gives one pair $(\\hat u, -u)$ = $(y_k, -u_k)$, and
 
-    $$J(f) = \\frac{1}{Nh}\\sum_{i,k}\\lVert f(y^{(i)}_k) + u^{(i)}_k\\rVert^2$$
+    $$J(f) = \\frac{1}{N}\\sum_{i=1}^N\\sum_{k=0}^{h-1}\\lVert f(y^{(i)}_k) + u^{(i)}_k\\rVert^2$$
 
     (the same normalisation as [`imitation_loss`][dissil_jax.imitation_loss]) is minimised by
     full-batch Adam (`optax.adam`, a gradient method; the paper says "gradient descent"
@@ -156,7 +159,8 @@ def fit_mlp(
 
     - `key`: PRNG key (split into `num_inits` initialisation keys).
     - `windows`: demonstration windows (any horizon).
-    - `hidden`: hidden-layer widths, all equal (paper: 3 x 150 linear, 3 x 25 nonlinear).
+    - `hidden`: hidden-layer widths, all equal; `len(hidden) + 1` weight matrices (paper:
+      three, `(150, 150)` linear and `(25, 25)` nonlinear).
     - `num_inits`, `max_steps`, `learning_rate`, `tol`: as for the other trainers.
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult] whose `controllers` is an

@@ -7,17 +7,16 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
-import jax.random as jr
 import numpy as np
 import optax
 
-from .._controller import LTIController
 from .._data import Windows
 from .._lmi import kyp_certified
 from .._projection import MESSAGES, Status, project_with_status
 from .._rollout import imitation_loss
 from .._supply import QSR
 from ._checks import check_fit_args
+from ._init import INIT_SCALE, init_controllers
 from .result import FitResult, stop_code
 
 _CONVERGED, _MAX_STEPS, _NON_FINITE, _SOLVER_FAILED = (
@@ -27,16 +26,6 @@ _CONVERGED, _MAX_STEPS, _NON_FINITE, _SOLVER_FAILED = (
 TRACE_COUNT = {"pgd_loop": 0}
 
 _batched_loss = jax.vmap(jax.value_and_grad(imitation_loss), in_axes=(0, None))
-
-
-def init_controllers(key, num_inits: int, windows: Windows, scale):
-    """`num_inits` controllers with i.i.d. $\\mathcal N(0, \\text{scale}^2)$ entries (batched).
-
-    `scale` may be traced (a vmapped sweep over initialisation scales).
-    """
-    n, p, m, dtype = windows.n_state, windows.n_in, windows.n_out, windows.y.dtype
-    K = jax.vmap(lambda k: LTIController.random(k, n, p, m, 1.0, dtype))(jr.split(key, num_inits))
-    return jax.tree.map(lambda M: scale * M, K)
 
 
 def _mats(K):
@@ -108,7 +97,7 @@ def _loop(K0, P0, ok0, windows, learning_rate, decay, *, qsr, max_steps, tol, ep
 
 def pgd_run(
     key, windows: Windows, qsr: QSR | None, *, learning_rate=1e-3, decay=0.99,
-    init_scale=0.1, num_inits: int = 8, max_steps: int = 150, tol: float = 1e-3,
+    init_scale=INIT_SCALE, num_inits: int = 8, max_steps: int = 150, tol: float = 1e-3,
     eps: float = 1e-6,
 ) -> FitResult:
     """The pure, traceable PGD run behind [`fit_pgd`][dissil_jax.fit_pgd].
@@ -193,7 +182,7 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, learning_rate, decay, tol, 
 def fit_pgd(
     key, windows: Windows, qsr: QSR, *, num_inits: int = 8, max_steps: int = 150,
     learning_rate: float = 1e-3, decay: float = 0.99, tol: float = 1e-3,
-    init_scale: float = 0.1, eps: float = 1e-6,
+    init_scale: float = INIT_SCALE, eps: float = 1e-6,
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers by projected gradient descent (paper Alg. 2).
 
@@ -217,7 +206,13 @@ def fit_pgd(
     - `qsr`: the controller's supply rate ($Q\\preceq0$).
     - `num_inits`, `max_steps` (paper: 150), `tol` (paper: 1e-3 linear, 1e-5 nonlinear;
       `0.0` runs every step), `learning_rate` $\\eta_0$, `decay` $\\rho$, `init_scale`
-      $\\sigma$, `eps` (LMI strictness margin).
+      $\\sigma$ (default 1: the paper's N(0, 1) draw, see below), `eps` (LMI strictness
+      margin).
+
+    **Initialisation.** The paper draws "each matrix element from a normal distribution"
+    and projects the draw (paper §4.1); `init_scale=1.0` is that N(0, 1). A small scale
+    starts every run near the zero controller, which is already dissipative, so the
+    constraint would rarely bind.
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult]; every controller carries a `P`
     that passes the exact float64 KYP check (`certified`).
@@ -232,7 +227,7 @@ def fit_pgd(
 def fit_gd(
     key, windows: Windows, *, num_inits: int = 8, max_steps: int = 150,
     learning_rate: float = 1e-3, decay: float = 0.99, tol: float = 1e-3,
-    init_scale: float = 0.1,
+    init_scale: float = INIT_SCALE,
 ) -> FitResult:
     """Plain gradient descent on the imitation loss: [`fit_pgd`][dissil_jax.fit_pgd] without $\\Pi$.
 

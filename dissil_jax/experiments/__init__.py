@@ -13,6 +13,7 @@ from .metrics import (
     evaluate as evaluate,
     lti_closed_loop_matrix as lti_closed_loop_matrix,
     lti_spectral_radius as lti_spectral_radius,
+    rule_bounded as rule_bounded,
     rule_stable as rule_stable,
     state_mse as state_mse,
     summarize as summarize,
@@ -20,6 +21,7 @@ from .metrics import (
 from .simulate import (
     Noise as Noise,
     Trajectories as Trajectories,
+    equilibrium_horizon as equilibrium_horizon,
     sample_noise as sample_noise,
     simulate_controllers as simulate_controllers,
     simulate_expert as simulate_expert,

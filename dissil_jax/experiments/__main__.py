@@ -34,6 +34,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true",
                    help="small sizes (2 plants, 50 test states, 30 training steps)")
+    p.add_argument("--lr-sweep", nargs="+", type=float, default=None, metavar="LR",
+                   help="instead of the experiments, sweep PGD's and GD's learning rate over "
+                        "these values on training loss (N = first --segments, first --data, "
+                        "--inits per plant, at most 3 plants) and write lr_sweep.md")
     return p
 
 
@@ -54,8 +58,33 @@ def main(argv=None) -> int:
     return _run(args)
 
 
+def _sweep(args) -> int:
+    import json
+    import pathlib
+
+    from .protocol import example_spec
+    from .tuning import learning_rate_sweep, sweep_markdown
+
+    spec = example_spec(args.example, args.quick)
+    segments = (args.segments or [25])[0]
+    sweeps = [learning_rate_sweep(args.example, m, args.lr_sweep, segments=segments,
+                                  data=args.data[0], inits=args.inits or 10,
+                                  plants=min(spec.num_plants, 3), seed=args.seed, spec=spec)
+              for m in ("pgd", "gd")]
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    text = sweep_markdown(sweeps)
+    (out / f"lr_sweep_{args.example}.md").write_text(text)
+    (out / f"lr_sweep_{args.example}.json").write_text(json.dumps(sweeps, indent=1))
+    print(text)
+    return 0
+
+
 def _run(args) -> int:
     from tqdm import tqdm
+
+    if args.lr_sweep:
+        return _sweep(args)
 
     from ._paper import SEGMENTS
     from .protocol import METHOD_LABELS, run_config

@@ -35,6 +35,8 @@ from .simulate import (
 # Rule for plants without an exact test (documented in docs/problems.md).
 RULE_REL = 0.5
 RULE_ABS = 1.0
+# `rule_bounded`: states may not grow past this multiple of (|x0| + 1).
+BOUND_FACTOR = 10.0
 # Loops with cond(I + Dc D) above this are treated as ill posed (not stable).
 _ILL_POSED_COND = 1e12
 
@@ -82,6 +84,9 @@ def lti_spectral_radius(plant, controllers: LTIController) -> np.ndarray:
     out = np.empty(controllers.A.shape[0])
     for i in range(out.shape[0]):
         Ki = jax.tree.map(lambda l: l[i], controllers)
+        if not all(np.all(np.isfinite(np.asarray(M))) for M in (Ki.A, Ki.B, Ki.C, Ki.D)):
+            out[i] = np.inf  # a diverged training run (e.g. GD with a large step) is unstable
+            continue
         try:
             out[i] = np.abs(np.linalg.eigvals(lti_closed_loop_matrix(plant, Ki))).max()
         except ValueError as err:
@@ -117,6 +122,27 @@ def rule_stable(traj: Trajectories, rel: float = RULE_REL, abs_tol: float = RULE
     return np.all(finite & settled, axis=1)
 
 
+def rule_bounded(traj: Trajectories, factor: float = BOUND_FACTOR) -> Bool[np.ndarray, " K"]:
+    """The weaker simulation verdict: every test trajectory stays finite and bounded.
+
+    A controller is "bounded" on the test set iff for every test trajectory all plant
+    states, inputs and controller states are finite and
+    $\\max_k\\lVert x_k\\rVert \\le \\text{factor}\\,(\\lVert x_0\\rVert + 1)$ (default 10). Unlike
+    [`rule_stable`][dissil_jax.experiments.rule_stable] it accepts loops that stay bounded
+    without settling (for example a sustained oscillation).
+    """
+    x = np.asarray(traj.x, np.float64)
+    if x.ndim != 4:
+        raise ValueError(f"`traj.x` must be [K, N, T+1, n] (a batch of controllers), got {x.shape}.")
+    finite = np.isfinite(x).all(axis=(2, 3)) & np.isfinite(np.asarray(traj.u)).all(axis=(2, 3))
+    if traj.xhat is not None:
+        finite &= np.isfinite(np.asarray(traj.xhat)).all(axis=(2, 3))
+    with np.errstate(invalid="ignore", over="ignore"):
+        norm = np.linalg.norm(x, axis=-1)
+        ok = norm.max(axis=-1) <= factor * (norm[..., 0] + 1.0)
+    return np.all(finite & ok, axis=1)
+
+
 def state_mse(x_expert: Float[Array, "N T1 n"], x: Float[Array, "K N T1 n"],
               stable: Bool[np.ndarray, " K"] | None = None) -> np.ndarray:
     """Per-controller MSE $\\frac{1}{N_xT}\\sum_i\\sum_{k=1}^T\\lVert x_e(k) - x(k)\\rVert^2$.
@@ -141,12 +167,15 @@ class Evaluation(eqx.Module):
     - `mse` `[K]`: state MSE against the expert (`inf` when unstable).
     - `stable` `[K]`: the stability verdict; `exact` says whether it came from the
       eigenvalue test (LTI plant and controller) or from `rule_stable`.
+    - `bounded` `[K]`: the weaker simulation verdict of `rule_bounded` (for an exact test
+      it equals `stable`).
     - `spectral_radius` `[K]` (exact test only, else None).
     - `expert`, `learned`: the simulated trajectories (`learned.x` `[K, N, T+1, n]`).
     """
 
     mse: np.ndarray
     stable: np.ndarray
+    bounded: np.ndarray
     exact: bool
     spectral_radius: np.ndarray | None
     expert: Trajectories
@@ -174,6 +203,9 @@ def evaluate(
 
     ```python
     ev = evaluate(key, plant, expert, fit.controllers, x0_test, steps=50)
+
+    The protocol runs the test loops for at least the expert's
+    [`equilibrium_horizon`][dissil_jax.experiments.equilibrium_horizon].
     print(summarize(ev, fit))
     ```
     """
@@ -188,11 +220,12 @@ def evaluate(
     exact = isinstance(controllers, LTIController) and _is_lti_plant(plant)
     if exact:
         rho = lti_spectral_radius(plant, controllers)
-        stable = rho < 1.0
+        stable = bounded = rho < 1.0
     else:
         rho = None
-        stable = rule_stable(learned)
-    return Evaluation(state_mse(ref.x, learned.x, stable), stable, exact, rho, ref, learned)
+        stable, bounded = rule_stable(learned), rule_bounded(learned)
+    mse = state_mse(ref.x, learned.x, stable)
+    return Evaluation(mse, stable, bounded, exact, rho, ref, learned)
 
 
 def _is_lti_plant(plant) -> bool:
@@ -252,4 +285,4 @@ def summarize(evaluation: Evaluation, fit=None) -> Summary:
 
 
 __all__ = ["Evaluation", "Summary", "evaluate", "lti_closed_loop_matrix", "lti_spectral_radius",
-           "rule_stable", "state_mse", "summarize"]
+           "rule_bounded", "rule_stable", "state_mse", "summarize"]

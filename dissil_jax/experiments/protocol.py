@@ -21,6 +21,7 @@ import numpy as np
 from .._supply import QSR
 from .data import REGIMES, demonstration_windows
 from .metrics import _quantiles as _q, evaluate
+from .simulate import equilibrium_horizon
 
 METHODS = ("ico", "ico_nc", "pgd", "gd", "mlp")
 EXAMPLES = ("linear", "nonlinear")
@@ -37,12 +38,14 @@ class ExampleSpec:
     train_std: float  # x0 ~ N(0, train_std^2) for demonstrations
     test_std: float  # x0 ~ N(0, test_std^2) for testing
     num_test: int  # test initial states per plant
-    test_steps: int  # closed-loop test horizon
+    equilibrium_search: int  # steps simulated to find the expert's equilibrium horizon
+    min_test_steps: int  # test loops run max(expert's equilibrium horizon, this) steps
     tol: float  # stopping rule |dJ| < tol (paper: 1e-3 linear, 1e-5 nonlinear)
     max_steps: int  # paper: 150
     hidden: tuple[int, ...]  # MLP baseline widths (paper: 3 x 150 linear, 3 x 25 nonlinear)
-    pgd_learning_rate: float
-    pgd_decay: float
+    pgd_learning_rate: float  # initial step of PGD (paper silent; chosen by `tuning.py`)
+    gd_learning_rate: float  # initial step of GD (idem)
+    pgd_decay: float  # per-step decay of both (paper: "exponentially decaying")
     init_scale: float
 
 
@@ -51,14 +54,16 @@ def example_spec(name: str, quick: bool = False) -> ExampleSpec:
     if name == "linear":
         spec = ExampleSpec(
             name="linear", qsr=QSR.passive(3), num_plants=10, train_std=1.0, test_std=20.0,
-            num_test=100, test_steps=100, tol=1e-3, max_steps=150, hidden=(150, 150, 150),
-            pgd_learning_rate=0.1, pgd_decay=0.99, init_scale=0.1,
+            num_test=100, equilibrium_search=2000, min_test_steps=1, tol=1e-3, max_steps=150,
+            hidden=(150, 150), pgd_learning_rate=0.1, gd_learning_rate=0.03, pgd_decay=0.99,
+            init_scale=1.0,
         )
     elif name == "nonlinear":
         spec = ExampleSpec(
             name="nonlinear", qsr=QSR(-29.867, 3.556, 0.601), num_plants=1, train_std=5.0,
-            test_std=15.0, num_test=1000, test_steps=30, tol=1e-5, max_steps=150,
-            hidden=(25, 25, 25), pgd_learning_rate=2e-3, pgd_decay=0.99, init_scale=0.1,
+            test_std=15.0, num_test=1000, equilibrium_search=200, min_test_steps=30, tol=1e-5,
+            max_steps=150, hidden=(25, 25), pgd_learning_rate=3e-3, gd_learning_rate=3e-3,
+            pgd_decay=0.99, init_scale=1.0,
         )
     else:
         raise ValueError(f"`example` must be one of {EXAMPLES}, got {name!r}.")
@@ -89,14 +94,14 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
         return dj.fit_pgd(key, windows, spec.qsr, learning_rate=spec.pgd_learning_rate,
                           decay=spec.pgd_decay, init_scale=spec.init_scale, **common)
     if method == "gd":
-        return dj.fit_gd(key, windows, learning_rate=spec.pgd_learning_rate,
+        return dj.fit_gd(key, windows, learning_rate=spec.gd_learning_rate,
                          decay=spec.pgd_decay, init_scale=spec.init_scale, **common)
     if method == "ico":
         return dj.fit_ico(key, windows, spec.qsr, init_scale=spec.init_scale, **common)
     if method == "ico_nc":
         return dj.fit_ico_nc(key, windows, init_scale=spec.init_scale, **common)
     if method == "mlp":
-        return dj.fit_mlp(key, windows, hidden=spec.hidden, num_inits=inits)
+        return dj.fit_mlp(key, windows, hidden=spec.hidden, num_inits=inits, tol=spec.tol)
     raise ValueError(f"`method` must be one of {METHODS}, got {method!r}.")
 
 
@@ -105,40 +110,63 @@ def _quantiles(values: np.ndarray) -> dict:
     return dict(mse_min=mn, mse_q1=q1, mse_median=med, mse_q3=q3, mse_max=mx)
 
 
+def _finite_mean(values: np.ndarray) -> float:
+    finite = values[np.isfinite(values)]
+    return float(finite.mean()) if finite.size else float("nan")
+
+
+def training_data(spec: ExampleSpec, plant_index: int, seed: int, data: str, segments: int):
+    """`(plant, expert, windows, (k_fit, k_test, k_noise))` of one plant of a configuration.
+
+    The windows depend only on (seed, plant, data regime, N), so every method, and the
+    step-size sweep, sees the same demonstrations.
+    """
+    plant, expert = make_problem(spec, plant_index, seed)
+    k_data, k_fit, k_test, k_noise = jr.split(jr.fold_in(jr.PRNGKey(seed), plant_index), 4)
+    k_data = jr.fold_in(k_data, segments * 2 + REGIMES.index(data))
+    windows = demonstration_windows(k_data, plant, expert, segments, data, x0_std=spec.train_std)
+    return plant, expert, windows, (k_fit, k_test, k_noise)
+
+
 def run_config(example: str, data: str, method: str, segments: int, *, inits: int,
                seed: int = 0, quick: bool = False, spec: ExampleSpec | None = None) -> dict:
     """Run one configuration and return its summary record (see `summary.json`)."""
     if data not in REGIMES:
         raise ValueError(f"`data` must be one of {REGIMES}, got {data!r}.")
     spec = spec or example_spec(example, quick)
-    mse, stable, pcc, certified, reasons = [], [], [], [], []
+    mse, stable, bounded, pcc, certified, reasons, horizons = [], [], [], [], [], [], []
     train_time = 0.0
     for i in range(spec.num_plants):
-        plant, expert = make_problem(spec, i, seed)
-        base = jr.fold_in(jr.PRNGKey(seed), i)
-        k_data, k_fit, k_test, k_noise = jr.split(base, 4)
-        k_data = jr.fold_in(k_data, segments * 2 + REGIMES.index(data))
-        windows = demonstration_windows(k_data, plant, expert, segments, data,
-                                        x0_std=spec.train_std)
+        plant, expert, windows, (k_fit, k_test, k_noise) = training_data(
+            spec, i, seed, data, segments)
         t = time.perf_counter()
         res = fit(method, k_fit, windows, spec, inits)
         jax.block_until_ready(res.final_loss)
         train_time += time.perf_counter() - t
         x0 = spec.test_std * jr.normal(k_test, (spec.num_test, plant.n_state), windows.y.dtype)
-        ev = evaluate(k_noise, plant, expert, res.controllers, x0, spec.test_steps)
+        T = equilibrium_horizon(jr.fold_in(k_noise, 1), plant, expert, x0,
+                                max_steps=spec.equilibrium_search)
+        steps = max(T, spec.min_test_steps)
+        ev = evaluate(k_noise, plant, expert, res.controllers, x0, steps)
+        horizons.append((T, steps))
         mse.append(np.asarray(ev.mse))
         stable.append(np.asarray(ev.stable, bool))
+        bounded.append(np.asarray(ev.bounded, bool))
         pcc.append(np.asarray(res.percent_change_cost))
         reasons += res.stop_reasons()
         if res.certified is not None:
             certified.append(np.asarray(res.certified, bool))
-    mse, stable = np.concatenate(mse), np.concatenate(stable)
+    mse, stable, bounded = np.concatenate(mse), np.concatenate(stable), np.concatenate(bounded)
     n_ctrl = len(mse)
     record = dict(
         example=example, data=data, method=method, segments=int(segments), inits=int(inits),
         plants=spec.num_plants, controllers=n_ctrl, seed=int(seed), quick=bool(quick),
         percent_stable=100.0 * float(stable.mean()),
-        percent_change_cost=float(np.nanmean(np.concatenate(pcc))),
+        percent_bounded=100.0 * float(bounded.mean()),
+        equilibrium_steps=[T for T, _ in horizons], test_steps=[s for _, s in horizons],
+        # Runs whose loss diverged (counted as "non_finite" in stop_reasons) have no finite
+        # change in cost; the mean is over the others.
+        percent_change_cost=_finite_mean(np.concatenate(pcc)),
         train_time_s=train_time / n_ctrl,
         certified=None if not certified else bool(np.concatenate(certified).all()),
         **{k: float(v) for k, v in _quantiles(mse).items()},
@@ -148,4 +176,4 @@ def run_config(example: str, data: str, method: str, segments: int, *, inits: in
 
 
 __all__ = ["METHODS", "EXAMPLES", "METHOD_LABELS", "ExampleSpec", "example_spec",
-           "make_problem", "fit", "run_config"]
+           "make_problem", "fit", "run_config", "training_data"]

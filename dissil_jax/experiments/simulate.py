@@ -266,3 +266,47 @@ def simulate_controllers(
                                      int(loop_iterations), tol)
     x, xh, y, u = eqx.filter_vmap(sim)(controllers)
     return Trajectories(x, y, u, xh)
+
+
+def equilibrium_horizon(
+    key: PRNGKeyArray,
+    plant,
+    expert,
+    x0: Float[Array, "N n"],
+    *,
+    max_steps: int,
+    band: float = 2.0,
+    tail: float = 0.25,
+    plant_noise: float = PLANT_NOISE,
+    control_noise: float = CONTROL_NOISE,
+) -> int:
+    """The number of steps the expert's noisy loop needs to reach equilibrium from `x0`.
+
+    The paper tests its controllers by "controlling the plant to equilibrium" (paper §5.2).
+    With noise the loop never settles exactly; it reaches a noise floor. The expert is
+    simulated for `max_steps` steps from every row of `x0`; the floor $\\bar r$ is the RMS of
+    $\\lVert x_e(k)\\rVert$ over all trajectories and the last `tail` fraction of the steps,
+    and the horizon is the first $T$ by which **every** trajectory has entered the band
+    $\\lVert x_e(k)\\rVert \\le$ `band`$\\cdot\\bar r$.
+
+    **Returns:** $T \\ge 1$ (an int). Raises a ValueError naming `max_steps` when some
+    trajectory enters the band only inside the tail window (the run is too short to tell).
+    """
+    x0 = _check_x0(x0, plant.n_state)
+    steps = _check_steps(max_steps)
+    if not (0 < tail < 1) or not band > 1:
+        raise ValueError(f"need 0 < `tail` < 1 and `band` > 1, got {tail}, {band}.")
+    noise = sample_noise(key, x0.shape[0], steps, plant, plant_noise, control_noise, x0.dtype)
+    x = np.asarray(simulate_expert(plant, expert, x0, noise).x, np.float64)
+    norm = np.linalg.norm(x, axis=-1)  # [N, T+1]
+    start = int(np.ceil((1 - tail) * steps))
+    floor = float(np.sqrt(np.mean(norm[:, start:] ** 2)))
+    inside = norm <= band * floor
+    first = np.where(inside.any(axis=1), np.argmax(inside, axis=1), steps + 1)
+    T = int(first.max())
+    if T >= start:
+        raise ValueError(
+            f"a trajectory of the expert's loop enters its noise band only at step {T}; "
+            f"increase `max_steps` (now {steps}) so that the last {tail:.0%} is at equilibrium."
+        )
+    return max(T, 1)

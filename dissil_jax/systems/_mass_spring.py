@@ -13,7 +13,8 @@ from ._plants import LinearPlant
 class MassSpringChain(eqx.Module):
     """A sampled mass-spring-damper chain: the discrete plant and its continuous model.
 
-    - `plant`: the Tustin-discretised [`LinearPlant`][dissil_jax.LinearPlant].
+    - `plant`: the discretised [`LinearPlant`][dissil_jax.LinearPlant] (zero-order hold by
+      default, which keeps $D = \\varphi I$).
     - `Ac`, `Bc`, `Cc`, `Dc`: the continuous-time matrices (float64 numpy), used by the
       LQR expert (paper §5.1 designs it from the continuous Riccati equation).
     - `k`, `c`: spring and damper coefficients $k_1..k_n$, $c_1..c_n$; `phi`: the
@@ -66,7 +67,7 @@ def mass_spring_chain(
     k_range: tuple[float, float] = (1.0, 5.0),
     c_range: tuple[float, float] = (1.0, 10.0),
     phi_range: tuple[float, float] = (0.05, 1.0),
-    method: str = "bilinear",
+    method: str = "zoh",
     check_passive: bool = True,
 ) -> MassSpringChain:
     """Sample one of the paper's passive mass-spring-damper chains (paper §5.1).
@@ -74,10 +75,13 @@ def mass_spring_chain(
     Springs $k_i\\sim U[1,5]$, dampers $c_i\\sim U[1,10]$, feedthrough
     $\\varphi\\sim U[0.05,1]$; see [`chain_matrices`][dissil_jax.systems.chain_matrices]
     for the model. The continuous plant is discretised by python-control
-    (`sys.sample(dt, method)`); the default Tustin (bilinear) transform maps the imaginary
-    axis onto the unit circle, so positive realness, i.e. passivity, is preserved for every
-    draw (zero-order hold is passive only when $dt < 2\\varphi$). The paper does not state its
-    discretisation; this choice is documented in `docs/problems.md`.
+    (`sys.sample(dt, method)`). The default zero-order hold keeps the state at the samples
+    and the feedthrough $D = \\varphi I$ that the paper states ("The feedthrough matrix was
+    designed as $\\phi I$", paper §5.1). It is passive when $\\varphi$ exceeds about $dt/2$
+    (at $z = -1$ a unit mass contributes $-dt/2$ to the frequency response), which every
+    draw of $\\varphi\\sim U[0.05, 1]$ does at $dt = 0.1$; `check_passive` certifies each
+    draw. Tustin (`method="bilinear"`) also preserves passivity but adds
+    $\\tfrac12 C B_d$ to $D$.
 
     **Arguments:**
 
@@ -125,7 +129,7 @@ def mass_spring_chain(
         if not cert.holds:
             raise ValueError(
                 f"the discretised chain (`method`={method!r}, `dt`={dt}) is not certified "
-                f"passive (margin {cert.margin:.3g}, solver {cert.status}); use "
-                "`method='bilinear'`, which preserves passivity."
+                f"passive (margin {cert.margin:.3g}, solver {cert.status}); a zero-order hold "
+                "needs `phi_range` above about `dt`/2, or use `method='bilinear'`."
             )
     return MassSpringChain(plant, Ac, Bc, Cc, Dc, k, c, float(phi), float(dt))
