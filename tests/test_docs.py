@@ -46,3 +46,16 @@ def test_docs_build_strict(tmp_path):
     )
     assert result.returncode == 0, f"mkdocs build --strict failed:\n{result.stderr[-4000:]}"
     assert (tmp_path / "site" / "api" / "index.html").exists()
+
+
+@pytest.mark.parametrize("page", ["README.md", "docs/index.md"])
+def test_front_page_code_runs_as_written(page):
+    """The first code a newcomer copies runs in a fresh interpreter (float32, no setup)."""
+    text = (REPO / page).read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
+    assert blocks, f"{page} has no python block"
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    result = subprocess.run([sys.executable, "-c", blocks[0]], cwd=REPO, capture_output=True,
+                            text=True, timeout=300, env=env)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "True" in result.stdout or "holds=True" in result.stdout, result.stdout

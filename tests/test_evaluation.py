@@ -224,3 +224,53 @@ def test_summary_counts_unstable_as_inf():
     assert s.mse_q3 == np.inf
     np.testing.assert_allclose(s.percent_change_cost, np.mean([-50, -75, 0, -50]))
     assert s.train_time_per_controller == 2.0
+
+
+class _ZeroExpert(eqx.Module):
+    """u = 0: the expert leaves the plant to itself (for a hand-checkable equilibrium time)."""
+
+    def init(self, x0):
+        return ()
+
+    def __call__(self, x, carry):
+        return jnp.zeros(1), carry
+
+
+def test_equilibrium_horizon_by_hand():
+    """x+ = 0.5 x + w: the noise floor is 0.04 / sqrt(1 - 0.25) ~ 0.046, and |x0| = 10 enters
+    the band |x| <= 2 * floor ~ 0.092 after log2(10 / 0.092) ~ 6.8 steps, i.e. at k = 7."""
+    plant = dj.LinearPlant([[0.5]], [[1.0]], [[1.0]], [[0.0]])
+    x0 = jnp.array([[10.0], [-10.0], [1.0]])
+    T = ex.equilibrium_horizon(jr.PRNGKey(0), plant, _ZeroExpert(), x0, max_steps=400,
+                               control_noise=0.0)
+    floor = 0.04 / np.sqrt(0.75)
+    assert abs(T - np.log2(10 / (2 * floor))) < 1.5
+    # Noise free, the band collapses to 0 and no finite horizon reaches it: refuse.
+    with pytest.raises(ValueError, match="`max_steps`"):
+        ex.equilibrium_horizon(jr.PRNGKey(0), plant, _ZeroExpert(), x0, max_steps=40,
+                               plant_noise=0.0, control_noise=0.0)
+    with pytest.raises(ValueError, match="`band`"):
+        ex.equilibrium_horizon(jr.PRNGKey(0), plant, _ZeroExpert(), x0, max_steps=40, band=1.0)
+
+
+def test_bounded_and_settled_verdicts_differ_on_an_oscillation():
+    """A loop that oscillates without decaying is bounded but not settled."""
+    n, T = 1, 30
+    x0 = np.array([[[5.0]]])
+    osc = np.concatenate([x0 * (-1.0) ** np.arange(T + 1)[None, :, None]], axis=0)  # [1, T+1, 1]
+    grow = x0 * 1.5 ** np.arange(T + 1)[None, :, None]
+    decay = x0 * 0.5 ** np.arange(T + 1)[None, :, None]
+    x = jnp.asarray(np.stack([osc, grow, decay]))  # [K=3, N=1, T+1, 1]
+    tr = ex.Trajectories(x, jnp.zeros((3, 1, T, n)), jnp.zeros((3, 1, T, n)))
+    assert ex.rule_stable(tr).tolist() == [False, False, True]
+    assert ex.rule_bounded(tr).tolist() == [True, False, True]
+    nan = ex.Trajectories(x.at[2, 0, 3, 0].set(jnp.nan), tr.y, tr.u)
+    assert ex.rule_bounded(nan).tolist() == [True, False, False]
+
+
+def test_diverged_controller_counts_as_unstable(linear):
+    plant, _ = linear
+    Ks = _random_ltis(6, 2, 6, 3, 3, 0.05)
+    Ks = eqx.tree_at(lambda K: K.A, Ks, Ks.A.at[1, 0, 0].set(jnp.nan))
+    rho = ex.lti_spectral_radius(plant, Ks)
+    assert np.isfinite(rho[0]) and rho[1] == np.inf

@@ -4,8 +4,8 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-import scipy.linalg
 import pytest
+import scipy.linalg
 
 import dissil_jax as dj
 from dissil_jax.systems import chain_matrices, mass_spring_chain, paper_nonlinear_plant

@@ -1,0 +1,64 @@
+"""ICO started from the paper's N(0, 1) draws: no run may end early on the solver."""
+
+import warnings
+from collections import Counter
+
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+from helpers import expert_windows
+
+import dissil_jax as dj
+import dissil_jax._train.ico as ico
+from dissil_jax._train._ico_sdp import ICOProblem, ICOSolver
+from dissil_jax.experiments.protocol import example_spec, training_data
+
+
+def test_large_initial_draws_do_not_stop_ico_early():
+    """The nonlinear example at N = 25 with 100 N(0, 1) draws: before the SDP solved for
+    P / lambda_max(P~), 4 of these runs stopped at their first SDP (InsufficientProgress)."""
+    spec = example_spec("nonlinear")
+    _, _, windows, (k_fit, _, _) = training_data(spec, 0, 0, "initial", 25)
+    res = dj.fit_ico(k_fit, windows, spec.qsr, num_inits=100, max_steps=150, tol=spec.tol,
+                     init_scale=1.0)
+    reasons = Counter(res.stop_reasons())
+    assert set(reasons) <= {"converged", "max_steps"}, reasons
+    assert bool(jnp.all(res.certified)) and bool(jnp.all(res.steps > 0))
+
+
+def test_p_scale_is_lambda_max():
+    assert ICOProblem.p_scale(np.diag([1e-6, 3e-6])) == pytest.approx(3e-6)
+    assert ICOProblem.p_scale(None) == 1.0
+
+
+@pytest.mark.parametrize("fail_every_time", [False, True])
+def test_failed_solve_recentres_on_the_certificate_once(monkeypatch, fail_every_time):
+    windows = expert_windows(0, 1, 1, 1, N=10)
+    qsr = dj.QSR.passive(1)
+    calls = {"solve": 0, "certify": 0}
+    solve, certify = ICOSolver.solve, ico.certify
+
+    def flaky(self, theta0, P_tilde, w_tilde, eps=None):
+        calls["solve"] += 1
+        if fail_every_time or calls["solve"] == 1:
+            return None, None, None, "InsufficientProgress", 0.0
+        return solve(self, theta0, P_tilde, w_tilde, eps)
+
+    def counted(*args, **kwargs):
+        calls["certify"] += 1
+        return certify(*args, **kwargs)
+
+    monkeypatch.setattr(ICOSolver, "solve", flaky)
+    monkeypatch.setattr(ico, "certify", counted)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = dj.fit_ico(jr.PRNGKey(3), windows, qsr, num_inits=1, max_steps=5, tol=0.0)
+    ico_warnings = [w for w in caught if "ICO:" in str(w.message)]
+    assert len(ico_warnings) == int(fail_every_time)
+    assert calls["certify"] == 1  # one re-centring, at the first failure only
+    assert bool(res.certified[0])
+    if fail_every_time:
+        assert res.stop_reasons() == ["solver_failed"] and int(res.steps[0]) == 0
+    else:
+        assert res.stop_reasons() == ["max_steps"] and int(res.steps[0]) == 5
