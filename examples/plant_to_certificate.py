@@ -6,7 +6,7 @@
    gives the plant's cone supply rate (-1, 3.556, 29.333); Theorem 1's recipe gives the
    controller supply rate (-29.867, 3.556, 0.601); a static controller inside that set is
    certified and the loop is certified stable.
-2. Linear mass-spring chains (Tustin, D = phi I): joint passivity indices rho, nu > 0 make
+2. Linear mass-spring chains (zero-order hold, D = phi I): joint passivity indices rho, nu > 0 make
    Theorem 1 hold with *every* passive controller, e.g. the (passive) static gain yhat = 0.5 y.
 """
 

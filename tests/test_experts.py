@@ -25,7 +25,7 @@ def test_lqr_gain_riccati_residual(E, F):
     np.testing.assert_allclose(K, Einv @ B.T @ Pi, rtol=1e-12)
     assert np.linalg.eigvalsh((Pi + Pi.T) / 2).min() > 0
     assert np.linalg.eigvals(A - B @ K).real.max() < 0
-    # The continuous design stabilises the Tustin plant (same state at the samples).
+    # The continuous design stabilises the ZOH plant (same state at the samples).
     Ad, Bd = np.asarray(ch.plant.A), np.asarray(ch.plant.B)
     assert np.abs(np.linalg.eigvals(Ad - Bd @ K)).max() < 1
 

@@ -126,3 +126,13 @@ def test_stopping_rule(getkey):
         assert abs(hist[i, steps[i]] - hist[i, steps[i] - 1]) < 1e-2
     with pytest.raises(ValueError, match="`num_inits`"):
         dj.fit_mlp(getkey(), windows, num_inits=0)
+
+
+def test_float32_training(getkey):
+    w = random_windows(getkey(), N=12, h=2, n=1, p=2, m=2)
+    w32 = dj.Windows(*(jnp.asarray(a, jnp.float32) for a in (w.x0, w.y, w.u)))
+    res = dj.fit_mlp(getkey(), w32, hidden=(8, 8), num_inits=2, max_steps=100,
+                     learning_rate=1e-2, tol=0.0)
+    assert res.loss_history.dtype == jnp.float32
+    assert res.controllers.params.layers[0].weight.dtype == jnp.float32
+    assert bool(jnp.all(res.final_loss < 0.5 * res.initial_loss))

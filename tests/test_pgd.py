@@ -191,3 +191,68 @@ def test_trainer_bad_input(getkey):
         dj.fit_gd(getkey(), (w.x0, w.y, w.u))
     with pytest.raises(ValueError, match="infeasible"):
         dj.fit_pgd(getkey(), w, dj.QSR(-1.0, 0.0, -1.0))
+
+
+class _FailAfter:
+    """Replaces the projection's single Clarabel solve: the first `ok` solves run, the rest
+    report SOLVER_FAILED (a solver failure injected on the host)."""
+
+    def __init__(self, monkeypatch, ok):
+        from dissil_jax import _projection
+
+        self.ok, self.calls, self._orig = ok, 0, _projection._solve_once
+        self.failed = _projection.Status.SOLVER_FAILED
+        monkeypatch.setattr(_projection, "_solve_once", self)
+
+    def __call__(self, *args, **kwargs):
+        self.calls += 1
+        if self.calls > self.ok:
+            return None, self.failed, 0.0
+        return self._orig(*args, **kwargs)
+
+
+def test_solver_failure_mid_run_keeps_the_last_certified_iterate(getkey, monkeypatch):
+    w = random_windows(getkey(), N=12, gain=0.6)  # gain outside the cone: every step projects
+    key = getkey()
+    ref = dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, tol=0.0)
+    fail = _FailAfter(monkeypatch, ok=4)
+    res = dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, tol=0.0)
+    assert fail.calls > 4
+    assert res.stop_reasons() == ["solver_failed"] and not bool(res.converged[0])
+    k = int(res.steps[0])
+    assert 0 < k < 6
+    # Step k failed: it is recorded with the kept iterate, which is the last accepted iterate
+    # of the unperturbed run (step k - 1), and certified.
+    np.testing.assert_allclose(res.loss_history[0, :k], ref.loss_history[0, :k], rtol=1e-12)
+    assert float(res.loss_history[0, k]) == float(res.loss_history[0, k - 1])
+    assert float(res.final_loss[0]) == pytest.approx(float(ref.loss_history[0, k - 1]),
+                                                     rel=1e-12)
+    assert bool(res.certified[0])
+    assert independent_kyp_ok(index(res.controllers, 0), QSR, res.P[0])
+
+
+def test_failed_initial_projection(getkey, monkeypatch):
+    w = random_windows(getkey(), N=6)
+    _FailAfter(monkeypatch, ok=0)
+    with pytest.raises(ValueError, match="initial projection failed"):
+        dj.fit_pgd(getkey(), w, QSR, num_inits=2, max_steps=3)
+    res = dj.pgd_run(getkey(), w, QSR, num_inits=2, max_steps=3)
+    assert res.stop_reasons() == ["solver_failed"] * 2
+    assert not bool(jnp.any(res.certified)) and bool(jnp.all(res.steps == 0))
+
+
+@pytest.mark.parametrize("constrained", [True, False], ids=["pgd", "gd"])
+def test_float32_training(getkey, constrained):
+    """float32 windows train float32 controllers; the certificate holds for the rounded
+    float32 numbers (checked in float64 by the definition-based test)."""
+    w = random_windows(getkey(), N=12, n=2, p=2, m=2, gain=0.3)
+    w32 = dj.Windows(*(jnp.asarray(a, jnp.float32) for a in (w.x0, w.y, w.u)))
+    qsr = dj.QSR.passive(2)
+    kw = dict(num_inits=3, max_steps=20, learning_rate=0.05, tol=0.0)
+    res = dj.fit_pgd(getkey(), w32, qsr, **kw) if constrained else dj.fit_gd(getkey(), w32, **kw)
+    assert res.controllers.A.dtype == jnp.float32 and res.loss_history.dtype == jnp.float32
+    assert bool(jnp.all(res.final_loss < res.initial_loss))
+    if constrained:
+        assert bool(jnp.all(res.certified)) and res.P.dtype == jnp.float32
+        for i in range(3):
+            assert independent_kyp_ok(index(res.controllers, i), qsr, res.P[i])

@@ -80,8 +80,9 @@ def lqr_gain(A, B, C, E=10.0, F=1.0) -> tuple[np.ndarray, np.ndarray]:
 def lqr_expert(A, B, C, E=10.0, F=1.0) -> LQRExpert:
     """The paper's linear-problem expert $u = -Kx$ with $K$ from [`lqr_gain`][dissil_jax.experts.lqr_gain].
 
-    Designed on the continuous model (as in the paper) and applied to the Tustin plant,
-    whose state is the continuous state at the sampling instants; defaults $E = 10I$,
+    Designed on the continuous model (as in the paper) and applied to the discretised plant
+    (zero-order hold by default), whose state is the continuous state at the sampling
+    instants; defaults $E = 10I$,
     $F = I$ are the paper's values.
 
     ```python
