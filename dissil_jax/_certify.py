@@ -66,10 +66,14 @@ def certify(K: LTIController, qsr: QSR, *, P=None, tol: float = VERIFY_RTOL) -> 
     """
     A, B, C, D = _controller_arrays(K, qsr)
     n = A.shape[0]
+    if not (np.ndim(tol) == 0 and np.isfinite(tol) and tol >= 0):
+        raise ValueError(f"`tol` must be a finite non-negative number, got {tol!r}.")
     if P is not None:
         P = np.asarray(P, np.float64)
         if P.shape != (n, n):
             raise ValueError(f"`P` must be {n}x{n}, got {P.shape}.")
+        if not np.all(np.isfinite(P)):
+            raise ValueError("`P` contains NaN or inf.")
         return _verdict(A, B, C, D, qsr, P, tol, "given")
     import cvxpy as cp
 

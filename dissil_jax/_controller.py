@@ -37,7 +37,13 @@ class LTIController(eqx.Module):
     D: Float[Array, "*batch m p"]
 
     def __init__(self, A, B, C, D):
-        self.A, self.B, self.C, self.D = (jnp.asarray(M) for M in (A, B, C, D))
+        mats = []
+        for name, M in zip("ABCD", (A, B, C, D)):
+            try:
+                mats.append(jnp.asarray(M))
+            except TypeError:
+                raise ValueError(f"`{name}` must be a floating-point array, got {M!r}.") from None
+        self.A, self.B, self.C, self.D = mats
 
     def __check_init__(self):
         names = ("A", "B", "C", "D")

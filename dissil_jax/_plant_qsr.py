@@ -214,6 +214,11 @@ def _backed_off(A, B, C, D, make, value: float, backoff: float, what: str):
                      "the plant may be unstable or nearly lossless.")
 
 
+def _check_backoff(backoff) -> None:
+    if not (np.ndim(backoff) == 0 and np.isfinite(backoff) and backoff > 0):
+        raise ValueError(f"`backoff` must be a positive finite number, got {backoff!r}.")
+
+
 def _square(A, B, C, D, what: str) -> None:
     if B.shape[1] != C.shape[0]:
         raise ValueError(f"`plant` has {B.shape[1]} inputs and {C.shape[0]} outputs; {what} "
@@ -231,6 +236,7 @@ def input_passivity_qsr(plant, *, backoff: float = 1e-3) -> QSR:
     **Arguments:** `plant` (`dj.LinearPlant`, an `LTIController`, a discrete
     `control.StateSpace` or a tuple `(A, B, C, D)`), `backoff`.
     """
+    _check_backoff(backoff)
     A, B, C, D = _abcd(plant)
     _square(A, B, C, D, "an input passivity index")
     _, nu = _index_sdp(A, B, C, D, "nu")
@@ -245,6 +251,7 @@ def output_passivity_qsr(plant, *, backoff: float = 1e-3) -> QSR:
     $w = y^\\top u - \\rho|y|^2$; same SDP and back-off as
     [`input_passivity_qsr`][dissil_jax.input_passivity_qsr].
     """
+    _check_backoff(backoff)
     A, B, C, D = _abcd(plant)
     _square(A, B, C, D, "an output passivity index")
     rho, _ = _index_sdp(A, B, C, D, "rho")
@@ -267,6 +274,7 @@ def passivity_indices(plant, *, nu: float | None = None, backoff: float = 1e-3) 
     (`closed_loop_certificate(qsr, dj.QSR.passive(m))` holds with $\\alpha = 1$). The result
     is backed off by `backoff` (relative) and certified strictly.
     """
+    _check_backoff(backoff)
     A, B, C, D = _abcd(plant)
     _square(A, B, C, D, "joint passivity indices")
     p = C.shape[0]
@@ -297,6 +305,7 @@ def lti_cone_qsr(plant, *, backoff: float = 1e-3) -> QSR:
     """
     import cvxpy as cp
 
+    _check_backoff(backoff)
     A, B, C, D = _abcd(plant)
     n, m, p = A.shape[0], B.shape[1], C.shape[0]
     P = cp.Variable((n, n), symmetric=True)

@@ -199,6 +199,8 @@ def project_one(
                                          dtype=dtype)
             total_time += t
             if sol is None:
+                if _attempt:  # a larger margin failed after a solution that was not certified
+                    status = Status.NOT_CERTIFIED
                 break
             if kyp_certified(*sol[:4], qsr, sol[4]):
                 dist = np.sum((np.concatenate([np.ravel(M) for M in sol[:4]]) - target) ** 2)
@@ -286,6 +288,8 @@ def _host_batch(A, B, C, D, P_ref, active, *, qsr, has_ref, eps, reg, refine):
 
 
 def _check_qsr(K: LTIController, qsr: QSR) -> None:
+    if not isinstance(K, LTIController):
+        raise ValueError(f"`K` must be a `dj.LTIController`, got {type(K).__name__}.")
     if not isinstance(qsr, QSR):
         raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
     if not isinstance(qsr.Q, np.ndarray):
@@ -293,6 +297,30 @@ def _check_qsr(K: LTIController, qsr: QSR) -> None:
                          "as a traced argument of `jax.jit`/`jax.vmap`.")
     qsr.check_sizes(K.n_in, K.n_out)
     qsr.neg_q_factor()  # raises a ValueError naming `qsr.Q` if Q has a positive eigenvalue
+
+
+def _check_options(K: LTIController, P_ref, active, eps, reg, refine) -> None:
+    for name, v, lo_ok in (("eps", eps, False), ("reg", reg, True)):
+        if not (np.ndim(v) == 0 and np.isfinite(v) and (v > 0 or (lo_ok and v == 0))):
+            raise ValueError(f"`{name}` must be a finite {'non-negative' if lo_ok else 'positive'}"
+                             f" number, got {v!r}.")
+    if isinstance(refine, bool) or np.ndim(refine) != 0 or int(refine) != refine or refine < 0:
+        raise ValueError(f"`refine` must be a non-negative integer, got {refine!r}.")
+    if jnp.shape(active) not in ((), K.batch_shape):
+        raise ValueError(f"`active` must be a bool scalar or have the batch shape "
+                         f"{K.batch_shape} of `K`, got shape {jnp.shape(active)}.")
+    if P_ref is None or isinstance(P_ref, jax.core.Tracer):
+        return
+    P = np.asarray(P_ref, np.float64)
+    if P.shape[-2:] != (K.n_state, K.n_state):
+        return  # reported with the expected shape below
+    sym = (P + np.swapaxes(P, -1, -2)) / 2
+    if not np.all(np.isfinite(P)):
+        raise ValueError("`P_ref` contains NaN or inf.")
+    if not np.allclose(P, sym, rtol=1e-6, atol=1e-12 * max(1.0, np.abs(P).max(initial=0.0))):
+        raise ValueError("`P_ref` must be symmetric.")
+    if P.size and np.linalg.eigvalsh(sym)[..., 0].min() <= 0:
+        raise ValueError("`P_ref` must be positive definite.")
 
 
 def project_with_status(
@@ -306,6 +334,7 @@ def project_with_status(
     *uncertified* target and must not be used (the trainers keep their previous iterate).
     """
     _check_qsr(K, qsr)
+    _check_options(K, P_ref, active, eps, reg, refine)
     if K.batch_shape:
         in_ref = None if P_ref is None else 0
         in_act = 0 if jnp.ndim(active) else None

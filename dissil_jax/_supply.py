@@ -22,7 +22,13 @@ _SYM_TOL = 1e-9
 
 
 def _as_matrix(name: str, value, shape: tuple[int, int] | None = None) -> np.ndarray:
-    arr = np.asarray(value, dtype=np.float64)
+    try:
+        raw = np.asarray(value)
+        arr = None if np.iscomplexobj(raw) else raw.astype(np.float64)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None:
+        raise ValueError(f"`{name}` must be a real matrix (or a scalar), got {value!r}.")
     if arr.ndim == 0:
         arr = arr.reshape(1, 1)
     if arr.ndim != 2:
@@ -251,8 +257,9 @@ def stabilising_qsr(plant_qsr: QSR, alpha: float = 1.0, margins=(1e-2, 1e-2)) ->
     """
     if not isinstance(plant_qsr, QSR):
         raise ValueError("`plant_qsr` must be a `dj.QSR`.")
-    if not np.isfinite(alpha) or alpha <= 0:
-        raise ValueError(f"`alpha` must be positive and finite, got {alpha}.")
+    a = np.asarray(alpha)
+    if a.ndim != 0 or a.dtype.kind not in "iuf" or not np.isfinite(a) or a <= 0:
+        raise ValueError(f"`alpha` must be positive and finite, got {alpha!r}.")
     try:
         M1, M2 = margins
     except (TypeError, ValueError):

@@ -1,7 +1,9 @@
 import control
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import independent_kyp_ok
+from helpers import dissipation_matrix, dissipation_ok
 
 import dissil_jax as dj
 
@@ -17,8 +19,11 @@ def test_nearly_lossless_first_order(delta, expected):
     K = _first_order(0.5, 1.0, 1.0, 1 / 1.5 + delta)
     cert = dj.certify(K, dj.QSR.passive(1))
     assert cert.holds is expected
+    assert (cert.margin > 0) is expected
     if expected:
-        assert independent_kyp_ok(K, dj.QSR.passive(1), cert.P)
+        assert dissipation_ok(K, dj.QSR.passive(1), cert.P)
+    elif np.all(np.isfinite(cert.P)):
+        assert not dissipation_ok(K, dj.QSR.passive(1), cert.P, rel_margin=0.0)
 
 
 def _random_stable(rng, n, m):
@@ -27,17 +32,38 @@ def _random_stable(rng, n, m):
     return A, rng.normal(size=(n, m)), rng.normal(size=(m, n)), rng.normal(size=(m, m))
 
 
+def _min_hermitian_part(A, B, C, D, num=2001):
+    """min over the unit circle of lambda_min((G + G^H) / 2): passive iff >= 0 (stable A)."""
+    n = A.shape[0]
+    out = np.inf
+    for w in np.linspace(0.0, np.pi, num):
+        G = C @ np.linalg.solve(np.exp(1j * w) * np.eye(n) - A, B) + D
+        out = min(out, np.linalg.eigvalsh((G + G.conj().T) / 2)[0])
+    return out
+
+
 def test_agrees_with_python_control_passivity():
+    """Passive and non-passive systems by construction; python-control and certify agree.
+
+    Shifting D by c I shifts the Hermitian part of G(e^jw) by exactly c, so
+    D -> D - (h_min - delta) I is passive (delta > 0) or not (delta < 0) with a clear margin.
+    """
     rng = np.random.default_rng(0)
-    agree = 0
+    verdicts = []
     for trial in range(12):
         A, B, C, D = _random_stable(rng, 2, 2)
-        D = D @ D.T * rng.uniform(0.0, 3.0)  # vary how passive the feedthrough makes it
-        sys = control.ss(A, B, C, D, True)
-        ref = control.ispassive(sys)
-        ours = dj.certify(dj.LTIController(A, B, C, D), dj.QSR.passive(2)).holds
-        agree += ref == ours
-    assert agree == 12
+        expected = trial % 2 == 0
+        delta = rng.uniform(0.05, 0.5) * (1 if expected else -1)
+        D = D - (_min_hermitian_part(A, B, C, D) - delta) * np.eye(2)
+        assert bool(_min_hermitian_part(A, B, C, D) > 0) is expected
+        ref = bool(control.ispassive(control.ss(A, B, C, D, True)))
+        K = dj.LTIController(A, B, C, D)
+        cert = dj.certify(K, dj.QSR.passive(2))
+        assert ref is expected and cert.holds is expected
+        if expected:
+            assert dissipation_ok(K, dj.QSR.passive(2), cert.P)
+        verdicts.append(cert.holds)
+    assert sum(verdicts) == 6 and len(verdicts) - sum(verdicts) == 6
 
 
 def test_input_feedforward_index_matches_python_control():
@@ -55,8 +81,77 @@ def test_bounded_gain_matches_hinf_norm():
     w = np.linspace(0, np.pi, 4001)
     gain = max(np.linalg.svd(sys(np.exp(1j * wi)), compute_uv=False)[0] for wi in w)
     K = dj.LTIController(A, B, C, D)
-    assert dj.certify(K, dj.QSR.bounded_gain(gain * 1.001, 2, 2)).holds
+    qsr = dj.QSR.bounded_gain(gain * 1.001, 2, 2)
+    cert = dj.certify(K, qsr)
+    assert cert.holds and dissipation_ok(K, qsr, cert.P)
     assert not dj.certify(K, dj.QSR.bounded_gain(gain * 0.999, 2, 2)).holds
+
+
+def _random_qsr(rng, p, m):
+    """A general supply rate: indefinite Q and R, non-symmetric rectangular S."""
+    Q, R = rng.normal(size=(m, m)), rng.normal(size=(p, p))
+    return dj.QSR(Q + Q.T, rng.normal(size=(m, p)), R + R.T)
+
+
+@pytest.mark.parametrize("n, p, m", [(1, 1, 1), (3, 2, 1), (2, 1, 3)])
+def test_kyp_matrix_is_the_dissipation_form(n, p, m):
+    """dj.kyp_matrix equals the matrix of V(Ax+Bu) - V(x) - w(u, Cx+Du) (by polarisation)."""
+    rng = np.random.default_rng(n + 10 * p + 100 * m)
+    qsr = _random_qsr(rng, p, m)
+    mats = [rng.normal(size=s) for s in ((n, n), (n, p), (m, n), (m, p))]
+    G = rng.normal(size=(n, n))
+    P = G @ G.T + np.eye(n)
+    K = dj.LTIController(*mats)
+    H = dissipation_matrix(K, qsr, P)
+    np.testing.assert_allclose(dj.kyp_matrix(*mats, qsr, P), H, rtol=1e-12,
+                               atol=1e-12 * np.abs(H).max())
+    # batched: a stack of controllers gives the stack of matrices
+    stack = [np.stack([M, 2 * M, -M]) for M in mats]
+    Ps = np.stack([P, 2 * P, P + np.eye(n)])
+    batched = dj.kyp_matrix(*stack, qsr, Ps)
+    for i in range(3):
+        Ki = dj.LTIController(*(M[i] for M in stack))
+        np.testing.assert_allclose(batched[i], dissipation_matrix(Ki, qsr, Ps[i]), rtol=1e-12,
+                                   atol=1e-12 * np.abs(batched[i]).max())
+
+
+def test_certificate_margin_is_min_of_the_two_eigenvalues():
+    qsr = dj.QSR.passive(2)
+    rng = np.random.default_rng(5)
+    A, B, C, D = _random_stable(rng, 2, 2)
+    D = D - (_min_hermitian_part(A, B, C, D) - 0.2) * np.eye(2)
+    K = dj.LTIController(A, B, C, D)
+    cert = dj.certify(K, qsr)
+    assert cert.holds and cert.status == "optimal"
+    for P in (cert.P, 3.0 * cert.P, cert.P + 0.5 * np.eye(2), -cert.P):
+        given = dj.certify(K, qsr, P=P)
+        expect = min(-np.linalg.eigvalsh(dissipation_matrix(K, qsr, P))[-1],
+                     np.linalg.eigvalsh(P)[0])
+        assert given.margin == pytest.approx(expect, rel=1e-9, abs=1e-12)
+        assert given.holds is bool(expect > 0) is dissipation_ok(K, qsr, P, rel_margin=0.0)
+        np.testing.assert_array_equal(given.P, P)
+    # the SDP's margin is the best one: no worse than any of the storages tried above
+    assert cert.margin >= dj.certify(K, qsr, P=3.0 * cert.P).margin - 1e-9
+    assert dj.certify(K, qsr, P=-cert.P).margin < 0
+    # a non-passive system: negative margin
+    bad = dj.certify(dj.LTIController(A, B, C, D - 0.5 * np.eye(2)), qsr)
+    assert not bad.holds and bad.margin < 0
+
+
+def test_tol_is_the_relative_round_off_allowance():
+    K = _first_order(0.5, 1.0, 1.0, 1 / 1.5 + 1e-7)
+    qsr = dj.QSR.passive(1)
+    cert = dj.certify(K, qsr)
+    assert cert.holds and 0 < cert.margin < 1e-6
+    assert dj.certify(K, qsr, P=cert.P, tol=0.0).holds
+    assert not dj.certify(K, qsr, P=cert.P, tol=1e-3).holds  # margin < tol * scale
+    assert not dj.certify(K, qsr, tol=1e-3).holds  # also after the SDP
+    # A comfortable system keeps its certificate under a loose tolerance.
+    K2 = _first_order(0.5, 1.0, 1.0, 2.0)
+    assert dj.certify(K2, qsr, tol=1e-3).holds
+    for tol in (-1e-3, np.nan, np.inf):
+        with pytest.raises(ValueError, match="`tol`"):
+            dj.certify(K, qsr, tol=tol)
 
 
 def test_given_P_is_checked_not_solved():
@@ -69,9 +164,38 @@ def test_given_P_is_checked_not_solved():
         dj.certify(K, dj.QSR.passive(1), P=np.eye(2))
 
 
+def test_certify_float32_controller():
+    """float32 input is certified as given (float64 arithmetic on the float32 values)."""
+    qsr = dj.QSR(-29.867, 3.556, 0.601)
+    K = dj.project(dj.LTIController.random(jax.random.PRNGKey(3), 2, 1, 1, 2.0), qsr)[0]
+    K32 = K.astype(jnp.float32)
+    cert = dj.certify(K32, qsr)
+    assert K32.A.dtype == jnp.float32 and cert.P.dtype == np.float64
+    assert cert.holds and dissipation_ok(K32, qsr, cert.P)
+    # the float32 values are certified exactly as their float64 embedding is
+    ref = dj.certify(K32.astype(jnp.float64), qsr)
+    np.testing.assert_allclose(cert.P, ref.P, rtol=1e-9)
+    assert cert.margin == pytest.approx(ref.margin, rel=1e-9)
+    P32 = cert.P.astype(np.float32)
+    assert dj.certify(K32, qsr, P=P32).holds is dissipation_ok(K32, qsr, P32) is True
+    # a float32 controller that is not dissipative is refused
+    bad = jax.tree.map(lambda a: a * 10, K32)
+    assert not dj.certify(bad, qsr).holds
+
+
 def test_certify_bad_input():
     K = _first_order(0.5, 1.0, 1.0, 1.0)
     with pytest.raises(ValueError, match="`qsr`"):
         dj.certify(K, dj.QSR.passive(2))
+    with pytest.raises(ValueError, match="`qsr`"):
+        dj.certify(K, "passive")
     with pytest.raises(ValueError, match="`K`"):
         dj.certify("not a controller", dj.QSR.passive(1))
+    batched = dj.LTIController(np.zeros((2, 1, 1)), np.ones((2, 1, 1)), np.ones((2, 1, 1)),
+                               np.ones((2, 1, 1)))
+    with pytest.raises(ValueError, match="`K`"):
+        dj.certify(batched, dj.QSR.passive(1))
+    with pytest.raises(ValueError, match="`P`"):
+        dj.certify(K, dj.QSR.passive(1), P=np.array([[np.nan]]))
+    with pytest.raises(ValueError, match="`P`"):
+        dj.certify(K, dj.QSR.passive(1), P=np.ones((1, 1, 1)))

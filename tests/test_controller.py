@@ -55,3 +55,44 @@ def test_batched_controllers_via_vmap(getkey):
     for i in range(4):
         Ki = jax.tree.map(lambda a: a[i], Ks)
         np.testing.assert_allclose(y[i], Ki(x[i], u[i])[1])
+
+
+@pytest.mark.parametrize(
+    "mats, name",
+    [
+        (([[1]], [[1.0]], [[1.0]], [[1.0]]), "`A`"),  # integer dtype
+        (([[1.0]], [[1.0]], np.array([[1j]]), [[1.0]]), "`C`"),  # complex dtype
+        (([[1.0]], [[1.0]], [[1.0]], "one"), "`D`"),  # not numeric
+        ((np.ones(1), [[1.0]], [[1.0]], [[1.0]]), "`A`"),  # 1-d
+        (([[1.0]], 1.0, [[1.0]], [[1.0]]), "`B`"),  # scalar
+        (([[1.0]], [[1.0]], [[np.nan]], [[1.0]]), "`C`"),
+        (([[1.0]], [[1.0]], [[1.0]], [[-np.inf]]), "`D`"),
+        ((np.ones((2, 1, 1)), np.ones((3, 1, 1)), np.ones((2, 1, 1)), np.ones((2, 1, 1))), "`B`"),
+        ((np.ones((2, 1, 1)), np.ones((2, 1, 1)), np.ones((2, 1, 1)), np.ones((1, 1))), "`D`"),
+    ],
+)
+def test_invalid_matrices_name_the_argument(mats, name):
+    with pytest.raises(ValueError, match=name):
+        dj.LTIController(*mats)
+
+
+def test_batched_controller_where_one_is_required(getkey):
+    Ks = dj.LTIController(*(0.1 * np.ones((3,) + s) for s in ((2, 2), (2, 1), (1, 2), (1, 1))))
+    with pytest.raises(ValueError, match="index the batch"):
+        Ks.to_statespace()
+    with pytest.raises(ValueError, match="`K`"):
+        dj.certify(Ks, dj.QSR.passive(1))
+    with pytest.raises(ValueError, match="`n_in`"):
+        dj.LTIController.random(getkey(), 2, 1.5, 1)
+    with pytest.raises(ValueError, match="`n_out`"):
+        dj.LTIController.random(getkey(), 2, 1, -1)
+
+
+def test_dtype_is_kept_and_cast(getkey):
+    K = dj.LTIController.random(getkey(), 2, 1, 1, dtype=jnp.float32)
+    assert all(M.dtype == jnp.float32 for M in (K.A, K.B, K.C, K.D))
+    K64 = K.astype(jnp.float64)
+    assert all(M.dtype == jnp.float64 for M in (K64.A, K64.B, K64.C, K64.D))
+    assert tree_allclose(K64, K, rtol=0, atol=0)  # float32 -> float64 is exact
+    sys = K.to_statespace()
+    assert sys.A.dtype == np.float64 and sys.dt is True

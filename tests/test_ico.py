@@ -7,10 +7,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import expert_windows, independent_kyp_ok
+from helpers import dissipation_ok, expert_windows, index, tree_allclose
 
 import dissil_jax as dj
-from dissil_jax._train import _ico_sdp, ico
+from dissil_jax._train import _ico_sdp
 from dissil_jax._train._ico_sdp import ICOProblem, ICOSolver
 
 NONLINEAR_QSR = dj.QSR(-29.867, 3.556, 0.601)  # the paper's nonlinear-example controller
@@ -180,7 +180,7 @@ def test_fit_ico_monotone_and_every_iterate_certified(getkey, n, p, m, qsr):
         assert loss == pytest.approx(float(dj.imitation_loss(K, windows)), rel=1e-10)
         assert loss == pytest.approx(hist[i, step], rel=1e-12)
         assert dj.certify(K, qsr, P=P).holds
-        assert independent_kyp_ok(K, qsr, P)
+        assert dissipation_ok(K, qsr, P)
     assert bool(jnp.all(res.certified))
     for i in range(3):
         K = jax.tree.map(lambda a: a[i], res.controllers)
@@ -245,12 +245,104 @@ def test_bad_input(getkey):
         dj.fit_ico(getkey(), windows, None)
 
 
+def _assert_stopping_rule(res, tol, max_steps):
+    """`converged` means exactly: the last accepted step changed the loss by less than `tol`
+    (and no earlier one did); otherwise the run used all `max_steps`."""
+    hist, steps = np.asarray(res.loss_history), np.asarray(res.steps)
+    for i, reason in enumerate(res.stop_reasons()):
+        s = int(steps[i])
+        h = hist[i, : s + 1]
+        assert np.all(np.isfinite(h)) and np.all(np.isnan(hist[i, s + 1:]))
+        assert h[-1] == pytest.approx(float(res.final_loss[i]), rel=1e-12)
+        dJ = np.abs(np.diff(h))
+        assert np.all(dJ[:-1] >= tol)  # it did not stop late
+        assert bool(res.converged[i]) is (reason == "converged")
+        if reason == "converged":
+            assert 1 <= s < max_steps and dJ[-1] < tol
+        else:
+            assert reason == "max_steps" and s == max_steps and dJ[-1] >= tol
+
+
 def test_converged_flag_and_no_warning(getkey):
     windows = expert_windows(2, 1, 1, 1)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         res = dj.fit_ico_nc(getkey(), windows, num_inits=2, max_steps=50, tol=1e-4)
+        short = dj.fit_ico_nc(getkey(), windows, num_inits=2, max_steps=3, tol=1e-4)
+        ico = dj.fit_ico(getkey(), windows, dj.QSR.passive(1), num_inits=2, max_steps=40,
+                         tol=1e-3, init_scale=0.5)
     assert bool(jnp.all(res.converged)) and res.stop_reasons() == ["converged"] * 2
     assert np.all(np.asarray(res.steps) < 50)
     assert res.wall_time.shape == () and float(res.wall_time) > 0
-    assert isinstance(ico, object)
+    _assert_stopping_rule(res, 1e-4, 50)
+    assert not bool(jnp.any(short.converged)) and short.stop_reasons() == ["max_steps"] * 2
+    _assert_stopping_rule(short, 1e-4, 3)
+    assert ico.stop_reasons() == ["converged"] * 2 and bool(jnp.all(ico.certified))
+    _assert_stopping_rule(ico, 1e-3, 40)
+    for i in range(2):
+        assert dissipation_ok(index(ico.controllers, i), dj.QSR.passive(1), ico.P[i])
+
+
+@pytest.mark.parametrize("cone", ["soc", "psd"])
+def test_fit_ico_with_per_window_cones(getkey, cone):
+    """The reference window cones run end to end: monotone, every iterate certified."""
+    windows = expert_windows(3, 2, 1, 1, N=8)
+    qsr = dj.QSR.passive(1)
+    iterates, lock = [], threading.Lock()
+
+    def callback(i, step, K, P, loss):
+        with lock:
+            iterates.append((i, step, K, P, loss))
+
+    key = getkey()
+    res = dj.fit_ico(key, windows, qsr, num_inits=2, max_steps=4, tol=0.0, window_cone=cone,
+                     callback=callback)
+    ref = dj.fit_ico(key, windows, qsr, num_inits=2, max_steps=4, tol=0.0)  # "stacked"
+    assert res.stop_reasons() == ["max_steps"] * 2 and bool(jnp.all(res.certified))
+    assert len(iterates) == 2 * 5
+    for i, step, K, P, loss in iterates:
+        assert dissipation_ok(K, qsr, P)
+        assert loss == pytest.approx(float(dj.imitation_loss(K, windows)), rel=1e-10)
+    hist = np.asarray(res.loss_history)
+    assert np.all(np.diff(hist, axis=1) <= 0) and np.all(hist[:, -1] < hist[:, 0] - 1e-3)
+    for i in range(2):
+        assert dissipation_ok(index(res.controllers, i), qsr, res.P[i])
+    # Same overbound as the default ("psd" with a full Y is at least as tight for m = 1).
+    np.testing.assert_allclose(hist[:, 1], np.asarray(ref.loss_history)[:, 1], rtol=1e-3)
+
+
+def test_fit_ico_rejects_unknown_window_cone(getkey):
+    windows = expert_windows(3, 1, 1, 1, N=4)
+    with pytest.raises(ValueError, match="`window_cone`"):
+        dj.fit_ico(getkey(), windows, dj.QSR.passive(1), num_inits=1, max_steps=1,
+                   window_cone="sdp")
+    with pytest.raises(ValueError, match="`window_cone`"):
+        dj.fit_ico_nc(getkey(), windows, num_inits=1, max_steps=1, window_cone=None)
+
+
+def test_fit_ico_float32_controllers_are_certified_as_returned(getkey):
+    """float32 windows: every accepted iterate is checked exactly as it is returned, i.e. after
+    rounding to float32, and the returned float32 controllers and P pass the exact check."""
+    windows = expert_windows(3, 2, 1, 1, N=8)
+    w32 = dj.Windows(*(jnp.asarray(a, jnp.float32) for a in (windows.x0, windows.y, windows.u)))
+    qsr = NONLINEAR_QSR
+    last, lock = {}, threading.Lock()
+
+    def callback(i, step, K, P, loss):
+        with lock:
+            last[i] = (step, K, P)
+
+    res = dj.fit_ico(getkey(), w32, qsr, num_inits=2, max_steps=6, tol=0.0, callback=callback)
+    assert res.controllers.A.dtype == jnp.float32 and res.P.dtype == jnp.float32
+    assert np.all(np.asarray(res.steps) >= 1) and bool(jnp.all(res.certified))
+    f32 = lambda M: np.asarray(M, np.float64).astype(np.float32).astype(np.float64)
+    for i in range(2):
+        K, P = index(res.controllers, i), res.P[i]
+        step, K_cb, P_cb = last[i]
+        assert step == int(res.steps[i])
+        for M in (*jax.tree.leaves(K_cb), P_cb):  # the iterate the guards checked ...
+            np.testing.assert_array_equal(np.asarray(M, np.float64), f32(M))
+        assert tree_allclose(K_cb, K.astype(jnp.float64), rtol=0, atol=0)  # ... is returned
+        np.testing.assert_array_equal(np.asarray(P, np.float64), np.asarray(P_cb, np.float64))
+        assert dissipation_ok(K, qsr, P)
+        assert dj.certify(K, qsr, P=P).holds

@@ -1,11 +1,14 @@
+import threading
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import independent_kyp_ok, index, tree_allclose
+from helpers import dissipation_matrix, dissipation_ok, index, tree_allclose
 from hypothesis import given, settings, strategies as st
 
 import dissil_jax as dj
+from dissil_jax import _projection
 
 CASES = [
     ("nonlinear-paper", dj.QSR(-29.867, 3.556, 0.601), 1),
@@ -34,7 +37,7 @@ def test_projection_certified_eager_jit_vmap(getkey, name, qsr, n):
     leading = dj.project(Ks, qsr)  # leading batch axes without an explicit vmap
     for i in range(4):
         Ki, Pi = index(batch, i)
-        assert independent_kyp_ok(Ki, qsr, Pi)
+        assert dissipation_ok(Ki, qsr, Pi)
         assert dj.certify(Ki, qsr).holds
         # the batched host path equals the one-at-a-time path
         assert tree_allclose(index(leading, i), (Ki, Pi), rtol=1e-10, atol=1e-12)
@@ -70,7 +73,7 @@ def test_projection_in_float32_is_still_certified(getkey):
     K = dj.LTIController.random(getkey(), 1, 1, 1, 3.0).astype(jnp.float32)
     Kp, P = dj.project(K, qsr)
     assert Kp.A.dtype == jnp.float32 and P.dtype == jnp.float32
-    assert independent_kyp_ok(Kp, qsr, P)
+    assert dissipation_ok(Kp, qsr, P)
 
 
 def test_positive_q_rejected():
@@ -106,7 +109,7 @@ def test_traced_qsr_rejected():
         jax.jit(lambda q: dj.project(K, q))(dj.QSR.passive(1))
 
 
-@settings(max_examples=15, deadline=None)
+@settings(max_examples=15, deadline=None, derandomize=True)
 @given(
     seed=st.integers(0, 2**31 - 1),
     n=st.integers(1, 3),
@@ -119,6 +122,219 @@ def test_property_every_projection_is_certified(seed, n, p, scale, kind):
            "conic": dj.QSR.conic(0.1, 3.0, p)}[kind]
     K = dj.LTIController.random(jax.random.PRNGKey(seed), n, p, p, scale)
     Kp, P = dj.project(K, qsr)
-    assert independent_kyp_ok(Kp, qsr, P)
+    assert dissipation_ok(Kp, qsr, P)
     K2, P2 = dj.project(Kp, qsr, P)
     assert tree_allclose(K2, Kp, rtol=0, atol=0)
+
+
+# -- options: active, eps, reg, refine -------------------------------------------------------
+
+
+def _dist(K, target):
+    return sum(float(jnp.sum((a - b) ** 2)) for a, b in
+               zip(jax.tree.leaves(K), jax.tree.leaves(target)))
+
+
+def test_inactive_lanes_are_skipped(getkey):
+    qsr = dj.QSR.passive(2)
+    Ks = _random_targets(getkey(), 2, qsr, 3, scale=1.0)
+    P_ref = jnp.stack([2.0 * jnp.eye(2)] * 3)
+    active = jnp.array([True, False, True])
+    jitted = jax.jit(lambda K, P, a: dj.project_with_status(K, qsr, P, a))
+    eager = lambda K, P, a: dj.project_with_status(K, qsr, P, a)
+    for fn in (eager, jitted):
+        for ref in (None, P_ref):
+            Kp, P, status = fn(Ks, ref, active)
+            assert [int(s) for s in status] == [dj.Status.SOLVED, dj.Status.SKIPPED,
+                                                dj.Status.SOLVED]
+            assert tree_allclose(index(Kp, 1), index(Ks, 1), rtol=0, atol=0)
+            np.testing.assert_array_equal(P[1], 2.0 * np.eye(2) if ref is not None else np.eye(2))
+            for i in (0, 2):
+                assert not tree_allclose(index(Kp, i), index(Ks, i))
+                assert dissipation_ok(index(Kp, i), qsr, P[i])
+    # a single controller, inactive: returned as is, no solve
+    K0 = index(Ks, 0)
+    Kp, P, status = dj.project_with_status(K0, qsr, active=False)
+    assert int(status) == dj.Status.SKIPPED and tree_allclose(Kp, K0, rtol=0, atol=0)
+    assert not dj.certify(K0, qsr).holds  # so SKIPPED really did not project it
+
+
+def test_eps_is_the_margin_of_the_exact_lmi(getkey):
+    """With P_ref = I the convexified LMI <= -eps I implies KYP(P) <= -eps I and P >= eps I."""
+    qsr = dj.QSR.passive(2)
+    K = dj.LTIController.random(jax.random.PRNGKey(1), 2, 2, 2, 1.0)
+    out = {}
+    for eps in (1e-6, 0.05):
+        Kp, P, status = dj.project_with_status(K, qsr, jnp.eye(2), eps=eps)
+        assert int(status) == dj.Status.SOLVED
+        lam = np.linalg.eigvalsh(dissipation_matrix(Kp, qsr, P))[-1]
+        assert lam <= -eps * (1 - 1e-6)
+        assert np.linalg.eigvalsh(np.asarray(P))[0] >= eps * (1 - 1e-6)
+        out[eps] = (lam, _dist(Kp, K))
+    assert out[0.05][0] < out[1e-6][0] - 0.04  # the margin is really imposed ...
+    assert out[0.05][1] > out[1e-6][1]  # ... and costs distance to the target
+
+
+def test_reg_pulls_P_to_the_reference(getkey):
+    qsr = dj.QSR.conic(-0.5, 2.0, 2)
+    K = dj.LTIController.random(jax.random.PRNGKey(1), 2, 2, 2, 1.0)
+    P_ref = 2.0 * jnp.eye(2)
+    gap = {}
+    for reg in (1e-6, 1e3):
+        Kp, P, status = dj.project_with_status(K, qsr, P_ref, reg=reg)
+        assert int(status) == dj.Status.SOLVED and dissipation_ok(Kp, qsr, P)
+        gap[reg] = (np.linalg.norm(np.asarray(P) - 2.0 * np.eye(2)), _dist(Kp, K))
+    assert gap[1e3][0] < 1e-2 < gap[1e-6][0]
+    assert gap[1e3][1] > gap[1e-6][1]  # pinning P costs distance to the target
+
+
+def test_refine_rounds_move_closer(getkey):
+    qsr = dj.QSR.passive(2)
+    K = dj.LTIController.random(jax.random.PRNGKey(1), 2, 2, 2, 1.0)
+    dists = {}
+    for refine in (0, 1, 2, 3, 5):
+        Kp, P, status = dj.project_with_status(K, qsr, refine=refine)
+        assert int(status) == dj.Status.SOLVED and dissipation_ok(Kp, qsr, P)
+        dists[refine] = _dist(Kp, K)
+    assert dists[0] == dists[1]  # at least one round
+    assert dists[1] > dists[2] > dists[3] > dists[5]
+    assert dists[5] < 0.2 * dists[1]
+
+
+# -- failures never return an uncertified controller ------------------------------------------
+
+
+def _inject(monkeypatch, obj, name, value):
+    """Patch `obj.name` and start from empty thread-local solver caches (dropped afterwards),
+    so that no solver built before the patch is reused and none built with it survives."""
+    monkeypatch.setattr(_projection, "_LOCAL", threading.local())
+    monkeypatch.setattr(obj, name, value)
+
+
+def _failure_cases(qsr, key):
+    """A target, and a batch [certified by P_ref, uncertified] with P_ref."""
+    Kc, Pc = dj.project(dj.LTIController.random(key, 2, 2, 2, 1.0), qsr)
+    target = jax.tree.map(lambda a: a + 1.0, Kc)
+    assert not dj.certify(target, qsr, P=Pc).holds
+    batch = jax.tree.map(lambda a, b: jnp.stack([a, b]), Kc, target)
+    return target, batch, jnp.stack([Pc, Pc])
+
+
+def _assert_flagged(qsr, target, batch, P_ref, code, match):
+    Kp, P, status = dj.project_with_status(target, qsr)
+    assert int(status) == code
+    assert tree_allclose(Kp, target, rtol=0, atol=0)  # the target, flagged: never a new point
+    with pytest.raises(ValueError, match=match):
+        dj.project(target, qsr)
+    with pytest.raises(Exception, match=match):  # EquinoxRuntimeError via the callback
+        jax.block_until_ready(jax.jit(lambda K: dj.project(K, qsr))(target))
+    Kb, Pb, sb = dj.project_with_status(batch, qsr, P_ref)
+    assert int(sb[0]) == dj.Status.UNCHANGED and int(sb[1]) >= dj.Status.INFEASIBLE
+    assert tree_allclose(Kb, batch, rtol=0, atol=0)
+    assert dissipation_ok(index(Kb, 0), qsr, Pb[0])  # the certified lane is untouched
+    return int(sb[1])
+
+
+def test_solver_failure_is_flagged(getkey, monkeypatch):
+    qsr = dj.QSR.passive(2)
+    target, batch, P_ref = _failure_cases(qsr, getkey())
+    original = _projection._settings
+
+    def starved():
+        s = original()
+        s.max_iter = 1
+        return s
+
+    _inject(monkeypatch, _projection, "_settings", starved)
+    code = _assert_flagged(qsr, target, batch, P_ref, dj.Status.SOLVER_FAILED, "Clarabel failed")
+    assert code == dj.Status.SOLVER_FAILED
+
+
+def test_uncertified_solution_is_never_returned(getkey, monkeypatch):
+    """A solver answer that fails the exact KYP check (here: made unstable) is refused."""
+    qsr = dj.QSR.passive(2)
+    target, batch, P_ref = _failure_cases(qsr, getkey())
+    original = _projection._ProjectionSolver.solve
+    calls = []
+
+    def corrupted(self, target, P_tilde, eps):
+        x, status, t = original(self, target, P_tilde, eps)
+        calls.append(eps)
+        if x is not None:
+            x = x.copy()
+            x[: self.lmi.nA] += 5.0  # A + 5 * ones: unstable, dissipative for no P
+        return x, status, t
+
+    _inject(monkeypatch, _projection._ProjectionSolver, "solve", corrupted)
+    _assert_flagged(qsr, target, batch, P_ref, dj.Status.NOT_CERTIFIED,
+                    "exact float64 KYP check")
+    # the margin was enlarged before giving up
+    assert max(calls) >= 1e4 * min(calls)
+
+
+def test_uncertified_solution_status_with_reference(getkey, monkeypatch):
+    qsr = dj.QSR.passive(2)
+    _, batch, P_ref = _failure_cases(qsr, getkey())
+    original = _projection._ProjectionSolver.solve
+
+    def corrupted(self, target, P_tilde, eps):
+        x, status, t = original(self, target, P_tilde, eps)
+        if x is not None:
+            x = x.copy()
+            x[: self.lmi.nA] += 5.0
+        return x, status, t
+
+    _inject(monkeypatch, _projection._ProjectionSolver, "solve", corrupted)
+    _, _, sb = dj.project_with_status(batch, qsr, P_ref)
+    assert int(sb[1]) == dj.Status.NOT_CERTIFIED
+
+
+def test_enlarged_margin_rescues_a_rounding_failure(getkey, monkeypatch):
+    """Only the first attempt is broken: the retry with 100x eps is returned, certified."""
+    qsr = dj.QSR.passive(2)
+    target, _, _ = _failure_cases(qsr, getkey())
+    original = _projection._ProjectionSolver.solve
+    calls = []
+
+    def first_bad(self, target, P_tilde, eps):
+        x, status, t = original(self, target, P_tilde, eps)
+        calls.append(eps)
+        if len(calls) == 1:
+            x = x.copy()
+            x[: self.lmi.nA] += 5.0
+        return x, status, t
+
+    _inject(monkeypatch, _projection._ProjectionSolver, "solve", first_bad)
+    Kp, P, status = dj.project_with_status(target, qsr, refine=1)
+    assert int(status) == dj.Status.SOLVED and dissipation_ok(Kp, qsr, P)
+    assert calls == [pytest.approx(1e-6), pytest.approx(1e-4)]
+
+
+def test_projection_option_errors(getkey):
+    qsr = dj.QSR.passive(1)
+    K = dj.LTIController.random(getkey(), 2, 1, 1)
+    Ks = _random_targets(getkey(), 2, qsr, 3)
+    for kw, name in [(dict(eps=0.0), "`eps`"), (dict(eps=-1e-6), "`eps`"),
+                     (dict(eps=np.nan), "`eps`"), (dict(reg=-1.0), "`reg`"),
+                     (dict(reg=np.inf), "`reg`"), (dict(refine=-1), "`refine`"),
+                     (dict(refine=1.5), "`refine`")]:
+        with pytest.raises(ValueError, match=name):
+            dj.project(K, qsr, **kw)
+    with pytest.raises(ValueError, match="`active`"):
+        dj.project_with_status(Ks, qsr, None, jnp.array([True, False]))
+    with pytest.raises(ValueError, match="`active`"):
+        dj.project_with_status(K, qsr, None, jnp.array([True, False]))
+    for P_ref, what in [(jnp.array([[1.0, np.nan], [np.nan, 1.0]]), "NaN"),
+                        (jnp.array([[1.0, 0.5], [0.0, 1.0]]), "symmetric"),
+                        (-jnp.eye(2), "positive definite")]:
+        with pytest.raises(ValueError, match=f"`P_ref`.*{what}"):
+            dj.project(K, qsr, P_ref)
+    with pytest.raises(ValueError, match="`P_ref`"):
+        dj.project(Ks, qsr, jnp.stack([jnp.eye(2), jnp.eye(2), -jnp.eye(2)]))
+    with pytest.raises(ValueError, match="`K`"):
+        dj.project((K.A, K.B, K.C, K.D), qsr)
+    with pytest.raises(ValueError, match="`qsr`"):
+        dj.project(K, "passive")
+    with pytest.raises(ValueError, match="`A`"):
+        dj.project(dj.LTIController(np.eye(2, dtype=int), np.ones((2, 1)), np.ones((1, 2)),
+                                    np.ones((1, 1))), qsr)

@@ -23,6 +23,16 @@ def test_rectangular_bounded_gain_shapes():
     q = dj.QSR.bounded_gain(2.0, n_out=3, n_in=2)
     assert q.Q.shape == (3, 3) and q.S.shape == (3, 2) and q.R.shape == (2, 2)
     assert q.n_out == 3 and q.n_in == 2
+    rng = np.random.default_rng(1)
+    u, y = rng.normal(size=(50, 2)), rng.normal(size=(50, 3))
+    np.testing.assert_allclose(q.supply(u, y), 4.0 * np.sum(u * u, -1) - np.sum(y * y, -1),
+                               rtol=1e-12)
+    # a general rectangular supply rate against its definition, one pair at a time
+    Q, S, R = -np.eye(3) + 0.1, rng.normal(size=(3, 2)), np.array([[1.0, 0.3], [0.3, 2.0]])
+    g = dj.QSR(Q, S, R)
+    for k in range(5):
+        expect = y[k] @ Q @ y[k] + 2 * y[k] @ S @ u[k] + u[k] @ R @ u[k]
+        assert g.supply(u[k], y[k]) == pytest.approx(expect, rel=1e-12)
 
 
 @pytest.mark.parametrize(
@@ -32,6 +42,10 @@ def test_rectangular_bounded_gain_shapes():
         ((np.eye(3), np.zeros((2, 3)), np.eye(3)), "Q"),
         (([[0, 1], [0, 0]], np.zeros((2, 2)), np.eye(2)), "Q"),
         ((np.zeros((2, 2)), np.zeros((2, 2)), [[1, np.nan], [np.nan, 1]]), "R"),
+        ((1j, 0.5, 0.0), "Q"),
+        ((0.0, "half", 0.0), "S"),
+        ((0.0, 0.5, np.ones((1, 1, 1))), "R"),
+        ((0.0, np.array([[0.5 + 1j]]), 0.0), "S"),
     ],
 )
 def test_qsr_validation_names_argument(args, name):
@@ -58,16 +72,30 @@ def test_neg_q_factor():
         dj.QSR(np.diag([1.0, -1.0]), np.eye(2), np.eye(2)).neg_q_factor()
 
 
+def _theorem1(plant, ctrl, alpha):
+    """Paper Theorem 1's matrix, written out here (not the library's)."""
+    top = np.hstack([plant.Q + alpha * ctrl.R, -plant.S + alpha * ctrl.S.T])
+    bot = np.hstack([(-plant.S + alpha * ctrl.S.T).T, plant.R + alpha * ctrl.Q])
+    return np.vstack([top, bot])
+
+
 def test_paper_controller_supply_rate_and_certificate():
-    plant = dj.QSR(-1.0, 32 / 9, 88 / 3)
+    """Paper numbers: plant (-1, 3.556, 29.333), alpha = 1, M = (0.399, 0.534)."""
+    plant = dj.QSR(-1.0, 3.556, 29.333)
     ctrl = dj.stabilising_qsr(plant, alpha=1.0, margins=(0.399, 0.534))
     np.testing.assert_allclose([ctrl.Q[0, 0], ctrl.S[0, 0], ctrl.R[0, 0]],
-                               [-29.867, 3.556, 0.601], atol=5e-4)
+                               [-29.867, 3.556, 0.601], rtol=1e-12)
+    np.testing.assert_allclose(_theorem1(plant, ctrl, 1.0), np.diag([-0.399, -0.534]),
+                               atol=1e-12)
     holds, alpha = dj.closed_loop_certificate(plant, ctrl)
-    assert holds and alpha > 0
-    # The paper's rounded pair also passes, with alpha = 1 feasible.
-    holds, _ = dj.closed_loop_certificate(dj.QSR(-1, 3.556, 29.333), dj.QSR(-29.867, 3.556, 0.601))
     assert holds
+    # the returned multiplier really certifies, and is at least as good as alpha = 1
+    lam = np.linalg.eigvalsh(_theorem1(plant, ctrl, alpha))[-1]
+    assert lam <= -0.399 + 1e-9
+    # the recipe scales with alpha: alpha = 2 halves every entry
+    ctrl2 = dj.stabilising_qsr(plant, alpha=2.0, margins=(0.399, 0.534))
+    np.testing.assert_allclose([ctrl2.Q[0, 0], ctrl2.S[0, 0], ctrl2.R[0, 0]],
+                               [-29.867 / 2, 3.556 / 2, 0.601 / 2], rtol=1e-12)
 
 
 def test_closed_loop_certificate_rejects_impossible_pair():
@@ -84,14 +112,54 @@ def test_closed_loop_certificate_rejects_impossible_pair():
 
 
 def test_stabilising_qsr_always_certifies():
+    """The recipe's identities hold at the requested alpha, where M(alpha) = diag(-M1, -M2)."""
     rng = np.random.default_rng(1)
-    for _ in range(5):
+    for trial in range(6):
         S = rng.normal(size=(2, 3))
-        plant = dj.QSR(-np.eye(2), S, np.eye(3) * 3)
+        Q1, R1 = rng.normal(size=(2, 2)), rng.normal(size=(3, 3))
+        plant = dj.QSR(-Q1 @ Q1.T, S, R1 + R1.T)
         alpha = float(rng.uniform(0.2, 5))
-        ctrl = dj.stabilising_qsr(plant, alpha=alpha, margins=(0.1, 0.2))
-        assert ctrl.S.shape == (3, 2)
+        if trial % 2:  # scalar margins
+            M1, M2 = float(rng.uniform(0.05, 1)), float(rng.uniform(0.05, 1))
+            ctrl = dj.stabilising_qsr(plant, alpha=alpha, margins=(M1, M2))
+            M1, M2 = M1 * np.eye(2), M2 * np.eye(3)
+        else:  # matrix margins
+            G1, G2 = rng.normal(size=(2, 2)), rng.normal(size=(3, 3))
+            M1, M2 = G1 @ G1.T + 0.1 * np.eye(2), G2 @ G2.T + 0.1 * np.eye(3)
+            ctrl = dj.stabilising_qsr(plant, alpha=alpha, margins=(M1, M2))
+        assert ctrl.S.shape == (3, 2) and ctrl.Q.shape == (3, 3) and ctrl.R.shape == (2, 2)
+        np.testing.assert_allclose(ctrl.S, plant.S.T / alpha, rtol=1e-12)
+        np.testing.assert_allclose(ctrl.R, -(plant.Q + M1) / alpha, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(ctrl.Q, -(plant.R + M2) / alpha, rtol=1e-12, atol=1e-14)
+        M = _theorem1(plant, ctrl, alpha)
+        np.testing.assert_allclose(M, np.block([[-M1, np.zeros((2, 3))],
+                                                [np.zeros((3, 2)), -M2]]), atol=1e-12)
+        np.testing.assert_allclose(np.linalg.eigvalsh(M),
+                                   np.sort(np.concatenate([np.linalg.eigvalsh(-M1),
+                                                           np.linalg.eigvalsh(-M2)])),
+                                   atol=1e-12)
         assert dj.closed_loop_certificate(plant, ctrl).holds
+
+
+def test_stabilising_qsr_argument_errors():
+    plant = dj.QSR.bounded_gain(1.0, 2, 3)  # S is 2x3: M1 is 2x2, M2 is 3x3
+    good = (np.eye(2), np.eye(3))
+    dj.stabilising_qsr(plant, margins=good)
+    for margins, match in [
+        (0.1, "`margins`"), ((0.1, 0.2, 0.3), "`margins`"),
+        ((np.eye(3), np.eye(3)), r"`margins\[0\]`"), ((np.eye(2), np.eye(2)), r"`margins\[1\]`"),
+        ((np.array([[1.0, 0.5], [0.0, 1.0]]), np.eye(3)), r"`margins\[0\]`"),
+        ((-np.eye(2), np.eye(3)), r"`margins\[0\]`"), ((np.eye(2), 0.0), r"`margins\[1\]`"),
+        ((np.nan, 1.0), r"`margins\[0\]`"), ((np.ones((1, 2, 2)), np.eye(3)), r"`margins\[0\]`"),
+        ((np.diag([1.0, 0.0]), np.eye(3)), r"`margins\[0\]`"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            dj.stabilising_qsr(plant, margins=margins)
+    for alpha in (0.0, -1.0, np.nan, np.inf, "1", np.array([1.0, 2.0]), 1j):
+        with pytest.raises(ValueError, match="`alpha`"):
+            dj.stabilising_qsr(plant, alpha=alpha, margins=good)
+    with pytest.raises(ValueError, match="`plant_qsr`"):
+        dj.stabilising_qsr((0.0, 0.5, 0.0))
 
 
 def test_interconnection_shape_errors():
