@@ -12,7 +12,8 @@ from dissil_jax.experiments.protocol import example_spec, run_config
 from dissil_jax.experiments.report import merge_records, tables_markdown
 
 KEYS = {"example", "data", "method", "segments", "percent_stable", "percent_change_cost",
-        "train_time_s", "mse_median", "mse_max", "mse_q1", "mse_q3"}
+        "train_time_s", "mse_median", "mse_max", "mse_q1", "mse_q3", "percent_bounded",
+        "equilibrium_steps", "test_steps"}
 
 
 def test_cli_writes_summary_tables_and_figures(tmp_path, capsys):
@@ -27,6 +28,9 @@ def test_cli_writes_summary_tables_and_figures(tmp_path, capsys):
         assert r["mse_q1"] <= r["mse_median"] <= r["mse_q3"] <= r["mse_max"]
         # every trained controller's stopping rule is counted
         assert sum(r["stop_reasons"].values()) == r["controllers"]
+        # the test loops ran to the expert's equilibrium, and at least 30 steps
+        assert r["test_steps"] == [max(t, 30) for t in r["equilibrium_steps"]]
+        assert r["percent_bounded"] >= r["percent_stable"]
     pgd = next(r for r in records if r["method"] == "pgd")
     assert pgd["percent_stable"] == 100.0 and pgd["certified"] is True
     tables = (out / "tables.md").read_text()

@@ -95,9 +95,11 @@ def tables_markdown(records: list[dict]) -> str:
                     cells.append(f"**{ours}** ({_fmt(p, kind)})")
             out.append(f"| {METHOD_LABELS[m]} | " + " | ".join(cells) + " |")
         out += ["", f"Test MSE ({example}, {_DATA_TITLES[data].lower()}): median (paper's "
-                "median), quartiles and worst controller.", ""]
-        out += ["| method | N | median | paper median | q1 | q3 | max | paper max |",
-                "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+                "median), quartiles and worst controller; % bounded (the weaker verdict, "
+                "equal to % stable where the test is exact) and the test horizon in steps.", ""]
+        out += ["| method | N | median | paper median | q1 | q3 | max | paper max | % bounded "
+                "| steps |",
+                "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
         pmed = dict(FIGURES.get((example, data, "median"), {}))
         pmax = dict(FIGURES.get((example, data, "max"), {}))
         for m in methods:
@@ -110,9 +112,18 @@ def tables_markdown(records: list[dict]) -> str:
                 out.append(f"| {METHOD_LABELS[m]} | {s} | **{_fmt(r['mse_median'], 'g')}** | "
                            f"{_fmt(pm, 'g')} | {_fmt(r['mse_q1'], 'g')} | "
                            f"{_fmt(r['mse_q3'], 'g')} | {_fmt(r['mse_max'], 'g')} | "
-                           f"{_fmt(px, 'g')} |")
+                           f"{_fmt(px, 'g')} | {_fmt(r.get('percent_bounded'), 'pct')} | "
+                           f"{_steps(r.get('test_steps'))} |")
         out.append("")
     return "\n".join(out)
+
+
+def _steps(steps) -> str:
+    """The test horizon(s) of a record: one number, or the range over plants."""
+    if not steps:
+        return "–"
+    lo, hi = min(steps), max(steps)
+    return f"{lo}" if lo == hi else f"{lo}–{hi}"
 
 
 def _finite_or_ceiling(values, ceiling):
