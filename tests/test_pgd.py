@@ -187,6 +187,10 @@ def test_trainer_bad_input(getkey):
         dj.fit_pgd(getkey(), w, QSR, learning_rate=float("nan"))
     with pytest.raises(ValueError, match="`num_inits`"):
         dj.fit_gd(getkey(), w, num_inits=0)
+    with pytest.raises(ValueError, match="`max_steps`"):
+        dj.fit_gd(getkey(), w, max_steps=-1)
+    with pytest.raises(ValueError, match="`init_scale`"):
+        dj.fit_pgd(getkey(), w, QSR, init_scale=float("inf"))
     with pytest.raises(ValueError, match="`windows`"):
         dj.fit_gd(getkey(), (w.x0, w.y, w.u))
     with pytest.raises(ValueError, match="infeasible"):

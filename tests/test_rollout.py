@@ -95,3 +95,23 @@ def test_windows_validation():
         dj.Windows(jnp.zeros((3, 1)), jnp.zeros((3, 2, 1)), jnp.full((3, 2, 1), jnp.nan))
     with pytest.raises(ValueError, match="`horizon`"):
         dj.observability_toeplitz(dj.LTIController.random(jax.random.PRNGKey(0), 1, 1, 1), 0)
+
+
+def test_float32_rollout_and_loss_match_float64(getkey):
+    K = dj.LTIController.random(getkey(), 3, 2, 2, scale=0.4)
+    x0, u = jax.random.normal(getkey(), (3,)), jax.random.normal(getkey(), (5, 2))
+    f32 = lambda t: jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), t)
+    y64, y32 = dj.rollout(K, x0, u), dj.rollout(f32(K), f32(x0), f32(u))
+    assert y32.dtype == jnp.float32
+    np.testing.assert_allclose(y32, y64, rtol=1e-5, atol=1e-5)
+    w = dj.Windows(x0[None], u[None], u[None])
+    w32 = dj.Windows(*(f32(a) for a in (w.x0, w.y, w.u)))
+    J32 = dj.imitation_loss(f32(K), w32)
+    assert J32.dtype == jnp.float32
+    assert float(J32) == pytest.approx(float(dj.imitation_loss(K, w)), rel=1e-5)
+
+
+def test_batched_controller_is_refused_where_one_is_required(getkey):
+    Kb = jax.vmap(lambda k: dj.LTIController.random(k, 2, 1, 1))(jax.random.split(getkey(), 3))
+    with pytest.raises(ValueError, match="`K`"):
+        dj.observability_toeplitz(Kb, 2)
