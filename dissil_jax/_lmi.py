@@ -100,7 +100,7 @@ def smat(v: np.ndarray, N: int) -> np.ndarray:
 
 
 class ConvexifiedLMI:
-    """The convexified KYP LMI of DESIGN §2 (paper Corollary 1 + Remark 1, factored form).
+    """The convexified KYP LMI (paper Corollary 1 + Remark 1, factored form; `docs/concepts.md`).
 
     For $-Q = LL^\\top$ and a fixed $\\tilde P\\succ0$, the matrix
 

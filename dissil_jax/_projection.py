@@ -211,7 +211,7 @@ def project_one(
             cur_eps *= 100.0
         if sol is None:
             break
-        P_tilde = best[4]  # re-linearise the P^{-1} overbound at the new P (DESIGN §2)
+        P_tilde = best[4]  # re-linearise the P^{-1} overbound at the new P (the convexified LMI of `docs/concepts.md`)
     if best is not None:
         return (*best, Status.SOLVED, total_time)
     return (*target_mats, np.asarray(P_tilde), status, total_time)

@@ -238,7 +238,7 @@ def closed_loop_certificate(plant_qsr: QSR, controller_qsr: QSR) -> ClosedLoopCe
 
 
 def stabilising_qsr(plant_qsr: QSR, alpha: float = 1.0, margins=(1e-2, 1e-2)) -> QSR:
-    """A controller supply rate that Theorem 1 pairs with `plant_qsr` (DESIGN §2 recipe).
+    """A controller supply rate that Theorem 1 pairs with `plant_qsr` (the recipe of `docs/concepts.md`, *The closed-loop theorem*).
 
     $$S_2 = S_1^\\top/\\alpha,\\quad R_2 = -(Q_1 + M_1)/\\alpha,\\quad Q_2 = -(R_1 + M_2)/\\alpha,$$
 

@@ -3,9 +3,9 @@ r"""The convex overbound SDP of one ICO iteration, assembled straight into Clara
 Host-side float64 numpy only. One `ICOProblem` per (windows, supply rate) holds the data and
 the fixed sparsity pattern (shared read-only by all threads); one `ICOSolver` per
 initialisation owns a Clarabel solver whose numbers are updated in place every iteration
-(`solver.update(q=..., A=..., b=...)`, DESIGN §2).
+(`solver.update(q=..., A=..., b=...)`).
 
-## The SDP (two-step loss, paper Problem 17 / 18, DESIGN §3)
+## The SDP (two-step loss, paper Problem 17 / 18)
 
 Write $\theta = (A, B, C, D)$, the current iterate $\theta_0$, the step $\delta\theta$ and,
 per window $k$, $\zeta_k = (\hat x_{k,0}, \hat u_{k,0})$, targets $t_{k,0}, t_{k,1}$
@@ -22,7 +22,7 @@ hence (maximise $2e^\top v - \lVert v\rVert^2 = \lVert e\rVert^2$ over $v$)
 $$\lVert e\rVert^2 \le \bar e^\top (I - Y)^{-1}\bar e + \lVert\delta z\rVert^2/w
 \quad\text{for any}\quad Y \succeq w\,\delta C\delta C^\top,\ Y \prec I.$$
 
-This is the DESIGN §3 LMI $[[-s, \bar e^\top, 0, \delta z^\top], [\bar e, -I, \delta C, 0],
+This is the per-window LMI $[[-s, \bar e^\top, 0, \delta z^\top], [\bar e, -I, \delta C, 0],
 [0, \delta C^\top, -W^{-1}, 0], [\delta z, 0, 0, -W]] \preceq 0$ after Schur complements
 on its last two blocks, with the pieces lifted into a few small cones:
 
@@ -36,7 +36,7 @@ on its last two blocks, with the pieces lifted into a few small cones:
   or the same bound window by window, $\lVert\bar e_k\rVert^2 \le \sigma_k (1 - y)$ (`"soc"`,
   the same optimum with $N$ cones; kept as a reference); or, with a full symmetric $Y$, the
   per-window LMI $[[\sigma_k, \bar e_k^\top], [\bar e_k, I - Y]] \succeq 0$ (`"psd"`;
-  minimising over $Y$ recovers exactly the per-window DESIGN LMI because every window's LMI
+  minimising over $Y$ recovers exactly that per-window LMI because every window's LMI
   is monotone in $Y$);
 - $\sum_k\lVert\delta z_k\rVert^2/w = \lVert[\delta A\ \delta B]F\rVert_F^2/w \le \tau$ with
   $FF^\top = \sum_k\zeta_k\zeta_k^\top$: one rotated SOC whose size does not grow with $N$.
@@ -46,7 +46,7 @@ The program is
 $$\min\ \frac{1}{N}\Bigl(\sum_k\lVert r_k(\delta)\rVert^2 + \tau + \sum_k\sigma_k\Bigr)
 + \frac{\mu}{2}\lVert\delta\theta\rVert^2 + \frac{\nu}{2}\lVert P - \tilde P\rVert^2$$
 
-subject to the cones above and the convexified KYP LMI of DESIGN §2 (`ConvexifiedLMI`, paper
+subject to the cones above and the convexified KYP LMI (`docs/concepts.md`; `ConvexifiedLMI`, paper
 Corollary 1 + Remark 1) at $\theta_0 + \delta\theta$, in its congruence form
 $\mathcal M \preceq -\varepsilon\,\mathrm{diag}(I, \tilde P^2)$ (i.e. the un-congruenced Schur
 form $\preceq -\varepsilon I$, so the new iterate has the same margin at the next

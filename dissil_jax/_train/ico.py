@@ -188,7 +188,7 @@ def fit_ico(
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers by iterative convex overbounding (paper Alg. 1).
 
-    Minimises the two-step imitation loss (paper eq. 17, with the target $-u$ of DESIGN §1)
+    Minimises the two-step imitation loss (paper eq. 17, with the target $-u$ fixed by `dj.Windows`)
 
     $$J(\\theta) = \\frac{1}{N}\\sum_{k=1}^N \\lVert t_{k,0} - C\\hat x_{k,0} - D\\hat u_{k,0}
     \\rVert^2 + \\lVert t_{k,1} - C(A\\hat x_{k,0} + B\\hat u_{k,0}) - D\\hat u_{k,1}\\rVert^2$$
@@ -196,7 +196,7 @@ def fit_ico(
     over the dissipative set. Each iteration solves one convex program in the step
     $\\delta\\theta = (\\delta A, \\delta B, \\delta C, \\delta D)$ and $P$ (paper Problem 18):
     a convex overbound of $J(\\theta_i + \\delta\\theta)$ that is exact at $\\delta\\theta = 0$,
-    subject to the convexified dissipativity LMI (paper Corollary 1 + Remark 1, DESIGN §2)
+    subject to the convexified dissipativity LMI (paper Corollary 1 + Remark 1, `docs/concepts.md`)
     linearised around the current $\\tilde P = P_i$, imposed with a margin
     $\\preceq -\\varepsilon I$ on its un-congruenced form so that the current point stays
     feasible at the next linearisation. Hence $\\theta_{i+1} = \\theta_i + \\delta\\theta$ is
@@ -217,7 +217,7 @@ def fit_ico(
     stacked residual compressed by a QR factorisation of its Jacobian to at most
     $n_\\theta + 3$ rows (derivation in `dissil_jax/_train/_ico_sdp.py`). The SDP's size
     therefore does not depend on the number of windows $N$; only the QR (numpy, linear in
-    $N$) does. This is DESIGN §3's compact bound with $\\delta C\\delta C^\\top$ replaced by
+    $N$) does. This is the compact per-window bound with $\\delta C\\delta C^\\top$ replaced by
     $\\lVert\\delta C\\rVert_2^2 I$ (identical when $m = 1$). Unlike the paper's term-by-term
     Lemmas 4-7 it needs three small cones in all instead of seven LMIs per window.
 

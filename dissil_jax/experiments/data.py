@@ -10,7 +10,7 @@ Demonstrations are simulated with [`simulate_expert`][dissil_jax.experiments.sim
   window start.
 
 A window stores the plant outputs $y_k$ (controller inputs) and the applied noisy plant
-inputs $u_k$; `Windows.target` turns them into the controller target $-u_k$ (DESIGN §1).
+inputs $u_k$; `Windows.target` turns them into the controller target $-u_k$ (negative feedback).
 """
 
 from __future__ import annotations

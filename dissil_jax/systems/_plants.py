@@ -74,7 +74,7 @@ class LinearPlant(_ABCDPlant):
     $$x_{k+1} = Ax_k + Bu_k, \\qquad y_k = Cx_k + Du_k,$$
 
     with state $x\\in\\mathbb R^n$, input $u\\in\\mathbb R^m$, output $y\\in\\mathbb R^p$
-    (DESIGN §1). The plant is noise free; the simulators in `dissil_jax.experiments` add
+    (see *Signs and conventions* in `docs/concepts.md`). The plant is noise free; the simulators in `dissil_jax.experiments` add
     process noise to $x_{k+1}$ and control noise to $u_k$. `step` and `output` handle one
     unbatched sample; vmap them for batches.
 
