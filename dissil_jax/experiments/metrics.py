@@ -96,6 +96,17 @@ def lti_spectral_radius(plant, controllers: LTIController) -> np.ndarray:
     return out
 
 
+def _states_and_finite(traj: Trajectories):
+    """`x` `[K, N, T+1, n]` in float64 and whether each (controller, trajectory) stayed finite."""
+    x = np.asarray(traj.x, np.float64)
+    if x.ndim != 4:
+        raise ValueError(f"`traj.x` must be [K, N, T+1, n] (a batch of controllers), got {x.shape}.")
+    finite = np.isfinite(x).all(axis=(2, 3)) & np.isfinite(np.asarray(traj.u)).all(axis=(2, 3))
+    if traj.xhat is not None:
+        finite &= np.isfinite(np.asarray(traj.xhat)).all(axis=(2, 3))
+    return x, finite
+
+
 def rule_stable(traj: Trajectories, rel: float = RULE_REL, abs_tol: float = RULE_ABS
                 ) -> Bool[np.ndarray, " K"]:
     """The simulation stability rule used when no exact test applies.
@@ -109,12 +120,7 @@ def rule_stable(traj: Trajectories, rel: float = RULE_REL, abs_tol: float = RULE
 
     **Arguments:** controller `Trajectories` (`x` `[K, N, T+1, n]`), `rel`, `abs_tol`.
     """
-    x = np.asarray(traj.x, np.float64)
-    if x.ndim != 4:
-        raise ValueError(f"`traj.x` must be [K, N, T+1, n] (a batch of controllers), got {x.shape}.")
-    finite = np.isfinite(x).all(axis=(2, 3)) & np.isfinite(np.asarray(traj.u)).all(axis=(2, 3))
-    if traj.xhat is not None:
-        finite &= np.isfinite(np.asarray(traj.xhat)).all(axis=(2, 3))
+    x, finite = _states_and_finite(traj)
     with np.errstate(invalid="ignore", over="ignore"):
         n0 = np.linalg.norm(x[:, :, 0], axis=-1)
         nT = np.linalg.norm(x[:, :, -1], axis=-1)
@@ -131,12 +137,7 @@ def rule_bounded(traj: Trajectories, factor: float = BOUND_FACTOR) -> Bool[np.nd
     [`rule_stable`][dissil_jax.experiments.rule_stable] it accepts loops that stay bounded
     without settling (for example a sustained oscillation).
     """
-    x = np.asarray(traj.x, np.float64)
-    if x.ndim != 4:
-        raise ValueError(f"`traj.x` must be [K, N, T+1, n] (a batch of controllers), got {x.shape}.")
-    finite = np.isfinite(x).all(axis=(2, 3)) & np.isfinite(np.asarray(traj.u)).all(axis=(2, 3))
-    if traj.xhat is not None:
-        finite &= np.isfinite(np.asarray(traj.xhat)).all(axis=(2, 3))
+    x, finite = _states_and_finite(traj)
     with np.errstate(invalid="ignore", over="ignore"):
         norm = np.linalg.norm(x, axis=-1)
         ok = norm.max(axis=-1) <= factor * (norm[..., 0] + 1.0)
