@@ -21,6 +21,7 @@ import scipy.sparse as sp
 
 from ._controller import LTIController
 from ._lmi import ConvexifiedLMI, kyp_certified
+from ._projection_args import check_options as _check_options, check_qsr as _check_qsr
 from ._supply import QSR
 from ._threads import num_workers, pool, single_threaded_blas
 
@@ -285,42 +286,6 @@ def _host_batch(A, B, C, D, P_ref, active, *, qsr, has_ref, eps, reg, refine):
     shapes = [batch + s for s in ((n, n), (n, p), (m, n), (m, p), (n, n))]
     return (*(o.reshape(s).astype(dtype) for o, s in zip(out, shapes)),
             status.reshape(batch))
-
-
-def _check_qsr(K: LTIController, qsr: QSR) -> None:
-    if not isinstance(K, LTIController):
-        raise ValueError(f"`K` must be a `dj.LTIController`, got {type(K).__name__}.")
-    if not isinstance(qsr, QSR):
-        raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
-    if not isinstance(qsr.Q, np.ndarray):
-        raise ValueError("`qsr` must be concrete host data: close over it instead of passing it "
-                         "as a traced argument of `jax.jit`/`jax.vmap`.")
-    qsr.check_sizes(K.n_in, K.n_out)
-    qsr.neg_q_factor()  # raises a ValueError naming `qsr.Q` if Q has a positive eigenvalue
-
-
-def _check_options(K: LTIController, P_ref, active, eps, reg, refine) -> None:
-    for name, v, lo_ok in (("eps", eps, False), ("reg", reg, True)):
-        if not (np.ndim(v) == 0 and np.isfinite(v) and (v > 0 or (lo_ok and v == 0))):
-            raise ValueError(f"`{name}` must be a finite {'non-negative' if lo_ok else 'positive'}"
-                             f" number, got {v!r}.")
-    if isinstance(refine, bool) or np.ndim(refine) != 0 or int(refine) != refine or refine < 0:
-        raise ValueError(f"`refine` must be a non-negative integer, got {refine!r}.")
-    if jnp.shape(active) not in ((), K.batch_shape):
-        raise ValueError(f"`active` must be a bool scalar or have the batch shape "
-                         f"{K.batch_shape} of `K`, got shape {jnp.shape(active)}.")
-    if P_ref is None or isinstance(P_ref, jax.core.Tracer):
-        return
-    P = np.asarray(P_ref, np.float64)
-    if P.shape[-2:] != (K.n_state, K.n_state):
-        return  # reported with the expected shape below
-    sym = (P + np.swapaxes(P, -1, -2)) / 2
-    if not np.all(np.isfinite(P)):
-        raise ValueError("`P_ref` contains NaN or inf.")
-    if not np.allclose(P, sym, rtol=1e-6, atol=1e-12 * max(1.0, np.abs(P).max(initial=0.0))):
-        raise ValueError("`P_ref` must be symmetric.")
-    if P.size and np.linalg.eigvalsh(sym)[..., 0].min() <= 0:
-        raise ValueError("`P_ref` must be positive definite.")
 
 
 def project_with_status(

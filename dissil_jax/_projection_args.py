@@ -1,0 +1,46 @@
+"""Argument checks of `dj.project` (ValueErrors that name the argument and the fix)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._controller import LTIController
+from ._supply import QSR
+
+
+def check_qsr(K: LTIController, qsr: QSR) -> None:
+    if not isinstance(K, LTIController):
+        raise ValueError(f"`K` must be a `dj.LTIController`, got {type(K).__name__}.")
+    if not isinstance(qsr, QSR):
+        raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
+    if not isinstance(qsr.Q, np.ndarray):
+        raise ValueError("`qsr` must be concrete host data: close over it instead of passing it "
+                         "as a traced argument of `jax.jit`/`jax.vmap`.")
+    qsr.check_sizes(K.n_in, K.n_out)
+    qsr.neg_q_factor()  # raises a ValueError naming `qsr.Q` if Q has a positive eigenvalue
+
+
+def check_options(K: LTIController, P_ref, active, eps, reg, refine) -> None:
+    for name, v, lo_ok in (("eps", eps, False), ("reg", reg, True)):
+        if not (np.ndim(v) == 0 and np.isfinite(v) and (v > 0 or (lo_ok and v == 0))):
+            raise ValueError(f"`{name}` must be a finite {'non-negative' if lo_ok else 'positive'}"
+                             f" number, got {v!r}.")
+    if isinstance(refine, bool) or np.ndim(refine) != 0 or int(refine) != refine or refine < 0:
+        raise ValueError(f"`refine` must be a non-negative integer, got {refine!r}.")
+    if jnp.shape(active) not in ((), K.batch_shape):
+        raise ValueError(f"`active` must be a bool scalar or have the batch shape "
+                         f"{K.batch_shape} of `K`, got shape {jnp.shape(active)}.")
+    if P_ref is None or isinstance(P_ref, jax.core.Tracer):
+        return
+    P = np.asarray(P_ref, np.float64)
+    if P.shape[-2:] != (K.n_state, K.n_state):
+        return  # reported with the expected shape below
+    sym = (P + np.swapaxes(P, -1, -2)) / 2
+    if not np.all(np.isfinite(P)):
+        raise ValueError("`P_ref` contains NaN or inf.")
+    if not np.allclose(P, sym, rtol=1e-6, atol=1e-12 * max(1.0, np.abs(P).max(initial=0.0))):
+        raise ValueError("`P_ref` must be symmetric.")
+    if P.size and np.linalg.eigvalsh(sym)[..., 0].min() <= 0:
+        raise ValueError("`P_ref` must be positive definite.")
