@@ -35,7 +35,9 @@ jax.config.update("jax_enable_x64", True)
 import dissil_jax as dj  # noqa: E402
 from dissil_jax._threads import single_threaded_blas  # noqa: E402
 from dissil_jax._train import ico  # noqa: E402
-from dissil_jax._train._ico_sdp import ICOProblem, ICOSolver  # noqa: E402
+from dissil_jax._train._ico_sdp import ICOProblem  # noqa: E402
+from dissil_jax._train._ico_solver import ICOSolver  # noqa: E402
+from dissil_jax._train._ico_windows import stacked_factor  # noqa: E402
 
 # The synthetic expert data are shared with the ICO tests.
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), os.pardir, "tests"))
@@ -90,7 +92,7 @@ def cvxpy_step(pb: ICOProblem, theta0, P_tilde, w_tilde, eps, stacked=False):
     theta = cp.hstack([cp.vec(dA, order="C"), cp.vec(dB, order="C"), cp.vec(dC, order="C"),
                        cp.vec(dD, order="C")])
     if stacked:
-        R, g, c = pb._stacked_factor(C0, z, pb.t1 - z @ C0.T - pb.u1 @ D0.T)
+        R, g, c = stacked_factor(pb, C0, z, pb.t1 - z @ C0.T - pb.u1 @ D0.T)
         cons.append(cp.quad_over_lin(cp.hstack([g - R @ theta, np.array([c])]), 1 - y)
                     <= cp.sum(sig))
     else:

@@ -8,10 +8,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import dissipation_ok, expert_windows, index, tree_allclose
+from ico_checks import cone_min, feasible_point, overbound
 
 import dissil_jax as dj
-from dissil_jax._train import _ico_sdp
-from dissil_jax._train._ico_sdp import ICOProblem, ICOSolver
+from dissil_jax._train import _ico_sdp, _ico_solver
+from dissil_jax._train._ico_sdp import ICOProblem
+from dissil_jax._train._ico_solver import ICOSolver
+from dissil_jax._train._ico_windows import stacked_factor
 
 NONLINEAR_QSR = dj.QSR(-29.867, 3.556, 0.601)  # the paper's nonlinear-example controller
 
@@ -48,15 +51,15 @@ def test_overbound_exact_at_zero(getkey, n, p, m, qsr, cone):
     assert pb.loss(theta) == pytest.approx(float(dj.imitation_loss(K, windows)), rel=1e-12)
     w = 0.7
     eps = None if qsr is None else min(pb.eps, 0.5 * pb.kyp_margin(theta, P))
-    x = pb.feasible_point(np.zeros(pb.ntheta), w, P, theta, w)
-    value, s = pb.overbound(x, theta, P, w, eps)
+    x = feasible_point(pb, np.zeros(pb.ntheta), w, P, theta, w)
+    value, s = overbound(pb, x, theta, P, w, eps)
     assert value == pytest.approx(pb.loss(theta), rel=1e-12, abs=1e-14)
-    assert pb.cone_min(s) >= -1e-12  # delta = 0 is feasible, including the KYP LMI
+    assert cone_min(pb, s) >= -1e-12  # delta = 0 is feasible, including the KYP LMI
     # The assembled A, b (CSC order, in-place values) reproduce the affine maps: moving
     # sigma_1 below its minimum must leave the cones.
     x_bad = x.copy()
     x_bad[pb.osig] -= 1e-3 + 0.5 * x[pb.osig]
-    assert pb.cone_min(pb.overbound(x_bad, theta, P, w, eps)[1]) < 0
+    assert cone_min(pb, overbound(pb, x_bad, theta, P, w, eps)[1]) < 0
 
 
 @pytest.mark.parametrize("cone", _ico_sdp.WINDOW_CONES)
@@ -74,12 +77,12 @@ def test_overbound_bounds_true_loss(getkey, n, p, m, cone):
             w_tilde = rng.uniform(0.1, 3.0)
             w = w_tilde * rng.uniform(0.05, 1.95)
             try:
-                x = pb.feasible_point(d, w, None, theta, w_tilde)
+                x = feasible_point(pb, d, w, None, theta, w_tilde)
             except ValueError:  # the step is outside the SDP's domain (I - Y not > 0)
                 continue
             checked += 1
-            value, s = pb.overbound(x, theta, None, w_tilde)
-            assert pb.cone_min(s) >= -1e-9 * max(1.0, np.abs(s).max())
+            value, s = overbound(pb, x, theta, None, w_tilde)
+            assert cone_min(pb, s) >= -1e-9 * max(1.0, np.abs(s).max())
             assert value >= pb.loss(theta + d) - 1e-12
     assert checked >= 8
 
@@ -95,7 +98,7 @@ def test_stacked_cone_equals_per_window_cones(getkey, qsr):
         theta = pb.theta(K.A, K.B, K.C, K.D)
         solver = ICOSolver(pb)
         d, _, w, status, _ = solver.solve(theta, P, 0.8)
-        assert status in _ico_sdp._OK
+        assert status in _ico_solver._OK
         out[cone] = (solver.obj_val, d, w, pb)
     (obj_s, d_s, w_s, pb_s), (obj_w, d_w, w_w, pb_w) = out["stacked"], out["soc"]
     assert pb_s.nrows < pb_w.nrows - 2 * 40  # the point of stacking
@@ -112,8 +115,8 @@ def test_stacked_factor_chunks_agree(getkey):
     A, B, C, D = (np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
     z = pb.x0 @ A.T + pb.u0 @ B.T
     ebar = pb.t1 - z @ C.T - pb.u1 @ D.T
-    R1, g1, c1 = pb._stacked_factor(C, z, ebar)
-    R7, g7, c7 = pb._stacked_factor(C, z, ebar, chunk=7)
+    R1, g1, c1 = stacked_factor(pb, C, z, ebar)
+    R7, g7, c7 = stacked_factor(pb, C, z, ebar, chunk=7)
 
     def e_of(d):  # the affine part of the step-1 residual, written out directly
         dA, dB, dC, dD = pb.mats(d)
@@ -142,7 +145,7 @@ def test_inplace_update_matches_fresh_solver(getkey):
     theta = pb.theta(K.A, K.B, K.C, K.D)
     reused = ICOSolver(pb)
     d, P1, w1, status, _ = reused.solve(theta, P, 1.0)
-    assert status in _ico_sdp._OK
+    assert status in _ico_solver._OK
     theta2 = theta + d
     d_upd, P_upd, w_upd, _, _ = reused.solve(theta2, P1, 0.5)
     fresh = ICOSolver(pb)

@@ -11,7 +11,8 @@ from helpers import expert_windows
 
 import dissil_jax as dj
 import dissil_jax._train.ico as ico
-from dissil_jax._train._ico_sdp import ICOProblem, ICOSolver
+from dissil_jax._train._ico_sdp import ICOProblem
+from dissil_jax._train._ico_solver import ICOSolver
 from dissil_jax.experiments.protocol import example_spec, training_data
 
 

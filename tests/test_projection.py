@@ -250,22 +250,29 @@ def test_solver_failure_is_flagged(getkey, monkeypatch):
     assert code == dj.Status.SOLVER_FAILED
 
 
-def test_uncertified_solution_is_never_returned(getkey, monkeypatch):
-    """A solver answer that fails the exact KYP check (here: made unstable) is refused."""
-    qsr = dj.QSR.passive(2)
-    target, batch, P_ref = _failure_cases(qsr, getkey())
+def _corrupt_solves(monkeypatch, broken=lambda n: True):
+    """Make Clarabel's answers unstable (A + 5 * ones: dissipative for no P) on the calls
+    `broken(n)` picks; returns the list of the margins eps the solver was asked for."""
     original = _projection._ProjectionSolver.solve
     calls = []
 
     def corrupted(self, target, P_tilde, eps):
         x, status, t = original(self, target, P_tilde, eps)
         calls.append(eps)
-        if x is not None:
+        if x is not None and broken(len(calls)):
             x = x.copy()
-            x[: self.lmi.nA] += 5.0  # A + 5 * ones: unstable, dissipative for no P
+            x[: self.lmi.nA] += 5.0
         return x, status, t
 
     _inject(monkeypatch, _projection._ProjectionSolver, "solve", corrupted)
+    return calls
+
+
+def test_uncertified_solution_is_never_returned(getkey, monkeypatch):
+    """A solver answer that fails the exact KYP check (here: made unstable) is refused."""
+    qsr = dj.QSR.passive(2)
+    target, batch, P_ref = _failure_cases(qsr, getkey())
+    calls = _corrupt_solves(monkeypatch)
     _assert_flagged(qsr, target, batch, P_ref, dj.Status.NOT_CERTIFIED,
                     "exact float64 KYP check")
     # the margin was enlarged before giving up
@@ -275,16 +282,7 @@ def test_uncertified_solution_is_never_returned(getkey, monkeypatch):
 def test_uncertified_solution_status_with_reference(getkey, monkeypatch):
     qsr = dj.QSR.passive(2)
     _, batch, P_ref = _failure_cases(qsr, getkey())
-    original = _projection._ProjectionSolver.solve
-
-    def corrupted(self, target, P_tilde, eps):
-        x, status, t = original(self, target, P_tilde, eps)
-        if x is not None:
-            x = x.copy()
-            x[: self.lmi.nA] += 5.0
-        return x, status, t
-
-    _inject(monkeypatch, _projection._ProjectionSolver, "solve", corrupted)
+    _corrupt_solves(monkeypatch)
     _, _, sb = dj.project_with_status(batch, qsr, P_ref)
     assert int(sb[1]) == dj.Status.NOT_CERTIFIED
 
@@ -293,18 +291,7 @@ def test_enlarged_margin_rescues_a_rounding_failure(getkey, monkeypatch):
     """Only the first attempt is broken: the retry with 100x eps is returned, certified."""
     qsr = dj.QSR.passive(2)
     target, _, _ = _failure_cases(qsr, getkey())
-    original = _projection._ProjectionSolver.solve
-    calls = []
-
-    def first_bad(self, target, P_tilde, eps):
-        x, status, t = original(self, target, P_tilde, eps)
-        calls.append(eps)
-        if len(calls) == 1:
-            x = x.copy()
-            x[: self.lmi.nA] += 5.0
-        return x, status, t
-
-    _inject(monkeypatch, _projection._ProjectionSolver, "solve", first_bad)
+    calls = _corrupt_solves(monkeypatch, broken=lambda n: n == 1)
     Kp, P, status = dj.project_with_status(target, qsr, refine=1)
     assert int(status) == dj.Status.SOLVED and dissipation_ok(Kp, qsr, P)
     assert calls == [pytest.approx(1e-6), pytest.approx(1e-4)]

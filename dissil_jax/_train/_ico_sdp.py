@@ -1,7 +1,7 @@
 r"""The convex overbound SDP of one ICO iteration, assembled straight into Clarabel's format.
 
 Host-side float64 numpy only. One `ICOProblem` per (windows, supply rate) holds the data and
-the fixed sparsity pattern (shared read-only by all threads); one `ICOSolver` per
+the fixed sparsity pattern (shared read-only by all threads); one `ICOSolver` (`_ico_solver.py`) per
 initialisation owns a Clarabel solver whose numbers are updated in place every iteration
 (`solver.update(q=..., A=..., b=...)`).
 
@@ -32,7 +32,7 @@ on its last two blocks, with the pieces lifted into a few small cones:
 - with $Y = yI$ ($y \ge w\lVert\delta C\rVert_2^2$, identical bound when $m = 1$), the
   rotated SOC $\lVert\bar e\rVert^2 \le \sigma (1 - y)$ for the stacked residual
   $\bar e = (\bar e_1, \dots, \bar e_N)$, compressed by a QR factorisation of its Jacobian to
-  $\min(Nm, n_\theta) + 3$ rows (`window_cone="stacked"`, default; see `_stacked_pattern`);
+  $\min(Nm, n_\theta) + 3$ rows (`window_cone="stacked"`, default; see `_ico_windows.stacked_pattern`);
   or the same bound window by window, $\lVert\bar e_k\rVert^2 \le \sigma_k (1 - y)$ (`"soc"`,
   the same optimum with $N$ cones; kept as a reference); or, with a full symmetric $Y$, the
   per-window LMI $[[\sigma_k, \bar e_k^\top], [\bar e_k, I - Y]] \succeq 0$ (`"psd"`;
@@ -72,31 +72,16 @@ import scipy.sparse as sp
 
 from .._lmi import ConvexifiedLMI, svec, svec_indices
 from .._supply import QSR
+from ._ico_windows import (
+    _SQRT2,
+    _svec_len,
+    _svec_pos,
+    stacked_factor,
+    stacked_pattern,
+    window_pattern,
+)
 
-_OK = {"Solved", "AlmostSolved"}
 WINDOW_CONES = ("stacked", "soc", "psd")
-_SQRT2 = np.sqrt(2.0)
-
-
-def _svec_pos(i, j):
-    """Clarabel svec position of entry (i, j) with i <= j (upper triangle, column-major)."""
-    return j * (j + 1) // 2 + i
-
-
-def _svec_len(d):
-    return d * (d + 1) // 2
-
-
-def settings(max_iter: int = 200):
-    import clarabel
-
-    s = clarabel.DefaultSettings()
-    s.verbose = False
-    s.presolve_enable = False  # in-place data updates need all three off
-    s.chordal_decomposition_enable = False
-    s.input_sparse_dropzeros = False
-    s.max_iter = max_iter
-    return s
 
 
 class ICOProblem:
@@ -217,9 +202,9 @@ class ICOProblem:
         # -- (d) the windows' step-1 bound ------------------------------------------------
         self.win_row0 = row0
         if stacked:
-            row0 = self._stacked_pattern(row0, rows, cols, cones, spec, colY[0])
+            row0 = stacked_pattern(self, row0, rows, cols, cones, spec, colY[0])
         else:
-            row0 = self._window_pattern(row0, rows, cols, cones, spec, colY, wY, soc)
+            row0 = window_pattern(self, row0, rows, cols, cones, spec, colY, wY, soc)
         self.cone_spec = spec
         self.nrows = row0
         self.cones = cones
@@ -253,114 +238,6 @@ class ICOProblem:
         self.q_fixed[self.otau] = self.c
         self.q_fixed[self.osig:] = self.c
         self._svec_idx_kyp = svec_indices(self.Nk) if qsr is not None else None
-
-    def _window_pattern(self, row0, rows, cols, cones, spec, colY, wY, soc):
-        """Per window: psd $[[\\sigma_k, \\bar e_k^\\top], [\\bar e_k, I - Y]] \\succeq 0$, or
-        ($Y = yI$) the rotated SOC $\\lVert\\bar e_k\\rVert^2 \\le \\sigma_k(1 - y)$, i.e.
-        $\\lVert(2\\bar e_k, \\sigma_k - 1 + y)\\rVert \\le \\sigma_k + 1 - y$."""
-        import clarabel
-
-        N, n, p, m = self.N, self.n, self.p, self.m
-        colA, colB, colC, colD = (self._cols[k] for k in "ABCD")
-        yi, yj = self.y_rows, self.y_cols
-        Lw = m + 2 if soc else _svec_len(1 + m)
-        self.Lw = Lw
-        kk = np.arange(N)
-        base = row0 + kk * Lw  # [N]
-        e_pos = 2 + np.arange(m) if soc else _svec_pos(0, 1 + np.arange(m))  # [m]
-        self.e_rows = base[:, None] + e_pos[None, :]  # [N, m]
-        self._escale = 2.0 if soc else _SQRT2
-        b_win = np.zeros((N, Lw))
-        if soc:
-            rows += [base, base + 1, base, base + 1]
-            cols += [self.osig + kk, self.osig + kk, np.full(N, colY[0]), np.full(N, colY[0])]
-            win_fixed = np.concatenate([-np.ones(2 * N), np.ones(N), -np.ones(N)])
-            b_win[:, 0], b_win[:, 1] = 1.0, -1.0
-        else:
-            rows.append(base)
-            cols.append(self.osig + kk)
-            rows.append((base[:, None] + _svec_pos(1 + yi, 1 + yj)[None]).ravel())
-            cols.append(np.tile(colY, N))
-            win_fixed = np.concatenate([-np.ones(N), np.tile(wY, N)])
-            b_win[:, _svec_pos(1 + np.arange(m), 1 + np.arange(m))] = 1.0
-        self._b_win = b_win.ravel()
-        self._win_fixed = win_fixed
-        # ebar_a depends on dA[i, j] (C0[a, i] x0[k, j]), dB[i, j] (C0[a, i] u0[k, j]),
-        # dC[a, j] (z[k, j]) and dD[a, j] (u1[k, j]).
-        er = self.e_rows
-        rows.append(np.broadcast_to(er[:, :, None, None], (N, m, n, n)).ravel())
-        cols.append(np.broadcast_to(colA[None, None], (N, m, n, n)).ravel())
-        rows.append(np.broadcast_to(er[:, :, None, None], (N, m, n, p)).ravel())
-        cols.append(np.broadcast_to(colB[None, None], (N, m, n, p)).ravel())
-        rows.append(np.broadcast_to(er[:, :, None], (N, m, n)).ravel())
-        cols.append(np.broadcast_to(colC[None], (N, m, n)).ravel())
-        rows.append(np.broadcast_to(er[:, :, None], (N, m, p)).ravel())
-        cols.append(np.broadcast_to(colD[None], (N, m, p)).ravel())
-        row0 += N * Lw
-        if soc:
-            cones += [clarabel.SecondOrderConeT(Lw)] * N
-            spec += [("soc", Lw)] * N
-        else:
-            cones += [clarabel.PSDTriangleConeT(1 + m)] * N
-            spec += [("psd", 1 + m)] * N
-        return row0
-
-    def _stacked_pattern(self, row0, rows, cols, cones, spec, col_y):
-        r"""All windows in one rotated SOC, $\lVert\bar e\rVert^2 \le \sigma(1 - y)$.
-
-        $\bar e = (\bar e_1, \dots, \bar e_N) = \bar e_0 - L\,\delta\theta$ is affine with
-        $L \in \mathbb R^{Nm \times n_\theta}$. With a thin QR factorisation $L = QR$,
-        $\lVert\bar e\rVert^2 = \lVert Q^\top\bar e_0 - R\,\delta\theta\rVert^2 + c^2$,
-        $c = \lVert(I - QQ^\top)\bar e_0\rVert$, so the cone
-        $\lVert(2(Q^\top\bar e_0 - R\delta\theta), 2c, \sigma - 1 + y)\rVert
-        \le \sigma + 1 - y$ has $\min(Nm, n_\theta) + 3$ rows whatever $N$ is. Its optimum
-        equals the per-window SOC form's ($\sum_k\sigma_k$ with $\sigma_k = \lVert\bar e_k
-        \rVert^2/(1 - y)$); only the QR, done in numpy every iteration, grows with $N$.
-        """
-        import clarabel
-
-        nth = self.ntheta
-        self.r_e = r_e = min(self.N * self.m, nth)
-        Lw = r_e + 3
-        rows += [row0 + np.array([0, 1, 0, 1])]
-        cols += [np.array([self.osig, self.osig, col_y, col_y])]
-        self._win_fixed = np.array([-1.0, -1.0, 1.0, -1.0])
-        ri, cj = np.triu_indices(r_e, m=nth)  # R is upper trapezoidal
-        self._r_idx = (ri, cj)
-        rows.append(row0 + 2 + ri)
-        cols.append(cj)  # theta sits at columns 0..n_theta-1 of x
-        self.g_rows = row0 + 2 + np.arange(r_e)
-        self.c_row = row0 + 2 + r_e
-        cones.append(clarabel.SecondOrderConeT(Lw))
-        spec.append(("soc", Lw))
-        return row0 + Lw
-
-    def _stacked_factor(self, C0, z, ebar, chunk: int = 2048):
-        r"""`(R, g, c)` of the stacked cone (see `_stacked_pattern`).
-
-        The triangular factor of the augmented matrix $[L\ \bar e_0] = Q
-        \bigl[\begin{smallmatrix} R & g\\ 0 & c\end{smallmatrix}\bigr]$ gives all three
-        without forming $Q$, since $\bar e_0 - L\delta = [L\ \bar e_0](-\delta, 1)$. It is
-        accumulated `chunk` windows at a time (memory $O(\text{chunk}\cdot m\cdot
-        n_\theta)$, time linear in $N$).
-        """
-        N, m, nth = self.N, self.m, self.ntheta
-        eye = np.eye(m)
-        Raug = np.zeros((0, nth + 1))
-        for k0 in range(0, N, chunk):
-            sl = slice(k0, min(N, k0 + chunk))
-            k = sl.stop - sl.start
-            L = np.concatenate([  # rows (window, output a); columns theta = (A, B, C, D)
-                (C0[None, :, :, None] * self.x0[sl, None, None, :]).reshape(k, m, -1),
-                (C0[None, :, :, None] * self.u0[sl, None, None, :]).reshape(k, m, -1),
-                (eye[None, :, :, None] * z[sl, None, None, :]).reshape(k, m, -1),
-                (eye[None, :, :, None] * self.u1[sl, None, None, :]).reshape(k, m, -1),
-                ebar[sl, :, None],
-            ], axis=2).reshape(k * m, -1)
-            Raug = np.linalg.qr(np.concatenate([Raug, L]), mode="r")
-        r_e = self.r_e
-        c = abs(Raug[r_e, nth]) if Raug.shape[0] > r_e else 0.0
-        return Raug[:r_e, :nth], Raug[:r_e, nth], float(c)
 
     # -------------------------------------------------------------------------------------
     def theta(self, A, B, C, D) -> np.ndarray:
@@ -438,7 +315,7 @@ class ICOProblem:
         z = self.x0 @ A0.T + self.u0 @ B0.T  # [N, n]
         ebar = self.t1 - z @ C0.T - self.u1 @ D0.T  # [N, m]
         if self.window_cone == "stacked":
-            R, g, c = self._stacked_factor(C0, z, ebar)
+            R, g, c = stacked_factor(self, C0, z, ebar)
             vals.append(2.0 * R[self._r_idx])
             b[self.win_row0:self.win_row0 + 2] = 1.0, -1.0
             b[self.g_rows] = 2.0 * g
@@ -477,101 +354,3 @@ class ICOProblem:
 
     def matrix(self, vals):
         return sp.csc_matrix((vals, self.indices, self.indptr), shape=(self.nrows, self.nx))
-
-    # -- checks (tests) ---------------------------------------------------------------------
-    def overbound(self, x, theta0, P_tilde, w_tilde, eps=None):
-        """The SDP objective at `x` without the proximal terms, and the cone slack `s = b - Ax`.
-
-        Returns `(value, s)`; the overbound of $J(\\theta_0 + \\delta\\theta)$ when `s` is in
-        the cones (see `cone_min`).
-        """
-        q, vals, b, const, _ = self.data(theta0, P_tilde, w_tilde, eps)
-        H = self.H.copy().tolil()
-        H.setdiag(H.diagonal() - np.concatenate(
-            [np.full(self.ntheta, self.prox), np.full(self.oY - self.oP, self.reg),
-             np.zeros(self.nx - self.oY)]))
-        Hs = H.tocsc()
-        Hfull = Hs + sp.triu(Hs, 1).T
-        q = q.copy()
-        q[self.oP:self.oY] = 0.0
-        value = 0.5 * x @ (Hfull @ x) + q @ x + const
-        return float(value), b - self.matrix(vals) @ x
-
-    def cone_min(self, s) -> float:
-        """The smallest cone 'eigenvalue' of the slack `s` (>= 0 iff `s` is in every cone)."""
-        from .._lmi import smat
-
-        out, row = [], 0
-        for kind, d in self.cone_spec:
-            if kind == "psd":
-                L = _svec_len(d)
-                out.append(np.linalg.eigvalsh(smat(s[row:row + L], d))[0])
-                row += L
-            else:
-                out.append(s[row] - np.linalg.norm(s[row + 1:row + d]))
-                row += d
-        return float(min(out))
-
-    def feasible_point(self, dtheta, w, P, theta0, w_tilde, P_tilde=None):
-        """The cheapest feasible $(Y, \\tau, \\sigma)$ for a given step: tests of the bound."""
-        m = self.m
-        dA, dB, dC, dD = self.mats(dtheta)
-        A0, B0, C0, D0 = self.mats(theta0)
-        phi = 2.0 / w_tilde - w / w_tilde**2
-        if self.window_cone != "psd":
-            Y = np.linalg.norm(dC, 2) ** 2 / phi * np.eye(m)
-        else:
-            Y = dC @ dC.T / phi
-        dz = self.x0 @ dA.T + self.u0 @ dB.T
-        z = self.x0 @ A0.T + self.u0 @ B0.T
-        ebar = (self.t1 - z @ C0.T - self.u1 @ D0.T - dz @ C0.T - z @ dC.T - self.u1 @ dD.T)
-        if not (phi > 0 and np.linalg.eigvalsh(np.eye(m) - Y)[0] > 0):
-            raise ValueError("this step is outside the SDP's domain: I - Y must be > 0.")
-        sig = np.einsum("ka,ka->k", ebar, np.linalg.solve(np.eye(m) - Y, ebar.T).T)
-        tau = np.sum(dz**2) / w
-        x = np.zeros(self.nx)
-        x[:self.ntheta] = dtheta
-        if self.qsr is not None:
-            x[self.oP:self.oY] = (np.asarray(P)[self.lmi.p_rows, self.lmi.p_cols]
-                                  / self.p_scale(P if P_tilde is None else P_tilde))
-        x[self.oY:self.ow] = Y[0, 0] if self.window_cone != "psd" else Y[self.y_rows, self.y_cols]
-        x[self.ow], x[self.otau] = w, tau
-        if self.window_cone == "stacked":
-            sig = np.sum(sig, keepdims=True)
-        x[self.osig:] = sig * (1 + 1e-12) + 1e-15
-        x[self.otau] = tau * (1 + 1e-12) + 1e-15
-        return x
-
-
-class ICOSolver:
-    """One Clarabel solver for one initialisation (not thread-safe: one per thread)."""
-
-    def __init__(self, problem: ICOProblem, max_iter: int = 200):
-        self.problem = problem
-        self.solver = None
-        self.max_iter = max_iter
-        self.obj_val = np.nan
-
-    def solve(self, theta0, P_tilde, w_tilde, eps=None):
-        """One ICO step. Returns `(dtheta, P, w, status, solve_time)`; None fields on failure."""
-        import clarabel
-
-        pb = self.problem
-        q, vals, b, _, ps = pb.data(theta0, P_tilde, w_tilde, eps)
-        if self.solver is None:
-            self.solver = clarabel.DefaultSolver(pb.H, q, pb.matrix(vals), b, pb.cones,
-                                                 settings(self.max_iter))
-        else:
-            self.solver.update(q=q, A=vals, b=b)
-        sol = self.solver.solve()
-        status = str(sol.status)
-        self.obj_val = float(sol.obj_val)
-        if status not in _OK:
-            return None, None, None, status, float(sol.solve_time)
-        x = np.asarray(sol.x)
-        P = None
-        if pb.qsr is not None:
-            P = np.zeros((pb.n, pb.n))
-            P[pb.lmi.p_rows, pb.lmi.p_cols] = ps * x[pb.oP:pb.oY]
-            P = P + np.triu(P, 1).T
-        return x[:pb.ntheta], P, float(x[pb.ow]), status, float(sol.solve_time)

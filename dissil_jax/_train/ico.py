@@ -16,7 +16,8 @@ from .._projection import project
 from .._supply import QSR
 from .._threads import num_workers, pool, single_threaded_blas
 from ._checks import check_fit_args
-from ._ico_sdp import ICOProblem, ICOSolver
+from ._ico_sdp import ICOProblem
+from ._ico_solver import ICOSolver
 from ._init import INIT_SCALE, init_controllers
 from .result import FitResult, stop_code
 
