@@ -33,7 +33,7 @@ import numpy as np  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 import dissil_jax as dj  # noqa: E402
-from dissil_jax._threads import single_threaded_blas  # noqa: E402
+from dissil_jax._sdp import single_threaded_blas  # noqa: E402
 from dissil_jax._train import ico  # noqa: E402
 from dissil_jax._train._ico_sdp import ICOProblem  # noqa: E402
 from dissil_jax._train._ico_solver import ICOSolver  # noqa: E402
@@ -128,7 +128,7 @@ def bench(N, iters, ref_iters, run_fit):
     data = (np.asarray(windows.x0), np.asarray(windows.y), np.asarray(windows.target))
     pb = ICOProblem(*data, qsr)  # the default, window_cone="stacked"
     pb_win = ICOProblem(*data, qsr, window_cone="soc")
-    K = dj.LTIController.random(jr.PRNGKey(N), 6, 3, 3, 0.1)
+    K = dj.LTIController.random(6, 3, 3, scale=0.1, key=jr.PRNGKey(N))
     K, P = dj.project(K, qsr)
     theta, P = pb.theta(K.A, K.B, K.C, K.D), np.asarray(P)
     solver, solver_win = ICOSolver(pb), ICOSolver(pb_win)

@@ -12,6 +12,7 @@ Usage: python benchmarks/bench_projection.py [--quick]
 """
 
 import argparse
+import concurrent.futures
 import os
 import sys
 import time
@@ -39,9 +40,9 @@ CASES = [
 def _targets(qsr, n, batch, seed=0):
     """Certified controllers with their P, and perturbed copies as projection targets."""
     keys = jax.random.split(jax.random.PRNGKey(seed), batch)
-    K = jax.vmap(lambda k: dj.LTIController.random(k, n, qsr.n_in, qsr.n_out, 0.5))(keys)
+    K = jax.vmap(lambda k: dj.LTIController.random(n, qsr.n_in, qsr.n_out, scale=0.5, key=k))(keys)
     K, P = dj.project(K, qsr)
-    noise = jax.vmap(lambda k: dj.LTIController.random(k, n, qsr.n_in, qsr.n_out, 0.2))(
+    noise = jax.vmap(lambda k: dj.LTIController.random(n, qsr.n_in, qsr.n_out, scale=0.2, key=k))(
         jax.random.split(jax.random.PRNGKey(seed + 1), batch))
     return jax.tree.map(jnp.add, K, noise), P
 
@@ -67,6 +68,24 @@ def bench_projection(qsr, n, batch, ref_calls):
         solve_reference(prob, params, variables, Ki, np.asarray(P[i]))
     ref = (time.perf_counter() - t0) / ref_calls
     return wall, own, ref, solves / (reps * batch)
+
+
+def bench_overhead(qsr, n, batch, reps):
+    """Wall time of a batched projection without `P_ref` (`refine=1`: one solve per
+    target) over Clarabel's own solve time, per controller: the host layer's overhead.
+    Reported for the default pool and for one thread (no overlap of solves)."""
+    keys = jax.random.split(jax.random.PRNGKey(7), batch)
+    K = jax.vmap(lambda k: dj.LTIController.random(n, qsr.n_in, qsr.n_out, scale=1.0,
+                                                   key=k))(keys)
+    proj = jax.jit(jax.vmap(lambda K: dj.project(K, qsr, refine=1)))
+    jax.block_until_ready(proj(K))
+    stats = _projection.SOLVER_STATS
+    t0, s0, c0 = time.perf_counter(), stats["solve_time"], stats["solves"]
+    for _ in range(reps):
+        jax.block_until_ready(proj(K))
+    wall = (time.perf_counter() - t0) / (reps * batch)
+    own = (stats["solve_time"] - s0) / (stats["solves"] - c0)
+    return wall, own
 
 
 def bench_pgd(qsr, n, num_inits, steps, ref_inits, ref_steps):
@@ -107,6 +126,21 @@ def main(quick=False):
         wall, own, ref, spc = bench_projection(qsr, n, batch, ref_calls)
         print(f"{name:30s} {1e3 * wall:9.3f} {1e3 * own:12.3f} {1e3 * ref:14.2f} "
               f"{wall / own:14.2f} {ref / wall:11.1f} {spc:12.2f}")
+    print("\nHost-layer overhead: jit(vmap(project(K, qsr, refine=1))), 32 random controllers")
+    print(f"{'case':30s} {'threads':>8s} {'ours ms':>9s} {'clarabel ms':>12s} "
+          f"{'ours/clarabel':>14s}")
+    from dissil_jax import _sdp as _threads
+
+    for name, qsr, n in CASES:
+        for threads in (None, 1):
+            saved = _threads._POOL
+            if threads:
+                _threads._POOL = concurrent.futures.ThreadPoolExecutor(threads)
+            wall, own = bench_overhead(qsr, n, 32, 5 if quick else 20)
+            _threads._POOL = saved
+            label = str(threads or _threads.num_workers())
+            print(f"{name:30s} {label:>8s} {1e3 * wall:9.3f} {1e3 * own:12.3f} "
+                  f"{wall / own:14.2f}")
     print("\nPGD throughput (initialisations x steps per second)")
     print(f"{'case':30s} {'ours':>10s} {'sequential cvxpy':>17s} {'ratio':>8s}")
     for name, qsr, n in CASES:

@@ -9,8 +9,8 @@ import numpy as np
 
 from ._controller import LTIController
 from ._lmi import VERIFY_RTOL, kyp_margin, kyp_matrix, kyp_scale
+from ._sdp import single_threaded_blas
 from ._supply import QSR
-from ._threads import single_threaded_blas
 
 
 class Certificate(eqx.Module):
@@ -22,19 +22,23 @@ class Certificate(eqx.Module):
     - `margin`: $\\min(-\\lambda_{\\max}(\\mathrm{KYP}(P)), \\lambda_{\\min}(P))$; negative when
       no certificate was found.
     - `status`: the SDP solver's status string (or `"given"` when `P` was supplied).
+
+    For one controller these are a `bool`, an $\\hat n\\times\\hat n$ array, a `float` and a
+    `str`. For a controller with leading batch axes `batch` they are numpy arrays with
+    those axes in front: `holds` (bool, shape `batch`), `P` (`[*batch, n, n]`), `margin`
+    (float64, shape `batch`) and `status` (a numpy string array of shape `batch`); member
+    `i` is the certificate `certify` returns for the `i`-th controller.
     """
 
-    holds: bool
+    holds: bool | np.ndarray
     P: np.ndarray
-    margin: float
-    status: str = "given"
+    margin: float | np.ndarray
+    status: str | np.ndarray = "given"
 
 
 def _controller_arrays(K: LTIController, qsr: QSR):
     if not isinstance(K, LTIController):
         raise ValueError(f"`K` must be a `dj.LTIController`, got {type(K).__name__}.")
-    if K.batch_shape:
-        raise ValueError("`K` must be a single controller; certify batch members one by one.")
     if not isinstance(qsr, QSR):
         raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
     qsr.check_sizes(K.n_in, K.n_out)
@@ -55,28 +59,52 @@ def certify(K: LTIController, qsr: QSR, *, P=None, tol: float = VERIFY_RTOL) -> 
     `tol` times a bound on the size of the KYP terms, so nearly lossless systems with
     margins of order $10^{-7}$ are still decided correctly.
 
+    A controller with leading batch axes is certified member by member (one SDP each;
+    with `P` given the eigenvalue check is vectorised over the batch).
+
     **Arguments:**
 
-    - `K`: a single `LTIController`.
+    - `K`: an `LTIController`, possibly with leading batch axes.
     - `qsr`: the supply rate; `qsr.S` must be `K.n_out x K.n_in`.
-    - `P`: optional storage matrix to check instead of solving the SDP.
+    - `P`: optional storage matrix to check instead of solving the SDP: `[n, n]` (the
+      same for every member) or `[*K.batch_shape, n, n]`.
     - `tol`: relative round-off allowance of the final eigenvalue check.
 
-    **Returns:** a [`Certificate`][dissil_jax.Certificate].
+    **Returns:** a [`Certificate`][dissil_jax.Certificate]; batched like `K`.
+
+    ```python
+    cert = dj.certify(Ks, qsr)   # Ks.batch_shape == (8,)
+    cert.holds.shape, cert.P.shape, cert.status[0]   # (8,), (8, n, n), 'optimal'
+    ```
     """
     A, B, C, D = _controller_arrays(K, qsr)
-    n = A.shape[0]
+    batch, n = K.batch_shape, K.n_state
     if not (np.ndim(tol) == 0 and np.isfinite(tol) and tol >= 0):
         raise ValueError(f"`tol` must be a finite non-negative number, got {tol!r}.")
     if P is not None:
         P = np.asarray(P, np.float64)
-        if P.shape != (n, n):
-            raise ValueError(f"`P` must be {n}x{n}, got {P.shape}.")
+        if P.shape not in ((n, n), batch + (n, n)):
+            expected = f"{n}x{n}" + (f" or {batch + (n, n)}" if batch else "")
+            raise ValueError(f"`P` must be {expected}, got {P.shape}.")
         if not np.all(np.isfinite(P)):
             raise ValueError("`P` contains NaN or inf.")
+        if batch:
+            P = np.broadcast_to(P, batch + (n, n))
         return _verdict(A, B, C, D, qsr, P, tol, "given")
+    if not batch:
+        return _solve(A, B, C, D, qsr, tol)
+    certs = [_solve(A[i], B[i], C[i], D[i], qsr, tol) for i in np.ndindex(*batch)]
+    stack = lambda name, dtype: np.array([getattr(c, name) for c in certs], dtype).reshape(
+        batch + ((n, n) if name == "P" else ()))
+    return Certificate(stack("holds", bool), stack("P", np.float64), stack("margin", np.float64),
+                       stack("status", str))
+
+
+def _solve(A, B, C, D, qsr: QSR, tol) -> Certificate:
+    """The KYP SDP for one (unbatched) controller, then the eigenvalue verdict."""
     import cvxpy as cp
 
+    n = A.shape[0]
     Pv = cp.Variable((n, n), symmetric=True)
     t = cp.Variable()
     Q, S, R = qsr.Q, qsr.S, qsr.R
@@ -103,9 +131,14 @@ def certify(K: LTIController, qsr: QSR, *, P=None, tol: float = VERIFY_RTOL) -> 
 
 
 def _verdict(A, B, C, D, qsr, P, tol, status) -> Certificate:
-    margin = float(kyp_margin(A, B, C, D, qsr, P))
-    holds = bool(margin > tol * float(kyp_scale(A, B, C, D, qsr, P)))
-    return Certificate(holds, P, margin, status)
+    """The eigenvalue check, vectorised over leading batch axes (scalars when unbatched)."""
+    margin = kyp_margin(A, B, C, D, qsr, P)
+    holds = margin > tol * kyp_scale(A, B, C, D, qsr, P)
+    if np.ndim(margin) == 0:
+        return Certificate(bool(holds), P, float(margin), status)
+    status = np.full(np.shape(margin), status)
+    return Certificate(np.asarray(holds, bool), np.array(P), np.asarray(margin, np.float64),
+                       status)
 
 
 __all__ = ["Certificate", "certify", "kyp_matrix"]

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import functools
+import inspect
+import warnings
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -12,6 +16,75 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
+
+
+def _is_prng_key(x) -> bool:
+    """True for a raw `jr.PRNGKey` (uint32 array) or a typed `jr.key`, traced or not."""
+    if not isinstance(x, (jax.Array, np.ndarray)):
+        return False
+    return jnp.issubdtype(x.dtype, jax.dtypes.prng_key) or np.ndim(x) >= 1
+
+
+def _old_random(key, n, n_in, n_out, scale=0.1, dtype=None):
+    """The 0.1 signature of `LTIController.random` (for binding deprecated calls)."""
+
+
+_OLD_RANDOM_SIGNATURE = inspect.signature(_old_random)
+
+
+def _legacy_random(fn):
+    """Accept the deprecated `LTIController.random(key, n, n_in, n_out, scale, dtype)`."""
+
+    @functools.wraps(fn)
+    def wrapper(cls, *args, **kwargs):
+        if (args and _is_prng_key(args[0])) or "n" in kwargs:
+            try:
+                old = _OLD_RANDOM_SIGNATURE.bind(*args, **kwargs).arguments
+            except TypeError as err:
+                raise TypeError(f"LTIController.random(): {err}") from None
+            warnings.warn(
+                "`LTIController.random(key, n, n_in, n_out, scale)` is deprecated; call "
+                "`LTIController.random(n_state, n_in, n_out, scale=..., key=key)` (sizes "
+                "first, `key` keyword-only and last, as in equinox). The old form will be "
+                "removed in 0.3.0.",
+                DeprecationWarning, stacklevel=2)
+            args = (old.pop("n"), old.pop("n_in"), old.pop("n_out"))
+            kwargs = old
+        return fn(cls, *args, **kwargs)
+
+    return wrapper
+
+
+def _collect_systems(sys) -> tuple[tuple[int, ...], list]:
+    """Shape and row-major members of an object array or (nested) list of systems."""
+    if isinstance(sys, np.ndarray):
+        return sys.shape, list(sys.reshape(-1))
+    if not isinstance(sys, (list, tuple)):
+        return (), [sys]
+    parts = [_collect_systems(s) for s in sys]
+    if len({shape for shape, _ in parts}) > 1:
+        raise ValueError("`sys` is a ragged nested sequence; every entry needs the same shape.")
+    inner = parts[0][0] if parts else ()
+    return (len(parts),) + inner, [s for _, members in parts for s in members]
+
+
+def _statespace_matrices(sys) -> tuple[np.ndarray, ...]:
+    """`(A, B, C, D)` (float64) of one discrete-time StateSpace; refuses continuous ones."""
+    if not getattr(sys, "dt", None):
+        raise ValueError(
+            "`sys` must be a discrete-time StateSpace (dt=True or dt>0); discretise it "
+            "first, e.g. `sys.sample(0.1, method='bilinear')`."
+        )
+    return tuple(np.asarray(M, np.float64) for M in (sys.A, sys.B, sys.C, sys.D))
+
+
+def _map_batch(fn, K: LTIController) -> np.ndarray:
+    """`fn(A_i, B_i, C_i, D_i)` (float64) per member, in an object array of shape `K.batch_shape`."""
+    mats = [np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D)]
+    out = np.empty(K.batch_shape, dtype=object)
+    for idx in np.ndindex(*K.batch_shape):
+        out[idx] = fn(*(M[idx] for M in mats))
+    return out
 
 
 class LTIController(eqx.Module):
@@ -93,46 +166,87 @@ class LTIController(eqx.Module):
         return self.A @ x + self.B @ u, self.C @ x + self.D @ u
 
     @classmethod
+    @_legacy_random
     def random(
         cls,
-        key: PRNGKeyArray,
-        n: int,
+        n_state: int,
         n_in: int,
         n_out: int,
+        *,
         scale: float = 0.1,
         dtype=None,
+        key: PRNGKeyArray,
     ) -> LTIController:
         """Entries i.i.d. $\\mathcal N(0, \\text{scale}^2)$ (the trainers' random initialisation).
 
-        **Arguments:** `key`, state size `n`, input size `n_in` ($p$), output size `n_out`
-        ($m$), `scale` (standard deviation), optional `dtype`.
+        **Arguments:**
+
+        - `n_state`: state size $\\hat n$.
+        - `n_in`: input size $p$ (plant outputs).
+        - `n_out`: output size $m$ (plant inputs).
+        - `scale`: standard deviation of the entries.
+        - `dtype`: floating dtype (default: JAX's default float).
+        - `key`: a JAX PRNG key.
+
+        **Returns:** an unbatched `LTIController`; `jax.vmap` over keys for a batch:
+
+        ```python
+        K = dj.LTIController.random(2, 1, 1, scale=0.5, key=jax.random.PRNGKey(0))
+        Ks = jax.vmap(lambda k: dj.LTIController.random(2, 1, 1, key=k))(keys)
+        ```
+
+        *Deprecated:* the 0.1 form `random(key, n, n_in, n_out, scale, dtype)` (key first)
+        still works with a `DeprecationWarning`; it will be removed in 0.3.0.
         """
-        for name, d in (("n", n), ("n_in", n_in), ("n_out", n_out)):
-            if int(d) != d or d < 1:
+        for name, d in (("n_state", n_state), ("n_in", n_in), ("n_out", n_out)):
+            if isinstance(d, bool) or np.ndim(d) != 0 or int(d) != d or d < 1:
                 raise ValueError(f"`{name}` must be a positive integer, got {d!r}.")
+        n, n_in, n_out = int(n_state), int(n_in), int(n_out)
         dtype = dtype or jnp.result_type(float)
         kA, kB, kC, kD = jr.split(key, 4)
         shapes = ((n, n), (n, n_in), (n_out, n), (n_out, n_in))
         return cls(*(scale * jr.normal(k, s, dtype) for k, s in zip((kA, kB, kC, kD), shapes)))
 
     def to_statespace(self, dt=True):
-        """Convert to a discrete-time `control.StateSpace` (float64); `dt=True` = unspecified."""
+        """Convert to discrete-time `control.StateSpace` systems (float64).
+
+        **Arguments:** `dt`, the sampling time (`True`: discrete with unspecified period).
+
+        **Returns:** one `control.StateSpace` for an unbatched controller. With leading
+        batch axes (python-control has no batched systems) a numpy object array of shape
+        `K.batch_shape` whose entries are the members' `StateSpace` systems, so that
+        `K.to_statespace()[i]` is `K_i.to_statespace()` with `K_i` the `i`-th member;
+        [`from_statespace`][dissil_jax.LTIController.from_statespace] inverts both forms.
+        """
         import control
 
+        to_ss = lambda A, B, C, D: control.ss(A, B, C, D, dt=dt)
         if self.batch_shape:
-            raise ValueError("`to_statespace` needs one controller; index the batch first.")
-        return control.ss(*(np.asarray(M, np.float64) for M in (self.A, self.B, self.C, self.D)),
-                          dt=dt)
+            return _map_batch(to_ss, self)
+        return to_ss(*(np.asarray(M, np.float64) for M in (self.A, self.B, self.C, self.D)))
 
     @classmethod
     def from_statespace(cls, sys) -> LTIController:
-        """Build from a discrete-time `control.StateSpace` (continuous systems are refused)."""
-        if not getattr(sys, "dt", None):
-            raise ValueError(
-                "`sys` must be a discrete-time StateSpace (dt=True or dt>0); discretise it "
-                "first, e.g. `sys.sample(0.1, method='bilinear')`."
-            )
-        return cls(*(np.asarray(M, np.float64) for M in (sys.A, sys.B, sys.C, sys.D)))
+        """Build from a discrete-time `control.StateSpace` (continuous systems are refused).
+
+        **Arguments:** `sys`, one `StateSpace`, or an array (or nested sequence) of
+        `StateSpace` systems of equal sizes, such as the output of
+        [`to_statespace`][dissil_jax.LTIController.to_statespace] for a batch.
+
+        **Returns:** an `LTIController`, with the array's shape as leading batch axes.
+        """
+        if isinstance(sys, (list, tuple, np.ndarray)):
+            shape, systems = _collect_systems(sys)
+            if not systems:
+                raise ValueError("`sys` is an empty collection of systems.")
+            mats = [_statespace_matrices(s) for s in systems]
+            sizes = {tuple(M.shape for M in m) for m in mats}
+            if len(sizes) > 1:
+                raise ValueError(f"`sys` holds systems of different sizes (shapes of A, B, C, "
+                                 f"D: {sorted(sizes)}); a batch needs equal sizes.")
+            return cls(*(np.stack([m[i] for m in mats]).reshape(shape + mats[0][i].shape)
+                         for i in range(4)))
+        return cls(*_statespace_matrices(sys))
 
     def astype(self, dtype) -> LTIController:
         """Cast all four matrices."""

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._sdp import Layout
 from ._supply import QSR
 
 
@@ -117,8 +118,8 @@ class ConvexifiedLMI:
     $x\\mapsto\\operatorname{svec}(\\mathcal M)$ as a constant part plus a part linear in
     $\\tilde P$, so that $\\tilde P$ can be changed by updating numbers only.
 
-    Variable order: `vec` is row-major (numpy's `ravel`) for A, B, C, D, then the
-    upper-triangular entries of P (row-major, `np.triu_indices`), with $P = \\sum_k p_k E_k$.
+    Variable order: the host layer's `Layout` (`vec` row-major for A, B, C, D, then the
+    upper-triangular entries of P row-major, with $P = \\sum_k p_k E_k$).
     """
 
     def __init__(self, n: int, p: int, m: int, qsr: QSR):
@@ -128,12 +129,10 @@ class ConvexifiedLMI:
         self.n, self.p, self.m, self.r = n, p, m, r
         self.N = N = 2 * n + p + r
         i0, i1, i2, i3 = 0, n, n + p, n + p + r  # block offsets: x, u, L-block, P~-block
-        self.nA, self.nB, self.nC, self.nD = n * n, n * p, m * n, m * p
-        self.ntheta = self.nA + self.nB + self.nC + self.nD
-        iu, ju = np.triu_indices(n)
-        self.p_rows, self.p_cols = iu, ju
-        self.nP = len(iu)
-        self.nx = self.ntheta + self.nP
+        self.layout = lay = Layout(n, p, m)
+        self.nA, self.nB, self.nC, self.nD = lay.nA, lay.nB, lay.nC, lay.nD
+        self.ntheta, self.nP, self.nx = lay.ntheta, lay.nP, lay.nx
+        iu, ju = self.p_rows, self.p_cols = lay.p_rows, lay.p_cols
         S, R = qsr.S, qsr.R
 
         # Constant part of M (without the -2P~ term) and the linear maps.
@@ -206,24 +205,12 @@ class ConvexifiedLMI:
         return M0 + np.tensordot(x, J, axes=1)
 
     def pack(self, A, B, C, D, P=None) -> np.ndarray:
-        """Stack a controller (and optionally P) into the variable vector x."""
-        parts = [np.asarray(M, np.float64).ravel() for M in (A, B, C, D)]
-        if P is not None:
-            parts.append(np.asarray(P, np.float64)[self.p_rows, self.p_cols])
-        return np.concatenate(parts)
+        """Stack a controller (and optionally P) into the variable vector x (`Layout.pack`)."""
+        return self.layout.pack(A, B, C, D, P)
 
     def unpack(self, x: np.ndarray):
         """Inverse of `pack`: returns `(A, B, C, D, P)`."""
-        n, p, m = self.n, self.p, self.m
-        o = np.cumsum([0, self.nA, self.nB, self.nC, self.nD])
-        A = x[o[0]:o[1]].reshape(n, n)
-        B = x[o[1]:o[2]].reshape(n, p)
-        C = x[o[2]:o[3]].reshape(m, n)
-        D = x[o[3]:o[4]].reshape(m, p)
-        P = np.zeros((n, n))
-        P[self.p_rows, self.p_cols] = x[o[4]:]
-        P = P + np.triu(P, 1).T
-        return A, B, C, D, P
+        return self.layout.unpack(x)
 
     def svec(self, M: np.ndarray) -> np.ndarray:
         return svec(M, self._svec_idx)

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._sdp import single_threaded_blas
 from ._supply import QSR
-from ._threads import single_threaded_blas
 
 _SOLVER_OPTS = dict(tol_gap_abs=1e-9, tol_gap_rel=1e-9, tol_feas=1e-9, max_iter=400)
 

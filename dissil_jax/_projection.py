@@ -2,76 +2,40 @@
 
 Host side: one `_ProjectionSolver` per (sizes, supply rate, margin) and per thread keeps
 Clarabel's symbolic structure; a new target or a new $\\tilde P$ only changes numbers
-(`solver.update(q=..., A=..., b=...)`). JAX side: `jax.pure_callback` with
-`vmap_method="broadcast_all"`, so a vmapped call reaches the host once with the whole
-batch, which is solved on a thread pool.
+(`solver.update(q=..., A=..., b=...)`). The numbers of a whole batch are built at once
+with numpy, the solves are spread over the thread pool, and the solutions are unpacked,
+rounded and checked (exact float64 KYP) as one batch. JAX side: `jax.pure_callback` with
+`vmap_method="broadcast_all"`, so a vmapped call reaches the host once with the whole batch.
 """
 
 from __future__ import annotations
 
-import enum
 import threading
 from functools import partial
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
+from . import _sdp
 from ._controller import LTIController
-from ._lmi import ConvexifiedLMI, kyp_certified
+from ._lmi import ConvexifiedLMI
 from ._projection_args import check_options as _check_options, check_qsr as _check_qsr
+from ._sdp import Outcome
 from ._supply import QSR
-from ._threads import num_workers, pool, single_threaded_blas
 
-
-class Status(enum.IntEnum):
-    """Outcome codes of one projection (returned per controller)."""
-
-    SOLVED = 0  # projected and verified by the exact float64 KYP check
-    UNCHANGED = 1  # target already certified by P_ref: returned as is, no solve
-    SKIPPED = 2  # inactive (e.g. a converged trainer lane): returned as is
-    INFEASIBLE = 3  # Clarabel: primal infeasible, the supply rate admits no such controller
-    SOLVER_FAILED = 4  # Clarabel stopped without a solution (iterations, numerics)
-    NOT_CERTIFIED = 5  # solved, but the returned point failed the exact KYP check
-
-
-MESSAGES = {
-    Status.INFEASIBLE: (
-        "the projection SDP is infeasible: `qsr` admits no strictly dissipative controller of "
-        "these sizes near the reference P. Check the supply rate (e.g. R and S signs), or pass "
-        "a different `P_ref`."
-    ),
-    Status.SOLVER_FAILED: (
-        "Clarabel failed to solve the projection SDP (max iterations or numerical trouble); "
-        "the target may be badly scaled."
-    ),
-    Status.NOT_CERTIFIED: (
-        "the projection's solution failed the exact float64 KYP check even with an enlarged "
-        "margin; no controller is returned without a certificate."
-    ),
-}
-
-
-_INFEASIBLE = {"PrimalInfeasible", "AlmostPrimalInfeasible"}
-_OK = {"Solved", "AlmostSolved"}
-
-
-def _settings():
-    import clarabel
-
-    s = clarabel.DefaultSettings()
-    s.verbose = False
-    s.presolve_enable = False  # required for in-place data updates
-    s.chordal_decomposition_enable = False
-    s.input_sparse_dropzeros = False
-    s.max_iter = 100
-    # A reused solver keeps the equilibration of the problem that built it, which made
-    # results depend (at ~1e-5) on which thread's solver got which target. Our data are
-    # well scaled, so equilibration is off and results are reproducible bit for bit.
-    s.equilibrate_enable = False
-    return s
+# Clarabel's own reported solve time and solve count, summed over all threads (benchmarks).
+SOLVER_STATS = {"solve_time": 0.0, "solves": 0}
+_STATS_LOCK = threading.Lock()
+_LOCAL = threading.local()
+_LMI_CACHE: dict = {}
+_LMI_LOCK = threading.Lock()
+_SOLVED, _UNCHANGED, _SKIPPED, _NOT_CERTIFIED = (
+    _sdp.code(n) for n in ("solved", "unchanged", "skipped", "not_certified"))
+# A solution that fails the exact check after rounding is re-solved with the margin
+# enlarged by this factor, at most `_ATTEMPTS - 1` times.
+_ATTEMPTS, _EPS_GROWTH = 3, 100.0
 
 
 class _ProjectionSolver:
@@ -98,8 +62,7 @@ class _ProjectionSolver:
         self.vals_g = Gs[rows[in_ab], cols[in_ab]]  # [nnz_ab, n*n]
         self.csc_shape, self.indptr, self.indices = csc.shape, csc.indptr, csc.indices
         # b = svec(-M0 - eps I), M0's P~-block is -2 P~.
-        M0 = lmi.M0.copy()
-        self.b_fixed = lmi.svec(-M0 - eps * np.eye(N))
+        self.b_fixed = lmi.svec(-lmi.M0 - eps * np.eye(N))
         i3 = N - n
         sel = np.zeros((n * n, N, N))
         for c in range(n):
@@ -107,209 +70,203 @@ class _ProjectionSolver:
                 sel[c * n + a, i3 + c, i3 + a] = 2.0
         self.b_g = lmi.svec(sel).T  # [L, n*n]
         self.eps_svec = lmi.svec(np.eye(N))
-        nth, nP = lmi.ntheta, lmi.nP
-        diag = np.concatenate([np.ones(nth), np.full(nP, reg)])
+        diag = np.concatenate([np.ones(lmi.ntheta), np.full(lmi.nP, reg)])
         self.P_obj = sp.diags(diag).tocsc()
         self.cones = [clarabel.PSDTriangleConeT(N)]
         self.solver = None
         self._clarabel = clarabel
 
-    def _data(self, P_tilde, target, eps):
-        Pt = np.asarray(P_tilde, np.float64).ravel()
-        vals = self.vals0.copy()
-        vals[self.ab_pos] = self.vals_g @ Pt
-        b = self.b_fixed + self.b_g @ Pt - (eps - self.eps) * self.eps_svec
-        p_tilde = np.asarray(P_tilde, np.float64)[self.lmi.p_rows, self.lmi.p_cols]
-        q = -np.concatenate([target, self.reg * p_tilde])
+    def data(self, targets, P_tilde, eps):
+        """Clarabel's `(q, A values, b)` for a batch: `targets` [B, ntheta], `P_tilde` [B, n, n]."""
+        Pt = np.asarray(P_tilde, np.float64).reshape(len(targets), -1)
+        vals = np.broadcast_to(self.vals0, (len(targets),) + self.vals0.shape).copy()
+        # einsum (not BLAS) so that a row's numbers do not depend on the batch size
+        vals[:, self.ab_pos] = np.einsum("bk,lk->bl", Pt, self.vals_g)
+        b = (self.b_fixed + np.einsum("bk,lk->bl", Pt, self.b_g)
+             - (np.asarray(eps)[:, None] - self.eps) * self.eps_svec)
+        p_tilde = np.asarray(P_tilde, np.float64)[:, self.lmi.p_rows, self.lmi.p_cols]
+        q = -np.concatenate([targets, self.reg * p_tilde], axis=1)
         return q, vals, b
 
-    def solve(self, target: np.ndarray, P_tilde: np.ndarray, eps: float):
-        """Solve Π at this P̃; returns (x or None, clarabel status string, solve time)."""
-        q, vals, b = self._data(P_tilde, target, eps)
+    def solve(self, q, vals, b):
+        """One solve; returns `(x or None, Outcome code, Clarabel's solve time)`."""
         if self.solver is None:
             A = sp.csc_matrix((vals, self.indices, self.indptr), shape=self.csc_shape)
-            self.solver = self._clarabel.DefaultSolver(self.P_obj, q, A, b, self.cones,
-                                                       _settings())
+            settings = _sdp.clarabel_settings(**_sdp.PROJECTION_SETTINGS)
+            self.solver = self._clarabel.DefaultSolver(self.P_obj, q, A, b, self.cones, settings)
         else:
             self.solver.update(q=q, A=vals, b=b)
         sol = self.solver.solve()
-        status = str(sol.status)
-        x = np.asarray(sol.x) if status in _OK else None
-        return x, status, float(sol.solve_time)
+        outcome = _sdp.clarabel_outcome(str(sol.status))
+        return (np.asarray(sol.x) if outcome == _SOLVED else None), outcome, sol.solve_time
 
 
-_LOCAL = threading.local()
-# Clarabel's own reported solve time and solve count, summed over all threads (benchmarks).
-SOLVER_STATS = {"solve_time": 0.0, "solves": 0}
-_STATS_LOCK = threading.Lock()
-_LMI_CACHE: dict = {}
-_LMI_LOCK = threading.Lock()
+def _lmi(qsr: QSR, n: int) -> ConvexifiedLMI:
+    key = (qsr, n)
+    with _LMI_LOCK:
+        lmi = _LMI_CACHE.get(key)
+        if lmi is None:
+            lmi = _LMI_CACHE[key] = ConvexifiedLMI(n, qsr.n_in, qsr.n_out, qsr)
+    return lmi
 
 
-def _config_key(qsr: QSR, n: int, eps: float, reg: float):
-    return (n, qsr.n_in, qsr.n_out, qsr.Q.tobytes(), qsr.S.tobytes(), qsr.R.tobytes(), eps, reg)
-
-
-def _get_solver(key, qsr: QSR) -> _ProjectionSolver:
+def _thread_solver(qsr: QSR, n: int, eps: float, reg: float) -> _ProjectionSolver:
     cache = getattr(_LOCAL, "solvers", None)
     if cache is None:
         cache = _LOCAL.solvers = {}
+    key = (qsr, n, eps, reg)
     solver = cache.get(key)
     if solver is None:
-        with _LMI_LOCK:
-            lmi = _LMI_CACHE.get(key[:6])
-            if lmi is None:
-                lmi = _LMI_CACHE[key[:6]] = ConvexifiedLMI(key[0], key[1], key[2], qsr)
-        solver = cache[key] = _ProjectionSolver(lmi, eps=key[6], reg=key[7])
+        solver = cache[key] = _ProjectionSolver(_lmi(qsr, n), eps=eps, reg=reg)
     return solver
 
 
-def _cast(x, dtype):
-    return np.asarray(x).astype(dtype).astype(np.float64)
+def _solve_batch(qsr, targets, P_tilde, eps, *, base_eps, reg, dtype):
+    """Solve Π for every row; returns `(A, B, C, D, P)` rounded to `dtype`, codes, certified."""
+    n = P_tilde.shape[-1]
+    lmi = _lmi(qsr, n)
+    count = len(targets)
+    q, vals, b = _thread_solver(qsr, n, base_eps, reg).data(targets, P_tilde, eps)
+    xs = np.full((count, lmi.nx), np.nan)
+    codes = np.empty(count, np.int32)
+
+    def work(rows):
+        solver, spent = _thread_solver(qsr, n, base_eps, reg), 0.0
+        for i in rows:
+            x, codes[i], t = solver.solve(q[i], vals[i], b[i])
+            spent += t
+            if x is not None:
+                xs[i] = x
+        with _STATS_LOCK:
+            SOLVER_STATS["solve_time"] += spent
+            SOLVER_STATS["solves"] += len(rows)
+
+    _sdp.thread_map(work, range(count))
+    sol = tuple(_sdp.cast(M, dtype) for M in lmi.layout.unpack(xs))
+    ok = (codes == _SOLVED) & _sdp.certified(*sol[:4], qsr, sol[4])
+    return sol, codes, ok
 
 
-def _solve_once(qsr: QSR, A, B, C, D, P_tilde, *, eps, reg, dtype):
-    """One Clarabel solve at this P̃; returns ((A, B, C, D, P) rounded to dtype | None, status, t)."""
-    solver = _get_solver(_config_key(qsr, A.shape[0], eps, reg), qsr)
-    x, cl_status, t = solver.solve(solver.lmi.pack(A, B, C, D), P_tilde, eps)
-    if x is None:
-        return None, (Status.INFEASIBLE if cl_status in _INFEASIBLE else Status.SOLVER_FAILED), t
-    return tuple(_cast(M, dtype) for M in solver.lmi.unpack(x)), Status.SOLVED, t
+def _certified_solve(qsr, targets, P_tilde, *, eps, reg, dtype):
+    """Solve Π for every row at its $\\tilde P$ and keep only certified solutions.
 
-
-def project_one(
-    qsr: QSR, A, B, C, D, P_ref, *, has_ref: bool, eps: float, reg: float, refine: int,
-    dtype=np.float64,
-):
-    """Host-side projection of one controller. Returns (A, B, C, D, P, status, solve_time).
-
-    The returned controller is always the target or a solution that passed the exact KYP
-    check *after* rounding to `dtype`; on failure the status says so and the caller must
-    not use the returned controller (it is the unchanged target).
+    A solution that fails the exact check after rounding is re-solved with the margin
+    enlarged `_EPS_GROWTH`-fold, at most `_ATTEMPTS - 1` times; a solve that fails after an
+    uncertified solution counts as `not_certified`. Returns `(solution, found, codes)`.
     """
-    target_mats = (A, B, C, D)
-    if has_ref and kyp_certified(A, B, C, D, qsr, P_ref):
-        return (*target_mats, P_ref, Status.UNCHANGED, 0.0)
-    target = np.concatenate([np.ravel(M) for M in target_mats])
-    P_tilde = np.asarray(P_ref, np.float64) if has_ref else np.eye(A.shape[0])
-    best, best_dist, status, total_time = None, np.inf, Status.SOLVER_FAILED, 0.0
-    for _ in range(1 if has_ref else max(1, refine)):
-        cur_eps, sol = eps, None
-        for _attempt in range(3):  # enlarge the margin if rounding breaks the certificate
-            sol, status, t = _solve_once(qsr, A, B, C, D, P_tilde, eps=cur_eps, reg=reg,
-                                         dtype=dtype)
-            total_time += t
-            if sol is None:
-                if _attempt:  # a larger margin failed after a solution that was not certified
-                    status = Status.NOT_CERTIFIED
-                break
-            if kyp_certified(*sol[:4], qsr, sol[4]):
-                dist = np.sum((np.concatenate([np.ravel(M) for M in sol[:4]]) - target) ** 2)
-                if dist < best_dist:
-                    best, best_dist = sol, dist
-                break
-            status, sol = Status.NOT_CERTIFIED, None
-            cur_eps *= 100.0
-        if sol is None:
+    count = len(targets)
+    cur_eps, todo = np.full(count, eps), np.arange(count)
+    found, codes, sols = np.zeros(count, bool), np.empty(count, np.int32), None
+    for attempt in range(_ATTEMPTS):
+        sol, c, ok = _solve_batch(qsr, targets[todo], P_tilde[todo], cur_eps[todo],
+                                  base_eps=eps, reg=reg, dtype=dtype)
+        if sols is None:
+            sols = [np.full((count,) + M.shape[1:], np.nan) for M in sol]
+        for S, M in zip(sols, sol):
+            S[todo[ok]] = M[ok]
+        found[todo[ok]] = True
+        failed_code = np.where(c == _SOLVED, _NOT_CERTIFIED, _NOT_CERTIFIED if attempt else c)
+        codes[todo] = np.where(ok, _SOLVED, failed_code)
+        todo = todo[(c == _SOLVED) & ~ok]
+        cur_eps[todo] *= _EPS_GROWTH
+        if not len(todo):
             break
-        P_tilde = best[4]  # re-linearise the P^{-1} overbound at the new P (the convexified LMI of `docs/concepts.md`)
-    if best is not None:
-        return (*best, Status.SOLVED, total_time)
-    return (*target_mats, np.asarray(P_tilde), status, total_time)
+    return sols, found, codes
+
+
+def _project_rows(qsr, targets, P_tilde, rounds, *, eps, reg, dtype):
+    """Project every row, re-linearising $P^{-1}$'s overbound `rounds` times.
+
+    Each round starts at the $P$ of the row's closest certified solution so far; a row
+    keeps that solution and stops refining at its first failure. Returns
+    `((A, B, C, D, P), codes)`; rows without any certified solution hold NaN.
+    """
+    count = len(targets)
+    layout = _lmi(qsr, P_tilde.shape[-1]).layout
+    best_dist = np.full(count, np.inf)
+    codes = np.full(count, _sdp.code("solver_failed"), np.int32)
+    live, P_tilde, best = np.arange(count), P_tilde.copy(), None
+    for _ in range(rounds):
+        sols, found, codes[live] = _certified_solve(qsr, targets[live], P_tilde[live], eps=eps,
+                                                    reg=reg, dtype=dtype)
+        if best is None:
+            best = [np.full((count,) + M.shape[1:], np.nan) for M in sols]
+        dist = np.sum((layout.pack(*sols[:4]) - targets[live]) ** 2, axis=-1)
+        better = found & (dist < best_dist[live])
+        for Bm, S in zip(best, sols):
+            Bm[live[better]] = S[better]
+        best_dist[live[better]] = dist[better]
+        live = live[found]
+        if not len(live):
+            break
+        P_tilde[live] = best[4][live]
+    codes[np.isfinite(best_dist)] = _SOLVED
+    return best, codes
 
 
 def _host_batch(A, B, C, D, P_ref, active, *, qsr, has_ref, eps, reg, refine):
     """pure_callback target: arrays carry identical leading batch axes (broadcast_all).
 
-    With a reference P the hot path is: one batched KYP check of all targets (certified
-    ones come back unchanged), one Clarabel solve per remaining target on the thread pool,
-    one batched KYP check of all solutions; the rare failures go through `project_one`'s
-    retry logic. Without a reference every target goes through `project_one`.
+    Active targets already certified by `P_ref` come back unchanged; the others are
+    projected as one batch (`_project_rows`). Failed rows return their target, flagged.
     """
     dtype = np.asarray(A).dtype
-    batch = A.shape[:-2]
-    n, p, m = A.shape[-1], B.shape[-1], C.shape[-2]
+    batch, n = A.shape[:-2], A.shape[-1]
     flat = [np.asarray(M, np.float64).reshape((-1,) + M.shape[len(batch):])
             for M in (A, B, C, D, P_ref)]
     act = np.asarray(active).reshape(-1)
     out = [M.copy() for M in flat]
-    status = np.full(act.shape[0], int(Status.SKIPPED), np.int32)
-    kw = dict(eps=eps, reg=reg)
-
-    if has_ref:
-        unchanged = act & kyp_certified(*flat[:4], qsr, flat[4])
-        status[unchanged] = int(Status.UNCHANGED)
-        todo = np.nonzero(act & ~unchanged)[0]
-    else:
-        todo = np.nonzero(act)[0]
-
-    def work(indices):
-        spent, solves = 0.0, 0
-        for i in indices:
-            if has_ref:
-                sol, st, t = _solve_once(qsr, *(M[i] for M in flat), dtype=dtype, **kw)
-                res = (*(sol or ()), st, t)
-            else:
-                res = project_one(qsr, *(M[i] for M in flat), has_ref=False, refine=refine,
-                                  dtype=dtype, **kw)
-            if res[-2] == Status.SOLVED:
-                for o, M in zip(out, res[:5]):
-                    o[i] = M
-            status[i] = int(res[-2])
-            spent += res[-1]
-            solves += 1
-        with _STATS_LOCK:
-            SOLVER_STATS["solve_time"] += spent
-            SOLVER_STATS["solves"] += solves
-
-    with single_threaded_blas():
-        workers = min(num_workers(), len(todo))
-        if workers <= 1:
-            work(todo)
-        else:
-            list(pool().map(work, np.array_split(todo, workers)))
-        if has_ref and len(todo):
-            # Exact float64 check of every new solution at once; retry the rare failures.
-            solved = todo[status[todo] == Status.SOLVED]
-            bad = solved[~np.atleast_1d(kyp_certified(*(o[solved] for o in out[:4]), qsr,
-                                                      out[4][solved]))]
-            for i in bad:
-                res = project_one(qsr, *(M[i] for M in flat), has_ref=True, refine=1,
-                                  dtype=dtype, eps=eps * 100, reg=reg)
-                if res[5] == Status.SOLVED:
-                    for o, M in zip(out, res[:5]):
-                        o[i] = M
-                status[i] = int(res[5])
-    failed = status >= Status.INFEASIBLE
-    for o, M in zip(out, flat):  # failures return the (uncertified) target, flagged
-        o[failed] = M[failed]
-    shapes = [batch + s for s in ((n, n), (n, p), (m, n), (m, p), (n, n))]
-    return (*(o.reshape(s).astype(dtype) for o, s in zip(out, shapes)),
-            status.reshape(batch))
+    codes = np.full(act.shape[0], _SKIPPED, np.int32)
+    todo = np.nonzero(act)[0]
+    if has_ref and len(todo):
+        keep = _sdp.certified(*(M[todo] for M in flat[:4]), qsr, flat[4][todo])
+        codes[todo[keep]] = _UNCHANGED
+        todo = todo[~keep]
+    if len(todo):
+        targets = _lmi(qsr, n).layout.pack(*(M[todo] for M in flat[:4]))
+        P_tilde = flat[4][todo] if has_ref else np.broadcast_to(np.eye(n), (len(todo), n, n))
+        sol, codes[todo] = _project_rows(qsr, targets, np.array(P_tilde), 1 if has_ref else
+                                         max(1, refine), eps=eps, reg=reg, dtype=dtype)
+        done = todo[codes[todo] == _SOLVED]
+        for o, M in zip(out, sol):
+            o[done] = M[codes[todo] == _SOLVED]
+    return (*(o.reshape(batch + o.shape[1:]).astype(dtype) for o in out),
+            codes.reshape(batch))
 
 
-def project_with_status(
-    K: LTIController, qsr: QSR, P_ref=None, active=True, *, eps: float = 1e-6,
-    reg: float = 1e-6, refine: int = 3,
-):
-    """Like [`project`][dissil_jax.project] but never raises on solver failure.
+class Projection(tuple):
+    """What [`project`][dissil_jax.project] returns: the pair `(controller, P)`, plus `result`.
 
-    **Returns:** `(K_proj, P, status)` with `status` an int32 [`Status`][dissil_jax.Status]
-    code; for codes >= 3 (`INFEASIBLE`, `SOLVER_FAILED`, `NOT_CERTIFIED`) `K_proj` is the
-    *uncertified* target and must not be used (the trainers keep their previous iterate).
+    It unpacks like a pair (`K, P = dj.project(K, qsr)`) and indexes like one
+    (`dj.project(K, qsr)[0]`); `result` is the [`Outcome`][dissil_jax.Outcome] of each
+    projection (batched like `K`). It is a JAX pytree, so it can be returned from `jax.jit`.
     """
-    _check_qsr(K, qsr)
-    _check_options(K, P_ref, active, eps, reg, refine)
-    if K.batch_shape:
-        in_ref = None if P_ref is None else 0
-        in_act = 0 if jnp.ndim(active) else None
-        fn = lambda K_, P_, a_: project_with_status(K_, qsr, P_, a_, eps=eps, reg=reg,
-                                                    refine=refine)
-        for _ in K.batch_shape:
-            fn = jax.vmap(fn, in_axes=(0, in_ref, in_act))
-        return fn(K, P_ref, active)
-    n = K.n_state
-    dtype = K.A.dtype
+
+    def __new__(cls, controller, P, result):
+        self = super().__new__(cls, (controller, P))
+        self.result = result
+        return self
+
+    @property
+    def controller(self) -> LTIController:
+        return self[0]
+
+    @property
+    def P(self):
+        return self[1]
+
+    def __repr__(self):
+        return f"Projection(controller={self[0]!r}, P={self[1]!r}, result={self.result!r})"
+
+
+jax.tree_util.register_pytree_node(
+    Projection, lambda p: ((p[0], p[1], p.result), None),
+    lambda _, children: Projection(*children))
+
+
+def _project_one(K: LTIController, P_ref, active, *, qsr: QSR, eps, reg, refine):
+    """The unbatched JAX side: one `pure_callback` (vmapped calls batch on the host)."""
+    n, dtype = K.n_state, K.A.dtype
     has_ref = P_ref is not None
     if has_ref:
         P_ref = jnp.asarray(P_ref, dtype)
@@ -317,27 +274,31 @@ def project_with_status(
             raise ValueError(f"`P_ref` must be {n}x{n}, got {P_ref.shape}.")
     else:
         P_ref = jnp.eye(n, dtype=dtype)
-    shapes = (
-        jax.ShapeDtypeStruct(K.A.shape, dtype),
-        jax.ShapeDtypeStruct(K.B.shape, dtype),
-        jax.ShapeDtypeStruct(K.C.shape, dtype),
-        jax.ShapeDtypeStruct(K.D.shape, dtype),
-        jax.ShapeDtypeStruct((n, n), dtype),
-        jax.ShapeDtypeStruct((), jnp.int32),
-    )
+    shapes = tuple(jax.ShapeDtypeStruct(M.shape, dtype) for M in (K.A, K.B, K.C, K.D, P_ref))
     callback = partial(_host_batch, qsr=qsr, has_ref=has_ref, eps=float(eps), reg=float(reg),
                        refine=int(refine))
-    A, B, C, D, P, status = jax.pure_callback(
-        callback, shapes, K.A, K.B, K.C, K.D, P_ref, jnp.asarray(active, bool),
-        vmap_method="broadcast_all",
-    )
-    return LTIController(A, B, C, D), P, status
+    A, B, C, D, P, codes = jax.pure_callback(
+        callback, (*shapes, jax.ShapeDtypeStruct((), jnp.int32)), K.A, K.B, K.C, K.D, P_ref,
+        jnp.asarray(active, bool), vmap_method="broadcast_all")
+    return LTIController(A, B, C, D), P, codes
+
+
+def _raise_on_failure(P, codes):
+    """`throw=True`: a ValueError eagerly, an `EquinoxRuntimeError` under `jit`."""
+    if not isinstance(codes, jax.core.Tracer):
+        codes = np.asarray(codes)
+        bad = codes[_sdp.failed(codes)]
+        if bad.size:
+            raise ValueError(f"dj.project: {Outcome[_sdp.item(bad.max())]}")
+        return P
+    worst = _sdp.item(jnp.max(jnp.where(_sdp.failed(codes), codes, -1)))
+    return worst.error_if(P, jnp.any(_sdp.failed(codes)))
 
 
 def project(
-    K: LTIController, qsr: QSR, P_ref=None, *, eps: float = 1e-6, reg: float = 1e-6,
-    refine: int = 3,
-):
+    K: LTIController, qsr: QSR, P_ref=None, *, throw: bool = True, active=True,
+    eps: float = 1e-6, reg: float = 1e-6, refine: int = 3,
+) -> Projection:
     """Project `K` onto the convexified $(Q,S,R)$-dissipative set (paper eq. 13).
 
     $$\\Pi(\\tilde K) = \\arg\\min_{A,B,C,D,P}\\ \\lVert (A,B,C,D) - (\\tilde A,\\tilde B,\\tilde C,
@@ -351,35 +312,47 @@ def project(
     host. $\\mu$ (`reg`) is a tiny proximal weight that makes $P$ unique.
 
     - `P_ref` given: $\\tilde P = $ `P_ref`; a target already certified by `P_ref` comes
-      back unchanged without a solve (so a certified controller projects onto itself).
+      back unchanged without a solve (`result` is `Outcome.unchanged`), so a certified
+      controller projects onto itself.
     - `P_ref` is None: start at $\\tilde P = I$ and re-linearise at the new $P$ up to
       `refine` times; each round can only move closer to the target.
 
     Works eagerly, under `jax.jit` and under `jax.vmap` (the host then solves the whole
-    batch on a thread pool). `qsr` must be closed over, not traced. For float64 set JAX's
-    `jax_enable_x64` flag globally in your application (or `JAX_ENABLE_X64=1`); the
-    thread-local `jax.enable_x64` context does not reach the host-callback thread.
+    batch on a thread pool). `qsr` is a static, hashable value: close over it or pass it
+    as a static argument. For float64 set JAX's `jax_enable_x64` flag globally in your
+    application (or `JAX_ENABLE_X64=1`); the thread-local `jax.enable_x64` context does not
+    reach the host-callback thread.
 
     **Arguments:**
 
     - `K`: the target controller (may carry leading batch axes).
     - `qsr`: the supply rate; `qsr.Q` must be negative semidefinite.
     - `P_ref`: reference storage matrix $\\tilde P\\succ0$ (`[n, n]`, batched like `K`).
+    - `throw`: raise when a projection fails (`ValueError` eagerly, an
+      `EquinoxRuntimeError` under `jit`). With `throw=False` nothing is raised and
+      `result` says what happened; a failed entry then holds its *uncertified* target,
+      which must not be used.
+    - `active`: bool, scalar or batched like `K`; inactive entries are returned as they
+      are (`Outcome.skipped`) without a solve.
     - `eps`: strictness margin of the LMI, guarding the certificate against rounding.
     - `reg`: proximal weight $\\mu$ on $P$.
     - `refine`: re-linearisation rounds when `P_ref` is None.
 
-    **Returns:** `(K_proj, P)`. A failed solve raises: `ValueError` eagerly, an
-    `EquinoxRuntimeError` under `jit`.
+    **Returns:** a [`Projection`][dissil_jax.Projection] `(K_proj, P)` with `.result`.
+
+    ```python
+    K_proj, P = dj.project(K, qsr)
+    proj = dj.project(K, qsr, throw=False)
+    ok = proj.result == dj.Outcome.solved
+    ```
     """
-    K_out, P, status = project_with_status(K, qsr, P_ref, eps=eps, reg=reg, refine=refine)
-    if not isinstance(status, jax.core.Tracer):
-        worst = int(np.max(np.asarray(status)))
-        if worst >= Status.INFEASIBLE:
-            raise ValueError(f"dj.project: {MESSAGES[Status(worst)]}")
-        return K_out, P
-    failed = status >= int(Status.INFEASIBLE)
-    index = jnp.clip(jnp.max(status) - int(Status.INFEASIBLE), 0, 2)
-    msgs = [MESSAGES[s] for s in (Status.INFEASIBLE, Status.SOLVER_FAILED, Status.NOT_CERTIFIED)]
-    P = eqx.branched_error_if(P, jnp.any(failed), index, msgs)
-    return K_out, P
+    _check_qsr(K, qsr)
+    _check_options(K, P_ref, active, eps, reg, refine)
+    fn = partial(_project_one, qsr=qsr, eps=eps, reg=reg, refine=refine)
+    in_ref, in_act = None if P_ref is None else 0, 0 if jnp.ndim(active) else None
+    for _ in K.batch_shape:
+        fn = jax.vmap(fn, in_axes=(0, in_ref, in_act))
+    K_out, P, codes = fn(K, P_ref, active)
+    if throw:
+        P = _raise_on_failure(P, codes)
+    return Projection(K_out, P, _sdp.item(codes))

@@ -15,9 +15,6 @@ def check_qsr(K: LTIController, qsr: QSR) -> None:
         raise ValueError(f"`K` must be a `dj.LTIController`, got {type(K).__name__}.")
     if not isinstance(qsr, QSR):
         raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
-    if not isinstance(qsr.Q, np.ndarray):
-        raise ValueError("`qsr` must be concrete host data: close over it instead of passing it "
-                         "as a traced argument of `jax.jit`/`jax.vmap`.")
     qsr.check_sizes(K.n_in, K.n_out)
     qsr.neg_q_factor()  # raises a ValueError naming `qsr.Q` if Q has a positive eigenvalue
 

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._controller import LTIController
@@ -16,7 +19,7 @@ _TOEPLITZ_MAX_HORIZON = 32
 
 def observability_toeplitz(
     K: LTIController, horizon: int
-) -> tuple[Float[Array, "hm n"], Float[Array, "hm hp"]]:
+) -> tuple[Float[Array, "*batch hm n"], Float[Array, "*batch hm hp"]]:
     """The observability matrix $\\mathcal O$ and block-Toeplitz matrix $\\mathcal T$ (paper eq. 15).
 
     $$\\begin{bmatrix}\\hat y_0\\\\ \\vdots\\\\ \\hat y_{h-1}\\end{bmatrix} = \\underbrace{\\begin{bmatrix}
@@ -24,14 +27,23 @@ def observability_toeplitz(
     D & & \\\\ CB & D & \\\\ \\vdots & \\ddots & \\ddots \\\\ CA^{h-2}B & \\cdots & CB\\quad D\\end{bmatrix}}_{\\mathcal T}
     \\begin{bmatrix}\\hat u_0\\\\ \\vdots\\\\ \\hat u_{h-1}\\end{bmatrix}$$
 
-    **Arguments:** one (unbatched) controller `K` and the `horizon` $h\\ge1$.
+    **Arguments:** a controller `K` (leading batch axes allowed) and the `horizon` $h\\ge1$.
 
-    **Returns:** `(O, T)` with shapes `[h*m, n]` and `[h*m, h*p]` (time-major blocks).
+    **Returns:** `(O, T)` with shapes `[*batch, h*m, n]` and `[*batch, h*m, h*p]`
+    (time-major blocks), where `batch` is `K.batch_shape` (empty for one controller).
     """
-    if int(horizon) != horizon or horizon < 1:
+    if isinstance(horizon, bool) or np.ndim(horizon) != 0 or int(horizon) != horizon or horizon < 1:
         raise ValueError(f"`horizon` must be a positive integer, got {horizon!r}.")
-    if K.batch_shape:
-        raise ValueError("`K` must be a single controller; vmap for batches.")
+    horizon = int(horizon)
+    if not isinstance(K, LTIController):
+        raise ValueError(f"`K` must be a `dj.LTIController`, got {type(K).__name__}.")
+    fn = functools.partial(_observability_toeplitz, horizon=horizon)
+    for _ in K.batch_shape:
+        fn = jax.vmap(fn)
+    return fn(K)
+
+
+def _observability_toeplitz(K: LTIController, horizon: int):
     m, n, p = K.n_out, K.n_state, K.n_in
 
     def step(CAk, _):
@@ -63,7 +75,12 @@ def rollout(
 
 
 def predict(K: LTIController, windows: Windows) -> Float[Array, "N h m"]:
-    """Controller outputs on every window (vmapped), via (O, T) or a scan by horizon."""
+    """Controller outputs on every window (vmapped), via (O, T) or a scan by horizon.
+
+    Unbatched `K`; vmap for batches.
+    """
+    if K.batch_shape:
+        raise ValueError("`K` must be a single controller; vmap `predict` for batches.")
     h = windows.horizon
     if h <= _TOEPLITZ_MAX_HORIZON:
         O, T = observability_toeplitz(K, h)

@@ -12,6 +12,8 @@ input is the plant output and the output is (minus) the plant input.
 
 from __future__ import annotations
 
+import functools
+import warnings
 from typing import NamedTuple
 
 import equinox as eqx
@@ -40,12 +42,68 @@ def _as_matrix(name: str, value, shape: tuple[int, int] | None = None) -> np.nda
     return arr
 
 
+def _legacy_bounded_gain(fn):
+    """Accept the deprecated `bounded_gain(gamma, n_out, n_in)` (positional sizes)."""
+
+    @functools.wraps(fn)
+    def wrapper(cls, gamma, *args, **kwargs):
+        if args:
+            if len(args) > 2:
+                raise TypeError(f"QSR.bounded_gain() takes 1 positional argument (gamma) and "
+                                f"keyword-only `n_in`, `n_out`; got {1 + len(args)}.")
+            for name, value in zip(("n_out", "n_in"), args):
+                if name in kwargs:
+                    raise TypeError(f"QSR.bounded_gain() got multiple values for `{name}`.")
+                kwargs[name] = value
+            warnings.warn(
+                "`QSR.bounded_gain(gamma, n_out, n_in)` with positional sizes is deprecated; "
+                "call `QSR.bounded_gain(gamma, n_in=..., n_out=...)` (keyword-only, input "
+                "size first). The positional form will be removed in 0.3.0.",
+                DeprecationWarning, stacklevel=2)
+        return fn(cls, gamma, **kwargs)
+
+    return wrapper
+
+
+class _FrozenMatrix:
+    """A read-only float64 matrix that is hashed and compared by value.
+
+    The static fields of [`QSR`][dissil_jax.QSR] hold these, so that JAX can use a supply
+    rate as part of a treedef or as a static argument (both need `__hash__` and a
+    boolean `__eq__`, which a numpy array does not have).
+    """
+
+    __slots__ = ("array", "_hash")
+
+    def __init__(self, array: np.ndarray):
+        array = np.asarray(array, dtype=np.float64) + 0.0  # a fresh copy, and -0.0 -> 0.0
+        array.flags.writeable = False
+        self.array = array
+        self._hash = hash((array.shape, array.tobytes()))
+
+    def __hash__(self) -> int:
+        return self._hash
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, _FrozenMatrix):
+            return NotImplemented
+        return self._hash == other._hash and bool(np.array_equal(self.array, other.array))
+
+    def __reduce__(self):
+        return (_FrozenMatrix, (self.array,))
+
+    def __repr__(self) -> str:
+        return f"_FrozenMatrix({self.array!r})"
+
+
 class QSR(eqx.Module):
     """A quadratic supply rate $w(u,y) = y^\\top Q y + 2y^\\top S u + u^\\top R u$.
 
-    The matrices are stored as float64 numpy arrays: a supply rate is host-side
-    problem data (it fixes the shapes of the SDPs), not a traced quantity. Close over
-    it inside `jax.jit` rather than passing it as a traced argument.
+    A supply rate is host-side problem data (it fixes the shapes of the SDPs), so it is a
+    **static, hashable value**: it has no array leaves as a pytree, two supply rates with
+    equal matrices are equal (`==` returns a plain `bool`) and hash alike, and it can be
+    passed to `jax.jit` (also as a static argument), `eqx.filter_jit` or `jax.vmap` like
+    any other static value. `Q`, `S` and `R` are read-only float64 numpy arrays.
 
     **Arguments:**
 
@@ -62,9 +120,9 @@ class QSR(eqx.Module):
     ```
     """
 
-    Q: np.ndarray
-    S: np.ndarray
-    R: np.ndarray
+    _Q: _FrozenMatrix = eqx.field(static=True)
+    _S: _FrozenMatrix = eqx.field(static=True)
+    _R: _FrozenMatrix = eqx.field(static=True)
 
     def __init__(self, Q, S, R):
         S = _as_matrix("S", S)
@@ -77,9 +135,32 @@ class QSR(eqx.Module):
         for name, M in (("Q", Q), ("R", R)):
             if not np.allclose(M, M.T, atol=_SYM_TOL * max(1.0, np.abs(M).max())):
                 raise ValueError(f"`{name}` must be symmetric; pass ({name} + {name}.T) / 2.")
-        self.Q = (Q + Q.T) / 2
-        self.S = S
-        self.R = (R + R.T) / 2
+        self._Q = _FrozenMatrix((Q + Q.T) / 2)
+        self._S = _FrozenMatrix(S)
+        self._R = _FrozenMatrix((R + R.T) / 2)
+
+    @property
+    def Q(self) -> np.ndarray:
+        """The output weight $Q$ ($m\\times m$, symmetric; read-only float64)."""
+        return self._Q.array
+
+    @property
+    def S(self) -> np.ndarray:
+        """The cross weight $S$ ($m\\times p$; read-only float64)."""
+        return self._S.array
+
+    @property
+    def R(self) -> np.ndarray:
+        """The input weight $R$ ($p\\times p$, symmetric; read-only float64)."""
+        return self._R.array
+
+    def __hash__(self) -> int:
+        return hash((self._Q, self._S, self._R))
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, QSR):
+            return NotImplemented
+        return (self._Q, self._S, self._R) == (other._Q, other._S, other._R)
 
     @property
     def n_out(self) -> int:
@@ -99,8 +180,24 @@ class QSR(eqx.Module):
         return cls(np.zeros((dim, dim)), 0.5 * np.eye(dim), np.zeros((dim, dim)))
 
     @classmethod
-    def bounded_gain(cls, gamma: float, n_out: int, n_in: int) -> QSR:
-        """$\\gamma$-bounded $\\ell_2$ gain: $Q=-I$, $S=0$, $R=\\gamma^2 I$."""
+    @_legacy_bounded_gain
+    def bounded_gain(cls, gamma: float, *, n_in: int, n_out: int) -> QSR:
+        """$\\gamma$-bounded $\\ell_2$ gain: $Q=-I$, $S=0$, $R=\\gamma^2 I$.
+
+        $w = \\gamma^2\\lVert u\\rVert^2 - \\lVert y\\rVert^2$: the map
+        $\\mathbb R^{n_{in}}\\to\\mathbb R^{n_{out}}$ has $\\ell_2$ gain at most $\\gamma$.
+
+        **Arguments:**
+
+        - `gamma`: the gain bound $\\gamma>0$.
+        - `n_in`: input dimension $p$ (keyword only).
+        - `n_out`: output dimension $m$ (keyword only).
+
+        **Returns:** the `QSR` with $S$ of shape `(n_out, n_in)`.
+
+        *Deprecated:* the positional form `bounded_gain(gamma, n_out, n_in)` (output size
+        first) still works with a `DeprecationWarning`; it will be removed in 0.3.0.
+        """
         n_out, n_in = _check_dim("n_out", n_out), _check_dim("n_in", n_in)
         if not np.isfinite(gamma) or gamma <= 0:
             raise ValueError(f"`gamma` must be a positive finite gain, got {gamma}.")
@@ -237,7 +334,31 @@ def closed_loop_certificate(plant_qsr: QSR, controller_qsr: QSR) -> ClosedLoopCe
     return ClosedLoopCertificate(holds=bool(best < -1e-12 * scale), alpha=float(10**best_la))
 
 
-def stabilising_qsr(plant_qsr: QSR, alpha: float = 1.0, margins=(1e-2, 1e-2)) -> QSR:
+def _legacy_stabilising_qsr(fn):
+    """Accept the deprecated positional `stabilising_qsr(plant_qsr, alpha, margins)`."""
+
+    @functools.wraps(fn)
+    def wrapper(plant_qsr, *args, **kwargs):
+        if args:
+            if len(args) > 2:
+                raise TypeError(f"stabilising_qsr() takes 1 positional argument (plant_qsr) "
+                                f"and keyword-only `alpha`, `margins`; got {1 + len(args)}.")
+            for name, value in zip(("alpha", "margins"), args):
+                if name in kwargs:
+                    raise TypeError(f"stabilising_qsr() got multiple values for `{name}`.")
+                kwargs[name] = value
+            warnings.warn(
+                "passing `alpha` or `margins` of `stabilising_qsr` positionally is deprecated; "
+                "call `stabilising_qsr(plant_qsr, alpha=..., margins=...)`. The positional "
+                "form will be removed in 0.3.0.",
+                DeprecationWarning, stacklevel=2)
+        return fn(plant_qsr, **kwargs)
+
+    return wrapper
+
+
+@_legacy_stabilising_qsr
+def stabilising_qsr(plant_qsr: QSR, *, alpha: float = 1.0, margins=(1e-2, 1e-2)) -> QSR:
     """A controller supply rate that Theorem 1 pairs with `plant_qsr` (the recipe of `docs/concepts.md`, *The closed-loop theorem*).
 
     $$S_2 = S_1^\\top/\\alpha,\\quad R_2 = -(Q_1 + M_1)/\\alpha,\\quad Q_2 = -(R_1 + M_2)/\\alpha,$$
@@ -253,7 +374,12 @@ def stabilising_qsr(plant_qsr: QSR, alpha: float = 1.0, margins=(1e-2, 1e-2)) ->
     - `margins`: `(M1, M2)`, positive scalars or positive definite matrices of the plant's
       output and input sizes.
 
+    `alpha` and `margins` are keyword-only.
+
     **Returns:** the controller's `QSR`.
+
+    *Deprecated:* passing `alpha` and `margins` positionally still works with a
+    `DeprecationWarning`; it will be removed in 0.3.0.
     """
     if not isinstance(plant_qsr, QSR):
         raise ValueError("`plant_qsr` must be a `dj.QSR`.")

@@ -1,10 +1,11 @@
 """Test-only views of an `ICOProblem`: the overbound's value, cone membership, a feasible point."""
 
+import clarabel
 import numpy as np
 import scipy.sparse as sp
 
 from dissil_jax._lmi import smat
-from dissil_jax._train._ico_windows import _svec_len
+from dissil_jax._train._ico_layout import svec_len
 
 
 def overbound(pb, x, theta0, P_tilde, w_tilde, eps=None):
@@ -13,25 +14,33 @@ def overbound(pb, x, theta0, P_tilde, w_tilde, eps=None):
     Returns `(value, s)`; the overbound of $J(\\theta_0 + \\delta\\theta)$ when `s` is in
     the cones (see `cone_min`).
     """
+    lay = pb.layout
     q, vals, b, const, _ = pb.data(theta0, P_tilde, w_tilde, eps)
+    prox_diag = np.zeros(lay.nx)
+    prox_diag[:lay.ntheta] = pb.prox
+    prox_diag[lay.colP] = pb.reg
     H = pb.H.copy().tolil()
-    H.setdiag(H.diagonal() - np.concatenate(
-        [np.full(pb.ntheta, pb.prox), np.full(pb.oY - pb.oP, pb.reg),
-         np.zeros(pb.nx - pb.oY)]))
+    H.setdiag(H.diagonal() - prox_diag)
     Hs = H.tocsc()
     Hfull = Hs + sp.triu(Hs, 1).T
     q = q.copy()
-    q[pb.oP:pb.oY] = 0.0
+    q[lay.colP] = 0.0
     value = 0.5 * x @ (Hfull @ x) + q @ x + const
     return float(value), b - pb.matrix(vals) @ x
+
+
+def cone_spec(pb):
+    """`[(kind, size)]` of the SDP's cones in order, kind "psd" or "soc"."""
+    return [("psd" if isinstance(c, clarabel.PSDTriangleConeT) else "soc", c.dim)
+            for c in pb.cones]
 
 
 def cone_min(pb, s) -> float:
     """The smallest cone 'eigenvalue' of the slack `s` (>= 0 iff `s` is in every cone)."""
     out, row = [], 0
-    for kind, d in pb.cone_spec:
+    for kind, d in cone_spec(pb):
         if kind == "psd":
-            L = _svec_len(d)
+            L = svec_len(d)
             out.append(np.linalg.eigvalsh(smat(s[row:row + L], d))[0])
             row += L
         else:
@@ -42,11 +51,11 @@ def cone_min(pb, s) -> float:
 
 def feasible_point(pb, dtheta, w, P, theta0, w_tilde, P_tilde=None):
     """The cheapest feasible $(Y, \\tau, \\sigma)$ for a given step: tests of the bound."""
-    m = pb.m
+    m, lay = pb.m, pb.layout
     dA, dB, dC, dD = pb.mats(dtheta)
     A0, B0, C0, D0 = pb.mats(theta0)
     phi = 2.0 / w_tilde - w / w_tilde**2
-    if pb.window_cone != "psd":
+    if lay.scalar_y:
         Y = np.linalg.norm(dC, 2) ** 2 / phi * np.eye(m)
     else:
         Y = dC @ dC.T / phi
@@ -57,15 +66,15 @@ def feasible_point(pb, dtheta, w, P, theta0, w_tilde, P_tilde=None):
         raise ValueError("this step is outside the SDP's domain: I - Y must be > 0.")
     sig = np.einsum("ka,ka->k", ebar, np.linalg.solve(np.eye(m) - Y, ebar.T).T)
     tau = np.sum(dz**2) / w
-    x = np.zeros(pb.nx)
-    x[:pb.ntheta] = dtheta
+    x = np.zeros(lay.nx)
+    x[lay.col_theta] = dtheta
     if pb.qsr is not None:
-        x[pb.oP:pb.oY] = (np.asarray(P)[pb.lmi.p_rows, pb.lmi.p_cols]
-                              / pb.p_scale(P if P_tilde is None else P_tilde))
-    x[pb.oY:pb.ow] = Y[0, 0] if pb.window_cone != "psd" else Y[pb.y_rows, pb.y_cols]
-    x[pb.ow], x[pb.otau] = w, tau
-    if pb.window_cone == "stacked":
+        x[lay.colP] = (np.asarray(P)[pb.lmi.p_rows, pb.lmi.p_cols]
+                       / pb.p_scale(P if P_tilde is None else P_tilde))
+    x[lay.colY] = Y[0, 0] if lay.scalar_y else Y[lay.y_rows, lay.y_cols]
+    if lay.n_sig == 1:  # one sigma for all windows ("stacked")
         sig = np.sum(sig, keepdims=True)
-    x[pb.osig:] = sig * (1 + 1e-12) + 1e-15
-    x[pb.otau] = tau * (1 + 1e-12) + 1e-15
+    x[lay.col_sig] = sig * (1 + 1e-12) + 1e-15
+    x[lay.ow] = w
+    x[lay.otau] = tau * (1 + 1e-12) + 1e-15
     return x

@@ -81,10 +81,10 @@ def test_bounded_gain_matches_hinf_norm():
     w = np.linspace(0, np.pi, 4001)
     gain = max(np.linalg.svd(sys(np.exp(1j * wi)), compute_uv=False)[0] for wi in w)
     K = dj.LTIController(A, B, C, D)
-    qsr = dj.QSR.bounded_gain(gain * 1.001, 2, 2)
+    qsr = dj.QSR.bounded_gain(gain * 1.001, n_in=2, n_out=2)
     cert = dj.certify(K, qsr)
     assert cert.holds and dissipation_ok(K, qsr, cert.P)
-    assert not dj.certify(K, dj.QSR.bounded_gain(gain * 0.999, 2, 2)).holds
+    assert not dj.certify(K, dj.QSR.bounded_gain(gain * 0.999, n_in=2, n_out=2)).holds
 
 
 def _random_qsr(rng, p, m):
@@ -167,7 +167,7 @@ def test_given_P_is_checked_not_solved():
 def test_certify_float32_controller():
     """float32 input is certified as given (float64 arithmetic on the float32 values)."""
     qsr = dj.QSR(-29.867, 3.556, 0.601)
-    K = dj.project(dj.LTIController.random(jax.random.PRNGKey(3), 2, 1, 1, 2.0), qsr)[0]
+    K = dj.project(dj.LTIController.random(2, 1, 1, scale=2.0, key=jax.random.PRNGKey(3)), qsr)[0]
     K32 = K.astype(jnp.float32)
     cert = dj.certify(K32, qsr)
     assert K32.A.dtype == jnp.float32 and cert.P.dtype == np.float64
@@ -193,9 +193,66 @@ def test_certify_bad_input():
         dj.certify("not a controller", dj.QSR.passive(1))
     batched = dj.LTIController(np.zeros((2, 1, 1)), np.ones((2, 1, 1)), np.ones((2, 1, 1)),
                                np.ones((2, 1, 1)))
-    with pytest.raises(ValueError, match="`K`"):
-        dj.certify(batched, dj.QSR.passive(1))
+    with pytest.raises(ValueError, match="`P`"):
+        dj.certify(batched, dj.QSR.passive(1), P=np.ones((3, 1, 1)))  # wrong batch
     with pytest.raises(ValueError, match="`P`"):
         dj.certify(K, dj.QSR.passive(1), P=np.array([[np.nan]]))
     with pytest.raises(ValueError, match="`P`"):
         dj.certify(K, dj.QSR.passive(1), P=np.ones((1, 1, 1)))
+
+
+# -- controllers with leading batch axes ----------------------------------------------------
+
+
+def _stack(members, shape):
+    """An LTIController with batch `shape` from a flat list of unbatched ones."""
+    return jax.tree.map(lambda *a: jnp.stack(a).reshape(shape + a[0].shape), *members)
+
+
+@pytest.mark.parametrize("shape", [(3,), (2, 2)])
+def test_batched_certify_equals_loop(shape):
+    rng = np.random.default_rng(7)
+    qsr = dj.QSR.passive(2)
+    members = []
+    for i in range(int(np.prod(shape))):
+        A, B, C, D = _random_stable(rng, 2, 2)
+        if i % 2 == 0:  # make every other member strictly passive
+            D = D @ D.T + 20.0 * np.eye(2)
+        members.append(dj.LTIController(A, B, C, D))
+    Ks = _stack(members, shape)
+    cert = dj.certify(Ks, qsr)
+    assert isinstance(cert.holds, np.ndarray) and cert.holds.dtype == bool
+    assert cert.holds.shape == cert.margin.shape == cert.status.shape == shape
+    assert cert.P.shape == shape + (2, 2)
+    assert cert.holds.any() and not cert.holds.all()
+    for i, idx in enumerate(np.ndindex(*shape)):
+        ref = dj.certify(members[i], qsr)
+        assert cert.holds[idx] == ref.holds and cert.status[idx] == ref.status
+        np.testing.assert_allclose(cert.margin[idx], ref.margin, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(cert.P[idx], ref.P, rtol=1e-9, atol=1e-12)
+    # with P given the check is vectorised, and equals the loop too
+    given = dj.certify(Ks, qsr, P=cert.P)
+    assert given.status.shape == shape and set(given.status.ravel()) == {"given"}
+    np.testing.assert_array_equal(given.holds, cert.holds)
+    one_P = dj.certify(Ks, qsr, P=np.eye(2))  # one P for every member
+    assert one_P.P.shape == shape + (2, 2)
+    for i, idx in enumerate(np.ndindex(*shape)):
+        ref = dj.certify(members[i], qsr, P=np.eye(2))
+        assert one_P.holds[idx] == ref.holds
+        assert one_P.margin[idx] == pytest.approx(ref.margin, rel=1e-12, abs=1e-15)
+        ref = dj.certify(members[i], qsr, P=cert.P[idx])
+        assert given.holds[idx] == ref.holds
+        assert given.margin[idx] == pytest.approx(ref.margin, rel=1e-12, abs=1e-15)
+
+
+def test_empty_batch():
+    Ks = dj.LTIController(*(np.zeros((0,) + s) for s in ((2, 2), (2, 1), (1, 2), (1, 1))))
+    for cert in (dj.certify(Ks, dj.QSR.passive(1)), dj.certify(Ks, dj.QSR.passive(1), P=np.eye(2))):
+        assert cert.holds.shape == cert.margin.shape == cert.status.shape == (0,)
+        assert cert.P.shape == (0, 2, 2)
+
+
+def test_unbatched_certificate_keeps_scalars():
+    cert = dj.certify(_first_order(0.5, 1.0, 1.0, 1.0), dj.QSR.passive(1))
+    assert type(cert.holds) is bool and type(cert.margin) is float
+    assert type(cert.status) is str and cert.P.shape == (1, 1)

@@ -9,7 +9,7 @@ import dissil_jax as dj
 
 
 def test_call_is_one_step(getkey):
-    K = dj.LTIController.random(getkey(), 3, 2, 1, scale=1.0)
+    K = dj.LTIController.random(3, 2, 1, scale=1.0, key=getkey())
     x, u = jnp.arange(3.0), jnp.array([1.0, -2.0])
     xn, y = K(x, u)
     np.testing.assert_allclose(xn, K.A @ x + K.B @ u)
@@ -19,14 +19,14 @@ def test_call_is_one_step(getkey):
 
 def test_random_scale_and_determinism(getkey):
     key = getkey()
-    K1 = dj.LTIController.random(key, 20, 10, 10, scale=0.3)
-    K2 = dj.LTIController.random(key, 20, 10, 10, scale=0.3)
+    K1 = dj.LTIController.random(20, 10, 10, scale=0.3, key=key)
+    K2 = dj.LTIController.random(20, 10, 10, scale=0.3, key=key)
     assert tree_allclose(K1, K2)
     assert 0.25 < float(jnp.std(K1.A)) < 0.35
 
 
 def test_statespace_round_trip(getkey):
-    K = dj.LTIController.random(getkey(), 2, 3, 2)
+    K = dj.LTIController.random(2, 3, 2, key=getkey())
     sys = K.to_statespace(dt=0.1)
     assert isinstance(sys, control.StateSpace) and sys.dt == 0.1
     assert tree_allclose(dj.LTIController.from_statespace(sys), K)
@@ -41,13 +41,13 @@ def test_shape_errors_name_the_argument():
         dj.LTIController(np.eye(2), np.ones((2, 1)), np.ones((1, 2)), np.ones((2, 1)))
     with pytest.raises(ValueError, match="`A`"):
         dj.LTIController(np.full((2, 2), np.nan), np.ones((2, 1)), np.ones((1, 2)), np.ones((1, 1)))
-    with pytest.raises(ValueError, match="`n`"):
-        dj.LTIController.random(jax.random.PRNGKey(0), 0, 1, 1)
+    with pytest.raises(ValueError, match="`n_state`"):
+        dj.LTIController.random(0, 1, 1, key=jax.random.PRNGKey(0))
 
 
 def test_batched_controllers_via_vmap(getkey):
     keys = jax.random.split(getkey(), 4)
-    Ks = jax.vmap(lambda k: dj.LTIController.random(k, 2, 1, 1))(keys)
+    Ks = jax.vmap(lambda k: dj.LTIController.random(2, 1, 1, key=k))(keys)
     assert Ks.batch_shape == (4,)
     x = jnp.ones((4, 2))
     u = jnp.ones((4, 1))
@@ -76,20 +76,64 @@ def test_invalid_matrices_name_the_argument(mats, name):
         dj.LTIController(*mats)
 
 
-def test_batched_controller_where_one_is_required(getkey):
-    Ks = dj.LTIController(*(0.1 * np.ones((3,) + s) for s in ((2, 2), (2, 1), (1, 2), (1, 1))))
-    with pytest.raises(ValueError, match="index the batch"):
-        Ks.to_statespace()
-    with pytest.raises(ValueError, match="`K`"):
-        dj.certify(Ks, dj.QSR.passive(1))
+def test_random_size_errors_name_the_argument(getkey):
     with pytest.raises(ValueError, match="`n_in`"):
-        dj.LTIController.random(getkey(), 2, 1.5, 1)
+        dj.LTIController.random(2, 1.5, 1, key=getkey())
     with pytest.raises(ValueError, match="`n_out`"):
-        dj.LTIController.random(getkey(), 2, 1, -1)
+        dj.LTIController.random(2, 1, -1, key=getkey())
+    with pytest.raises(TypeError):
+        dj.LTIController.random(2, 1, 1)  # `key` is required (keyword-only)
+    with pytest.raises(TypeError):
+        dj.LTIController.random(2, 1, 1, 0.5, key=getkey())  # `scale` is keyword-only
+
+
+def test_random_signature_is_equinox_style():
+    import inspect
+
+    sig = inspect.signature(dj.LTIController.random)
+    assert list(sig.parameters) == ["n_state", "n_in", "n_out", "scale", "dtype", "key"]
+    kinds = {name: p.kind for name, p in sig.parameters.items()}
+    assert all(kinds[k] is inspect.Parameter.KEYWORD_ONLY for k in ("scale", "dtype", "key"))
+
+
+def _batch(getkey, shape, n=2, p=1, m=1):
+    keys = jax.random.split(getkey(), int(np.prod(shape)))
+    Ks = jax.vmap(lambda k: dj.LTIController.random(n, p, m, scale=0.6, key=k))(keys)
+    return jax.tree.map(lambda a: a.reshape(shape + a.shape[1:]), Ks)
+
+
+@pytest.mark.parametrize("shape", [(3,), (2, 3)])
+def test_batched_to_statespace_equals_loop(getkey, shape):
+    Ks = _batch(getkey, shape, n=2, p=3, m=2)
+    systems = Ks.to_statespace(dt=0.1)
+    assert isinstance(systems, np.ndarray) and systems.dtype == object
+    assert systems.shape == shape
+    for idx in np.ndindex(*shape):
+        ref = jax.tree.map(lambda a: a[idx], Ks).to_statespace(dt=0.1)
+        sys = systems[idx]
+        assert isinstance(sys, control.StateSpace) and sys.dt == 0.1
+        for name in "ABCD":
+            np.testing.assert_array_equal(getattr(sys, name), getattr(ref, name))
+    # from_statespace inverts it, from the array and from a nested list
+    assert tree_allclose(dj.LTIController.from_statespace(systems), Ks, rtol=0, atol=0)
+    assert tree_allclose(dj.LTIController.from_statespace(systems.tolist()), Ks, rtol=0, atol=0)
+
+
+def test_from_statespace_batch_errors(getkey):
+    a = dj.LTIController.random(2, 1, 1, key=getkey()).to_statespace()
+    b = dj.LTIController.random(3, 1, 1, key=getkey()).to_statespace()
+    with pytest.raises(ValueError, match="`sys`"):
+        dj.LTIController.from_statespace([a, b])  # different sizes
+    with pytest.raises(ValueError, match="`sys`"):
+        dj.LTIController.from_statespace([[a, a], [a]])  # ragged
+    with pytest.raises(ValueError, match="`sys`"):
+        dj.LTIController.from_statespace([])
+    with pytest.raises(ValueError, match="`sys`"):
+        dj.LTIController.from_statespace([a, control.ss([[-1.0]], [[1.0]], [[1.0]], [[0.0]])])
 
 
 def test_dtype_is_kept_and_cast(getkey):
-    K = dj.LTIController.random(getkey(), 2, 1, 1, dtype=jnp.float32)
+    K = dj.LTIController.random(2, 1, 1, dtype=jnp.float32, key=getkey())
     assert all(M.dtype == jnp.float32 for M in (K.A, K.B, K.C, K.D))
     K64 = K.astype(jnp.float64)
     assert all(M.dtype == jnp.float64 for M in (K64.A, K64.B, K64.C, K64.D))

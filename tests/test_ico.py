@@ -8,10 +8,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import dissipation_ok, expert_windows, index, tree_allclose
-from ico_checks import cone_min, feasible_point, overbound
+from ico_checks import cone_min, cone_spec, feasible_point, overbound
 
 import dissil_jax as dj
-from dissil_jax._train import _ico_sdp, _ico_solver
+from dissil_jax import _sdp
+from dissil_jax._train import _ico_sdp
+from dissil_jax._train._ico_blocks import Iterate
 from dissil_jax._train._ico_sdp import ICOProblem
 from dissil_jax._train._ico_solver import ICOSolver
 from dissil_jax._train._ico_windows import stacked_factor
@@ -25,7 +27,8 @@ def _problem(windows, qsr, cone="stacked"):
 
 
 def _start(key, windows, qsr, scale=0.3):
-    K = dj.LTIController.random(key, windows.n_state, windows.n_in, windows.n_out, scale)
+    K = dj.LTIController.random(windows.n_state, windows.n_in, windows.n_out, scale=scale,
+                                key=key)
     P = None
     if qsr is not None:
         K, P = dj.project(K, qsr)
@@ -87,6 +90,33 @@ def test_overbound_bounds_true_loss(getkey, n, p, m, cone):
     assert checked >= 8
 
 
+def test_blocks_fill_their_patterns(getkey):
+    """Every cone block gives one number per pattern entry and `rows` entries of b, inside its
+    rows and cones; every problem has the same attributes whatever the cone and supply rate."""
+    windows = expert_windows(5, 2, 2, 2, N=9)
+    K, P = _start(getkey(), windows, dj.QSR.passive(2))
+    attrs = set()
+    for qsr in (dj.QSR.passive(2), None):
+        for cone in _ico_sdp.WINDOW_CONES:
+            pb = _problem(windows, qsr, cone)
+            theta = pb.theta(K.A, K.B, K.C, K.D)
+            P_tilde = None if qsr is None else P
+            A0, B0, C0, D0 = pb.mats(theta)
+            _, z, ebar = pb.residuals(A0, B0, C0, D0)
+            it = Iterate(theta, A0, B0, C0, D0, P_tilde, 0.9, 1e-7, pb.p_scale(P_tilde), z, ebar)
+            for blk in pb.blocks:
+                rows, cols = blk.pattern()
+                vals, b = blk.fill(it)
+                assert vals.shape == rows.shape == cols.shape and b.shape == (blk.rows,)
+                assert rows.min() >= 0 and rows.max() < blk.rows and cols.max() < pb.nx
+                sizes = [d * (d + 1) // 2 if kind == "psd" else d for kind, d in cone_spec(blk)]
+                assert sum(sizes) == blk.rows
+            assert sum(blk.rows for blk in pb.blocks) == pb.nrows
+            assert (pb.kyp is None) == (qsr is None)
+            attrs.add(frozenset(vars(pb)))
+    assert len(attrs) == 1
+
+
 @pytest.mark.parametrize("qsr", [dj.QSR.passive(2), None])
 def test_stacked_cone_equals_per_window_cones(getkey, qsr):
     """The QR-compressed stacked cone has the optimum of one SOC per window (same bound)."""
@@ -98,7 +128,7 @@ def test_stacked_cone_equals_per_window_cones(getkey, qsr):
         theta = pb.theta(K.A, K.B, K.C, K.D)
         solver = ICOSolver(pb)
         d, _, w, status, _ = solver.solve(theta, P, 0.8)
-        assert status in _ico_solver._OK
+        assert status == _sdp.code("solved")
         out[cone] = (solver.obj_val, d, w, pb)
     (obj_s, d_s, w_s, pb_s), (obj_w, d_w, w_w, pb_w) = out["stacked"], out["soc"]
     assert pb_s.nrows < pb_w.nrows - 2 * 40  # the point of stacking
@@ -145,7 +175,7 @@ def test_inplace_update_matches_fresh_solver(getkey):
     theta = pb.theta(K.A, K.B, K.C, K.D)
     reused = ICOSolver(pb)
     d, P1, w1, status, _ = reused.solve(theta, P, 1.0)
-    assert status in _ico_solver._OK
+    assert status == _sdp.code("solved")
     theta2 = theta + d
     d_upd, P_upd, w_upd, _, _ = reused.solve(theta2, P1, 0.5)
     fresh = ICOSolver(pb)
@@ -223,8 +253,11 @@ def test_rejected_step_keeps_certified_iterate(getkey, monkeypatch):
         return d, P, w, status, t
 
     monkeypatch.setattr(ICOSolver, "solve", bad_solve)
-    with pytest.warns(UserWarning, match="loss increased|not certified"):
-        res = dj.fit_ico(getkey(), windows, qsr, num_inits=1, max_steps=10, tol=0.0)
+    key = getkey()
+    with pytest.raises(ValueError, match="loss_increased|not_certified"):
+        dj.fit_ico(key, windows, qsr, num_inits=1, max_steps=10, tol=0.0)
+    calls.clear()
+    res = dj.fit_ico(key, windows, qsr, num_inits=1, max_steps=10, tol=0.0, throw=False)
     assert int(res.steps[0]) == 1 and not bool(res.converged[0])
     assert res.stop_reasons()[0] in ("loss_increased", "not_certified")
     assert bool(res.certified[0])

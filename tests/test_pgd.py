@@ -1,3 +1,4 @@
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -48,9 +49,11 @@ def _check_against_loop(res, K0, P0, w, qsr, lr, decay, max_steps, tol):
         assert int(res.steps[i]) == n - 1
         np.testing.assert_allclose(res.loss_history[i, :n], hist, rtol=1e-9, atol=1e-12)
         assert np.all(np.isnan(res.loss_history[i, n:]))
+        # The trainers draw K0 inside `jit`, where XLA may round N(0,1)*scale differently in
+        # the last bit; the initial projection's solver tolerance (~1e-8) amplifies that.
         for name in "ABCD":
             np.testing.assert_allclose(getattr(index(res.controllers, i), name),
-                                       getattr(Ki, name), rtol=1e-9, atol=1e-12)
+                                       getattr(Ki, name), rtol=1e-7, atol=1e-10)
         if qsr is not None:
             # P is pinned only by the projection's tiny proximal term (weight 1e-6), so it
             # agrees to the solver's tolerance rather than to round-off.
@@ -108,14 +111,18 @@ def test_pgd_controllers_certified_and_loss_decreases(getkey):
     np.testing.assert_allclose(res.final_loss, res.loss_history[:, -1])
 
 
-def test_no_retracing_across_calls(getkey):
+def test_no_retracing_across_calls(getkey, monkeypatch):
+    """New data, step sizes and an equal (not identical) supply rate reuse one compilation."""
+    traced = eqx.debug.assert_max_traces(pgd._run, max_traces=1)
+    monkeypatch.setattr(pgd, "_run_jit", eqx.filter_jit(traced))
     w1 = random_windows(getkey(), N=8)
     w2 = random_windows(getkey(), N=8, gain=0.1)
     dj.fit_pgd(getkey(), w1, QSR, num_inits=2, max_steps=5)
-    before = pgd.TRACE_COUNT["pgd_loop"]
     dj.fit_pgd(getkey(), w2, QSR, num_inits=2, max_steps=5, learning_rate=0.01, decay=0.9)
-    dj.fit_pgd(getkey(), w1, QSR, num_inits=2, max_steps=5)
-    assert pgd.TRACE_COUNT["pgd_loop"] == before
+    dj.fit_pgd(getkey(), w1, dj.QSR(-29.867, 3.556, 0.601), num_inits=2, max_steps=5,
+               init_scale=0.5)
+    with pytest.raises(RuntimeError, match="traced"):  # the check itself can fail
+        dj.fit_pgd(getkey(), w1, QSR, num_inits=3, max_steps=5)
 
 
 def test_learning_rate_sweep_with_vmap_equals_loop(getkey):
@@ -151,9 +158,12 @@ def test_stop_reasons(getkey):
     assert capped.stop_reasons() == ["max_steps"] * 2 and not bool(jnp.any(capped.converged))
     assert bool(jnp.all(capped.steps == 5))
     # Divergence: a huge learning rate on unconstrained GD drives the loss to inf/NaN.
-    big = dj.fit_gd(getkey(), random_windows(getkey(), N=10, gain=2.0), num_inits=2,
-                    max_steps=200, learning_rate=1e6, tol=0.0, init_scale=1.0)
+    diverging = dict(num_inits=2, max_steps=200, learning_rate=1e6, tol=0.0, init_scale=1.0)
+    wb = random_windows(getkey(), N=10, gain=2.0)
+    big = dj.fit_gd(getkey(), wb, throw=False, **diverging)
     assert big.stop_reasons() == ["non_finite"] * 2
+    with pytest.raises(ValueError, match="non_finite"):
+        dj.fit_gd(getkey(), wb, **diverging)
     assert not bool(jnp.any(big.converged))
     with pytest.raises(ValueError, match="stop_reason"):
         dj.FitResult(None, None, None, big.loss_history, big.final_loss, big.converged,
@@ -199,20 +209,22 @@ def test_trainer_bad_input(getkey):
 
 class _FailAfter:
     """Replaces the projection's single Clarabel solve: the first `ok` solves run, the rest
-    report SOLVER_FAILED (a solver failure injected on the host)."""
+    report `solver_failed` (a solver failure injected on the host)."""
 
     def __init__(self, monkeypatch, ok):
-        from dissil_jax import _projection
+        from dissil_jax import _projection, _sdp
 
-        self.ok, self.calls, self._orig = ok, 0, _projection._solve_once
-        self.failed = _projection.Status.SOLVER_FAILED
-        monkeypatch.setattr(_projection, "_solve_once", self)
+        self.ok, self.calls, self._orig = ok, 0, _projection._ProjectionSolver.solve
+        self.failed = _sdp.code("solver_failed")
+        fail = self
 
-    def __call__(self, *args, **kwargs):
-        self.calls += 1
-        if self.calls > self.ok:
-            return None, self.failed, 0.0
-        return self._orig(*args, **kwargs)
+        def solve(solver, *args):
+            fail.calls += 1
+            if fail.calls > fail.ok:
+                return None, fail.failed, 0.0
+            return fail._orig(solver, *args)
+
+        monkeypatch.setattr(_projection._ProjectionSolver, "solve", solve)
 
 
 def test_solver_failure_mid_run_keeps_the_last_certified_iterate(getkey, monkeypatch):
@@ -220,8 +232,11 @@ def test_solver_failure_mid_run_keeps_the_last_certified_iterate(getkey, monkeyp
     key = getkey()
     ref = dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, tol=0.0)
     fail = _FailAfter(monkeypatch, ok=4)
-    res = dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, tol=0.0)
+    res = dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, tol=0.0,
+                     throw=False)
     assert fail.calls > 4
+    with pytest.raises(ValueError, match="solver_failed"):
+        dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, tol=0.0)
     assert res.stop_reasons() == ["solver_failed"] and not bool(res.converged[0])
     k = int(res.steps[0])
     assert 0 < k < 6
@@ -238,11 +253,43 @@ def test_solver_failure_mid_run_keeps_the_last_certified_iterate(getkey, monkeyp
 def test_failed_initial_projection(getkey, monkeypatch):
     w = random_windows(getkey(), N=6)
     _FailAfter(monkeypatch, ok=0)
-    with pytest.raises(ValueError, match="initial projection failed"):
+    with pytest.raises(ValueError, match="2 of 2 runs.*solver_failed"):
         dj.fit_pgd(getkey(), w, QSR, num_inits=2, max_steps=3)
-    res = dj.pgd_run(getkey(), w, QSR, num_inits=2, max_steps=3)
+    with pytest.raises(Exception, match="Clarabel failed"):  # traced: EquinoxRuntimeError
+        jax.jit(lambda k: dj.pgd_run(k, w, QSR, num_inits=2, max_steps=3).final_loss)(getkey())
+    res = dj.pgd_run(getkey(), w, QSR, num_inits=2, max_steps=3, throw=False)
     assert res.stop_reasons() == ["solver_failed"] * 2
     assert not bool(jnp.any(res.certified)) and bool(jnp.all(res.steps == 0))
+
+
+def test_non_finite_loss_under_a_constraint_keeps_the_last_finite_iterate(getkey, monkeypatch):
+    """The loss is made NaN once it falls below a threshold between steps 2 and 3 of a
+    reference run: the constrained run must keep its step-2 iterate, certified."""
+    w = random_windows(getkey(), N=12, gain=0.6)
+    key = getkey()
+    kw = dict(num_inits=1, max_steps=6, learning_rate=0.05, tol=0.0)
+    ref = dj.fit_pgd(key, w, QSR, **kw)
+    hist = np.asarray(ref.loss_history[0])
+    assert np.all(np.diff(hist) < 0)
+    threshold = (hist[2] + hist[3]) / 2
+    true_loss = pgd._batched_loss
+
+    def nan_below(K, windows):
+        loss, grad = true_loss(K, windows)
+        return jnp.where(loss < threshold, jnp.nan, loss), grad
+
+    monkeypatch.setattr(pgd, "_batched_loss", nan_below)
+    # a new function object, so that jit's cache cannot serve the unpatched trace
+    monkeypatch.setattr(pgd, "_run_jit", eqx.filter_jit(lambda *a, **k: pgd._run(*a, **k)))
+    res = dj.fit_pgd(key, w, QSR, throw=False, **kw)
+    assert res.stop_reasons() == ["non_finite"] and int(res.steps[0]) == 3
+    assert float(res.final_loss[0]) == pytest.approx(hist[2], rel=1e-12)
+    assert float(res.loss_history[0, 3]) == pytest.approx(hist[2], rel=1e-12)
+    assert bool(res.certified[0])
+    assert independent_kyp_ok(index(res.controllers, 0), QSR, res.P[0])
+    assert paper_loss(index(res.controllers, 0), w) == pytest.approx(hist[2], rel=1e-10)
+    with pytest.raises(ValueError, match="non_finite"):
+        dj.fit_pgd(key, w, QSR, **kw)
 
 
 @pytest.mark.parametrize("constrained", [True, False], ids=["pgd", "gd"])

@@ -19,7 +19,7 @@ def _loop_outputs(K, x0, u):
 
 @pytest.mark.parametrize("n, p, m, h", [(1, 1, 1, 2), (3, 2, 1, 5), (6, 3, 3, 7)])
 def test_toeplitz_and_scan_equal_plain_loop(getkey, n, p, m, h):
-    K = dj.LTIController.random(getkey(), n, p, m, scale=0.5)
+    K = dj.LTIController.random(n, p, m, scale=0.5, key=getkey())
     x0 = jax.random.normal(getkey(), (n,))
     u = jax.random.normal(getkey(), (h, p))
     ref = _loop_outputs(K, x0, u)
@@ -31,7 +31,7 @@ def test_toeplitz_and_scan_equal_plain_loop(getkey, n, p, m, h):
 
 
 def test_predict_both_paths_agree(getkey, monkeypatch):
-    K = dj.LTIController.random(getkey(), 2, 2, 1, scale=0.5)
+    K = dj.LTIController.random(2, 2, 1, scale=0.5, key=getkey())
     w = dj.Windows(jax.random.normal(getkey(), (5, 2)), jax.random.normal(getkey(), (5, 4, 2)),
                    jax.random.normal(getkey(), (5, 4, 1)))
     a = dj.predict(K, w)
@@ -55,7 +55,7 @@ def test_sign_convention_lqr_like_expert_is_passive_gain():
 
 
 def test_loss_value_and_gradient_match_finite_differences(getkey):
-    K = dj.LTIController.random(getkey(), 2, 2, 2, scale=0.5)
+    K = dj.LTIController.random(2, 2, 2, scale=0.5, key=getkey())
     w = dj.Windows(jax.random.normal(getkey(), (7, 2)), jax.random.normal(getkey(), (7, 3, 2)),
                    jax.random.normal(getkey(), (7, 3, 2)))
     # Paper eq. 16: squared norm of each window's stacked error, averaged over windows.
@@ -94,11 +94,11 @@ def test_windows_validation():
     with pytest.raises(ValueError, match="`u`"):
         dj.Windows(jnp.zeros((3, 1)), jnp.zeros((3, 2, 1)), jnp.full((3, 2, 1), jnp.nan))
     with pytest.raises(ValueError, match="`horizon`"):
-        dj.observability_toeplitz(dj.LTIController.random(jax.random.PRNGKey(0), 1, 1, 1), 0)
+        dj.observability_toeplitz(dj.LTIController.random(1, 1, 1, key=jax.random.PRNGKey(0)), 0)
 
 
 def test_float32_rollout_and_loss_match_float64(getkey):
-    K = dj.LTIController.random(getkey(), 3, 2, 2, scale=0.4)
+    K = dj.LTIController.random(3, 2, 2, scale=0.4, key=getkey())
     x0, u = jax.random.normal(getkey(), (3,)), jax.random.normal(getkey(), (5, 2))
     f32 = lambda t: jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), t)
     y64, y32 = dj.rollout(K, x0, u), dj.rollout(f32(K), f32(x0), f32(u))
@@ -111,7 +111,28 @@ def test_float32_rollout_and_loss_match_float64(getkey):
     assert float(J32) == pytest.approx(float(dj.imitation_loss(K, w)), rel=1e-5)
 
 
+@pytest.mark.parametrize("shape", [(3,), (2, 3)])
+def test_batched_observability_toeplitz_equals_loop(getkey, shape):
+    n, p, m, h = 3, 2, 2, 4
+    keys = jax.random.split(getkey(), int(np.prod(shape)))
+    Kb = jax.vmap(lambda k: dj.LTIController.random(n, p, m, scale=0.5, key=k))(keys)
+    Kb = jax.tree.map(lambda a: a.reshape(shape + a.shape[1:]), Kb)
+    O, T = dj.observability_toeplitz(Kb, h)
+    assert O.shape == shape + (h * m, n) and T.shape == shape + (h * m, h * p)
+    for idx in np.ndindex(*shape):
+        Oi, Ti = dj.observability_toeplitz(jax.tree.map(lambda a: a[idx], Kb), h)
+        np.testing.assert_allclose(O[idx], Oi, rtol=1e-14, atol=1e-14)
+        np.testing.assert_allclose(T[idx], Ti, rtol=1e-14, atol=1e-14)
+    # also under jit
+    Oj, Tj = jax.jit(dj.observability_toeplitz, static_argnums=1)(Kb, h)
+    np.testing.assert_allclose(Oj, O, rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(Tj, T, rtol=1e-14, atol=1e-14)
+
+
 def test_batched_controller_is_refused_where_one_is_required(getkey):
-    Kb = jax.vmap(lambda k: dj.LTIController.random(k, 2, 1, 1))(jax.random.split(getkey(), 3))
+    Kb = jax.vmap(lambda k: dj.LTIController.random(2, 1, 1, key=k))(jax.random.split(getkey(), 3))
+    w = dj.Windows(jnp.zeros((4, 2)), jnp.ones((4, 3, 1)), jnp.ones((4, 3, 1)))
     with pytest.raises(ValueError, match="`K`"):
-        dj.observability_toeplitz(Kb, 2)
+        dj.predict(Kb, w)
+    with pytest.raises(ValueError, match="`K`"):
+        dj.observability_toeplitz("not a controller", 2)

@@ -12,7 +12,7 @@ def test_special_cases_match_their_definitions():
     w = dj.QSR.conic(a, b, 2).supply(u, y)
     np.testing.assert_allclose(w, -np.sum((y - a * u) * (y - b * u), -1))
     g = 1.7
-    np.testing.assert_allclose(dj.QSR.bounded_gain(g, 2, 2).supply(u, y),
+    np.testing.assert_allclose(dj.QSR.bounded_gain(g, n_in=2, n_out=2).supply(u, y),
                                g**2 * np.sum(u * u, -1) - np.sum(y * y, -1))
     d = -0.3
     np.testing.assert_allclose(dj.QSR.degenerate_conic(d, 2).supply(u, y),
@@ -57,7 +57,7 @@ def test_constructor_validation():
     with pytest.raises(ValueError, match="`a`"):
         dj.QSR.conic(2.0, 1.0, 1)
     with pytest.raises(ValueError, match="`gamma`"):
-        dj.QSR.bounded_gain(-1.0, 1, 1)
+        dj.QSR.bounded_gain(-1.0, n_in=1, n_out=1)
     with pytest.raises(ValueError, match="`dim`"):
         dj.QSR.passive(0)
 
@@ -100,11 +100,11 @@ def test_paper_controller_supply_rate_and_certificate():
 
 def test_closed_loop_certificate_rejects_impossible_pair():
     # Two gains whose product exceeds one: the small-gain condition must fail for every alpha.
-    holds, _ = dj.closed_loop_certificate(dj.QSR.bounded_gain(2.0, 1, 1),
-                                          dj.QSR.bounded_gain(0.6, 1, 1))
+    holds, _ = dj.closed_loop_certificate(dj.QSR.bounded_gain(2.0, n_in=1, n_out=1),
+                                          dj.QSR.bounded_gain(0.6, n_in=1, n_out=1))
     assert not holds
-    holds, _ = dj.closed_loop_certificate(dj.QSR.bounded_gain(2.0, 1, 1),
-                                          dj.QSR.bounded_gain(0.4, 1, 1))
+    holds, _ = dj.closed_loop_certificate(dj.QSR.bounded_gain(2.0, n_in=1, n_out=1),
+                                          dj.QSR.bounded_gain(0.4, n_in=1, n_out=1))
     assert holds
     # Passive + passive is not strictly enough (zero margin), strictly passive pair works.
     assert not dj.closed_loop_certificate(dj.QSR.passive(1), dj.QSR.passive(1)).holds
@@ -142,7 +142,7 @@ def test_stabilising_qsr_always_certifies():
 
 
 def test_stabilising_qsr_argument_errors():
-    plant = dj.QSR.bounded_gain(1.0, 2, 3)  # S is 2x3: M1 is 2x2, M2 is 3x3
+    plant = dj.QSR.bounded_gain(1.0, n_in=3, n_out=2)  # S is 2x3: M1 is 2x2, M2 is 3x3
     good = (np.eye(2), np.eye(3))
     dj.stabilising_qsr(plant, margins=good)
     for margins, match in [
@@ -163,9 +163,89 @@ def test_stabilising_qsr_argument_errors():
 
 
 def test_interconnection_shape_errors():
+    gain = dj.QSR.bounded_gain(1.0, n_in=3, n_out=2)
     with pytest.raises(ValueError, match="`controller_qsr`"):
-        dj.closed_loop_certificate(dj.QSR.bounded_gain(1.0, 2, 3), dj.QSR.bounded_gain(1.0, 2, 3))
+        dj.closed_loop_certificate(gain, gain)
     with pytest.raises(ValueError, match="margins"):
         dj.stabilising_qsr(dj.QSR.passive(1), margins=(0.1, -1.0))
     with pytest.raises(ValueError, match="`alpha`"):
         dj.stabilising_qsr(dj.QSR.passive(1), alpha=0.0)
+
+
+# -- a supply rate is a static, hashable value -------------------------------------------
+
+
+def test_qsr_hash_and_equality_by_value():
+    a, b = dj.QSR.passive(2), dj.QSR.passive(2)
+    assert a is not b
+    assert hash(a) == hash(b)
+    assert (a == b) is True and (a != b) is False
+    assert dj.QSR(-1.0, 3.556, 29.333) == dj.QSR(-1.0, 3.556, 29.333)
+    others = [dj.QSR.passive(3), dj.QSR.conic(0.0, 1.0, 2), dj.QSR.degenerate_conic(0.1, 2),
+              dj.QSR.bounded_gain(1.0, n_in=2, n_out=2), dj.QSR.bounded_gain(1.0, n_in=3, n_out=2)]
+    for other in others:
+        assert (a == other) is False and (a != other) is True
+    assert a != "passive" and a != (a.Q, a.S, a.R)
+    # usable as dict keys / in sets; equal values collapse
+    assert len({a, b, *others}) == 1 + len(others)
+    assert {a: 1}[b] == 1
+    # -0.0 and 0.0 are the same supply rate (hash consistent with ==)
+    z = dj.QSR(np.zeros((1, 1)), 0.5, -0.0 * np.ones((1, 1)))
+    assert z == dj.QSR.passive(1) and hash(z) == hash(dj.QSR.passive(1))
+    # equal after a pickle round trip, and the arrays stay read-only
+    import pickle
+
+    c = pickle.loads(pickle.dumps(dj.QSR.conic(-0.5, 2.0, 2)))
+    assert c == dj.QSR.conic(-0.5, 2.0, 2) and not c.Q.flags.writeable
+
+
+def test_qsr_has_no_array_leaves_and_read_only_float64_arrays():
+    import equinox as eqx
+    import jax
+
+    q = dj.QSR(-np.eye(2), np.ones((2, 3)), np.eye(3))
+    assert jax.tree.leaves(q) == []
+    assert eqx.filter(q, eqx.is_array) == q
+    for M, shape in ((q.Q, (2, 2)), (q.S, (2, 3)), (q.R, (3, 3))):
+        assert isinstance(M, np.ndarray) and M.dtype == np.float64 and M.shape == shape
+        assert not M.flags.writeable
+        with pytest.raises(ValueError):
+            M[0, 0] = 1.0
+    assert q.Q is q.Q  # cheap: no copy per access
+    # the caller's input is copied, so later edits of it do not change the supply rate
+    S = np.ones((2, 3))
+    q2 = dj.QSR(-np.eye(2), S, np.eye(3))
+    S[0, 0] = 5.0
+    assert q2.S[0, 0] == 1.0 and q2 == q
+
+
+def test_qsr_as_static_argument_of_jit_and_filter_jit():
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    traces = []
+
+    def f(x, qsr):
+        traces.append(qsr)
+        return x @ jnp.asarray(qsr.S) @ jnp.asarray(qsr.R)
+
+    x = jnp.ones((3, 2))
+    ref = np.ones((3, 2)) @ dj.QSR.conic(-1.0, 2.0, 2).S @ dj.QSR.conic(-1.0, 2.0, 2).R
+    static = jax.jit(f, static_argnums=1)
+    np.testing.assert_allclose(static(x, dj.QSR.conic(-1.0, 2.0, 2)), ref)
+    np.testing.assert_allclose(static(x, dj.QSR.conic(-1.0, 2.0, 2)), ref)
+    assert len(traces) == 1  # an equal supply rate hits the compilation cache
+    static(x, dj.QSR.conic(-1.0, 3.0, 2))
+    assert len(traces) == 2  # a different one retraces
+    # as an ordinary (pytree) argument of jax.jit and eqx.filter_jit: no leaves, so static
+    for wrap in (jax.jit, eqx.filter_jit):
+        traces.clear()
+        g = wrap(f)
+        np.testing.assert_allclose(g(x, dj.QSR.conic(-1.0, 2.0, 2)), ref)
+        g(x, dj.QSR.conic(-1.0, 2.0, 2))
+        assert len(traces) == 1
+        assert isinstance(traces[0], dj.QSR) and isinstance(traces[0].S, np.ndarray)
+    # and through jax.vmap (nothing to map over in the supply rate)
+    out = jax.vmap(f, in_axes=(0, None))(jnp.ones((4, 3, 2)), dj.QSR.conic(-1.0, 2.0, 2))
+    np.testing.assert_allclose(out, np.broadcast_to(ref, (4, 3, 2)))

@@ -23,5 +23,6 @@ def init_controllers(key, num_inits: int, windows: Windows, scale, dtype=None) -
     """
     n, p, m = windows.n_state, windows.n_in, windows.n_out
     dtype = dtype or windows.y.dtype
-    K = jax.vmap(lambda k: LTIController.random(k, n, p, m, 1.0, dtype))(jr.split(key, num_inits))
+    K = jax.vmap(lambda k: LTIController.random(n, p, m, scale=1.0, dtype=dtype, key=k))(
+        jr.split(key, num_inits))
     return jax.tree.map(lambda M: scale * M, K)

@@ -8,24 +8,20 @@ from collections.abc import Callable
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _sdp
 from .._certify import certify
 from .._controller import LTIController
 from .._data import Windows
-from .._lmi import kyp_certified
 from .._projection import project
 from .._supply import QSR
-from .._threads import num_workers, pool, single_threaded_blas
 from ._checks import check_fit_args
 from ._ico_sdp import ICOProblem
 from ._ico_solver import ICOSolver
 from ._init import INIT_SCALE, init_controllers
-from .result import FitResult, stop_code
+from .result import FitResult, raise_if_failed
 
-# `_run_one`'s reasons (the solver's status follows "solver:") -> FitResult.stop_reason
-_REASON_CODE = {"converged": stop_code("converged"), "max_steps": stop_code("max_steps"),
-                "solver": stop_code("solver_failed"),
-                "loss increased": stop_code("loss_increased"),
-                "not certified": stop_code("not_certified")}
+_CONVERGED, _MAX_STEPS, _LOSS_INCREASED, _NOT_CERTIFIED = (
+    _sdp.code(n) for n in ("converged", "max_steps", "loss_increased", "not_certified"))
 
 # Bounds on the Young weight's linearisation point, relative to its data-derived scale.
 _W_RANGE = 1e4
@@ -42,11 +38,6 @@ def _check_args(windows, qsr, num_inits, max_steps, tol, init_scale):
         )
 
 
-def _cast(x, dtype):
-    """Round to the output dtype and back, so checks see exactly what is returned."""
-    return np.asarray(x, np.float64).astype(dtype).astype(np.float64)
-
-
 def _young_scale(pb: ICOProblem, theta) -> float:
     """$\\lVert z\\rVert / (\\lVert C\\rVert\\lVert e\\rVert)$: balances the two Young terms
     when the step moves $C$ and $z = A\\hat x_0 + B\\hat u_0$ by the same relative amount."""
@@ -61,7 +52,7 @@ def _young_scale(pb: ICOProblem, theta) -> float:
 
 
 def _step(pb: ICOProblem, solver: ICOSolver, theta, P, w_tilde):
-    """One ICO SDP around (theta, P): `(dtheta, P_new, w_new, status)`, None on failure."""
+    """One ICO SDP around (theta, P): `(dtheta, P_new, w_new, outcome)`, None on failure."""
     eps = None
     if pb.qsr is not None:
         # The margin is imposed on the un-congruenced LMI, so the new iterate has it again at
@@ -81,7 +72,7 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, tol, dtype, index, callback
     hist[0] = J
     w_scale = _young_scale(pb, theta)
     w_tilde = w_scale
-    converged, reason, steps = False, "max_steps", 0
+    reason, steps = _MAX_STEPS, 0
     if callback is not None:
         callback(index, 0, theta, P, J)
     for step in range(1, max_steps + 1):
@@ -96,18 +87,18 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, tol, dtype, index, callback
                 P = np.asarray(cert.P, np.float64)
                 dtheta, P_new, w_new, status = _step(pb, solver, theta, P, w_tilde)
         if dtheta is None:
-            reason = f"solver: {status}"
+            reason = status
             break
-        theta_new = _cast(theta + dtheta, dtype)
+        theta_new = _sdp.cast(theta + dtheta, dtype)
         if qsr is not None:
-            P_new = _cast((P_new + P_new.T) / 2, dtype)
+            P_new = _sdp.cast((P_new + P_new.T) / 2, dtype)
         J_new = pb.loss(theta_new)
         # Guards against solver inaccuracy (the SDP guarantees both in exact arithmetic).
         if not J_new <= J:
-            reason = "loss increased"
+            reason = _LOSS_INCREASED
             break
-        if qsr is not None and not kyp_certified(*pb.mats(theta_new), qsr, P_new):
-            reason = "not certified"
+        if qsr is not None and not _sdp.certified(*pb.mats(theta_new), qsr, P_new):
+            reason = _NOT_CERTIFIED
             break
         dJ = J - J_new
         theta, P, J = theta_new, P_new, J_new
@@ -118,21 +109,29 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, tol, dtype, index, callback
         if callback is not None:
             callback(index, step, theta, P, J)
         if abs(dJ) < tol:
-            converged, reason = True, "converged"
+            reason = _CONVERGED
             break
-    return dict(theta=theta, P=P, J=J, hist=hist, converged=converged, steps=steps,
-                reason=reason)
+    return dict(theta=theta, P=P, J=J, hist=hist, steps=steps, reason=reason)
+
+
+def _not_started(pb: ICOProblem, theta, P, outcome, max_steps):
+    """The result of a run whose initial projection failed: its (uncertified) draw, flagged."""
+    hist = np.full(max_steps + 1, np.nan)
+    hist[0] = J = pb.loss(theta)
+    return dict(theta=theta, P=P, J=J, hist=hist, steps=0, reason=int(outcome))
 
 
 def _fit(key, windows, qsr, *, num_inits, max_steps, tol, init_scale, eps, prox, window_cone,
-         callback):
+         callback, throw):
     _check_args(windows, qsr, num_inits, max_steps, tol, init_scale)
     dtype = windows.y.dtype
     start = time.perf_counter()
     K0 = init_controllers(key, num_inits, windows, init_scale, dtype)
+    code0 = np.full(num_inits, _MAX_STEPS, np.int32)
     if qsr is not None:
-        K0, P0 = project(K0, qsr)  # paper Alg. 1 "Init": random, then projected (eq. 13)
-        P0 = np.asarray(P0, np.float64)
+        # paper Alg. 1 "Init": random, then projected (eq. 13)
+        K0, P0 = proj = project(K0, qsr, throw=False)
+        P0, code0 = np.asarray(P0, np.float64), np.asarray(proj.result._value)
     pb = ICOProblem(np.asarray(windows.x0), np.asarray(windows.y), np.asarray(windows.target),
                     qsr, eps=eps, prox=prox, window_cone=window_cone)
     mats = [np.asarray(M, np.float64) for M in (K0.A, K0.B, K0.C, K0.D)]
@@ -142,50 +141,42 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, tol, init_scale, eps, prox,
         def user_cb(i, step, theta, P, J):
             callback(i, step, LTIController(*pb.mats(theta)), P, J)
 
-    def work(i):
-        return _run_one(pb, thetas[i], None if qsr is None else P0[i], max_steps=max_steps,
-                        tol=tol, dtype=dtype, index=i, callback=user_cb)
+    def work(indices):
+        return [_run_one(pb, thetas[i], None if qsr is None else P0[i], max_steps=max_steps,
+                         tol=tol, dtype=dtype, index=i, callback=user_cb)
+                if not _sdp.failed(code0[i]) else _not_started(pb, thetas[i], P0[i], code0[i],
+                                                                 max_steps)
+                for i in indices]
 
-    with single_threaded_blas():
-        if min(num_workers(), num_inits) <= 1:
-            results = [work(i) for i in range(num_inits)]
-        else:
-            results = list(pool().map(work, range(num_inits)))
+    results = [r for chunk in _sdp.thread_map(work, range(num_inits), balance=True)
+               for r in chunk]
     wall = time.perf_counter() - start
-
-    failed = [r["reason"] for r in results if r["reason"] not in ("converged", "max_steps")]
-    if failed:
-        import warnings
-
-        warnings.warn(
-            f"ICO: {len(failed)} of {num_inits} runs stopped early and kept their last "
-            f"accepted (certified) iterate; reasons: {sorted(set(failed))}.", stacklevel=3)
     A, B, C, D = (np.stack(Ms) for Ms in zip(*(pb.mats(r["theta"]) for r in results)))
     controllers = LTIController(*(jnp.asarray(M, dtype) for M in (A, B, C, D)))
     P = certified = None
     if qsr is not None:
         Ps = np.stack([r["P"] for r in results])
-        certified = jnp.asarray([kyp_certified(A[i], B[i], C[i], D[i], qsr, Ps[i])
-                                 for i in range(num_inits)])
+        certified = jnp.asarray(_sdp.certified(A, B, C, D, qsr, Ps) & ~_sdp.failed(code0))
         P = jnp.asarray(Ps, dtype)
-    return FitResult(
+    reasons = np.asarray([r["reason"] for r in results], np.int32)
+    res = FitResult(
         controllers=controllers,
         P=P,
         certified=certified,
         loss_history=jnp.asarray(np.stack([r["hist"] for r in results]), dtype),
         final_loss=jnp.asarray([r["J"] for r in results], dtype),
-        converged=jnp.asarray([r["converged"] for r in results]),
+        converged=jnp.asarray(reasons == _CONVERGED),
         steps=jnp.asarray([r["steps"] for r in results], jnp.int32),
         wall_time=jnp.asarray(wall, dtype),
-        stop_reason=jnp.asarray([_REASON_CODE[r["reason"].split(":")[0]] for r in results],
-                                jnp.int32),
+        stop_reason=_sdp.item(reasons),
     )
+    return raise_if_failed(res) if throw else res
 
 
 def fit_ico(
     key, windows: Windows, qsr: QSR, *, num_inits: int = 8, max_steps: int = 150,
     tol: float = 1e-3, init_scale: float = INIT_SCALE, eps: float = 1e-6, prox: float = 1e-4,
-    window_cone: str = "stacked", callback: Callable | None = None,
+    window_cone: str = "stacked", callback: Callable | None = None, throw: bool = True,
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers by iterative convex overbounding (paper Alg. 1).
 
@@ -243,7 +234,7 @@ def fit_ico(
     every solve the new iterate is re-evaluated in float64 (after rounding to the data's
     dtype): the step is accepted only if the true loss did not increase and the exact KYP
     check (paper Lemma 2) holds with the returned $P$; otherwise the previous, certified
-    iterate is kept and that run stops (a warning names the reason).
+    iterate is kept and that run stops (`stop_reason` names the reason).
 
     Stops after `max_steps` iterations or when $|\\Delta J| <$ `tol`. Initialisations are
     solved in parallel threads (one Clarabel solver each), see `DISSIL_JAX_THREADS`.
@@ -265,6 +256,9 @@ def fit_ico(
     - `window_cone`: `"stacked"` (default), `"soc"` or `"psd"`, see above.
     - `callback`: optional `callback(init_index, step, K, P, loss)` called for the initial
       point (step 0) and every accepted iterate, from worker threads.
+    - `throw`: raise a `ValueError` when a run stopped early (an SDP failure or a refused
+      step, see `FitResult.stop_reason`). With `throw=False` the result is returned; every
+      run, including one that stopped early, carries its last certified iterate.
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult] with `P` and `certified` filled in.
 
@@ -277,20 +271,21 @@ def fit_ico(
         raise ValueError("`qsr` is None; use `dj.fit_ico_nc` for unconstrained ICO.")
     return _fit(key, windows, qsr, num_inits=num_inits, max_steps=max_steps, tol=tol,
                 init_scale=init_scale, eps=eps, prox=prox, window_cone=window_cone,
-                callback=callback)
+                callback=callback, throw=throw)
 
 
 def fit_ico_nc(
     key, windows: Windows, *, num_inits: int = 8, max_steps: int = 150, tol: float = 1e-3,
     init_scale: float = INIT_SCALE, prox: float = 1e-4, window_cone: str = "stacked",
-    callback: Callable | None = None,
+    callback: Callable | None = None, throw: bool = True,
 ) -> FitResult:
     """ICO without the dissipativity constraint (the paper's ICO-NC baseline).
 
     The same overbound and iteration as [`fit_ico`][dissil_jax.fit_ico], with no LMI and no
     projection of the random initialisation; the result carries `P = None` and
-    `certified = None` (no stability guarantee). `callback` receives `P = None`.
+    `certified = None` (no stability guarantee). `callback` receives `P = None`; `throw`
+    as in `fit_ico`.
     """
     return _fit(key, windows, None, num_inits=num_inits, max_steps=max_steps, tol=tol,
                 init_scale=init_scale, eps=1e-6, prox=prox, window_cone=window_cone,
-                callback=callback)
+                callback=callback, throw=throw)

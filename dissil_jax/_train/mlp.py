@@ -13,12 +13,13 @@ import jax.random as jr
 import optax
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from .. import _sdp
 from .._data import Windows
 from ._checks import check_fit_args
-from .result import FitResult, stop_code
+from .result import FitResult, raise_if_failed
 
 _CONVERGED, _MAX_STEPS, _NON_FINITE = (
-    stop_code(r) for r in ("converged", "max_steps", "non_finite"))
+    _sdp.code(r) for r in ("converged", "max_steps", "non_finite"))
 
 
 class MLPController(eqx.Module):
@@ -141,7 +142,7 @@ def _train_batch(keys, X, T, hidden, max_steps, learning_rate, tol):
 
 def fit_mlp(
     key, windows: Windows, *, hidden: Sequence[int] = (150, 150), num_inits: int = 8,
-    max_steps: int = 2000, learning_rate: float = 1e-3, tol: float = 1e-7,
+    max_steps: int = 2000, learning_rate: float = 1e-3, tol: float = 1e-7, throw: bool = True,
 ) -> FitResult:
     """Train the paper's NN baseline (NN + GD): a static ReLU MLP on the demonstration pairs.
 
@@ -162,6 +163,7 @@ def fit_mlp(
     - `hidden`: hidden-layer widths, all equal; `len(hidden) + 1` weight matrices (paper:
       three, `(150, 150)` linear and `(25, 25)` nonlinear).
     - `num_inits`, `max_steps`, `learning_rate`, `tol`: as for the other trainers.
+    - `throw`: raise a `ValueError` if a run's loss became non-finite (as `dj.fit_gd`).
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult] whose `controllers` is an
     [`MLPController`][dissil_jax.MLPController] with a leading `[num_inits]` axis; `P` and
@@ -176,8 +178,9 @@ def fit_mlp(
         keys, X, T, hidden, int(max_steps), float(learning_rate), float(tol))
     J = jax.block_until_ready(J)
     wall = time.perf_counter() - start
-    return FitResult(
+    res = FitResult(
         controllers=model, P=None, certified=None, loss_history=hist, final_loss=J,
         converged=converged, steps=steps, wall_time=jnp.asarray(wall, X.dtype),
-        stop_reason=reason,
+        stop_reason=_sdp.item(reason),
     )
+    return raise_if_failed(res) if throw else res

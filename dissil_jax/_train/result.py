@@ -5,8 +5,12 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
+
+from .. import _sdp
 
 
 class FitResult(eqx.Module):
@@ -24,19 +28,16 @@ class FitResult(eqx.Module):
     - `converged`: `[num_inits]` True when the stopping rule $|\\Delta J| <$ `tol` fired.
     - `steps`: `[num_inits]` number of steps taken.
     - `wall_time`: total training wall time in seconds (NaN inside a traced sweep).
-    - `stop_reason`: `[num_inits]` int, why each run stopped, an index into
-      `FitResult.STOP_REASONS` (decode with [`stop_reasons`][dissil_jax.FitResult.stop_reasons]):
-      `"converged"` ($|\\Delta J| <$ `tol`), `"max_steps"`, `"non_finite"` (the loss became
-      NaN or infinite; the last finite iterate is kept by the constrained trainers),
-      `"solver_failed"` (a projection or ICO SDP was infeasible or failed; the last
-      certified iterate is kept), `"loss_increased"` and `"not_certified"` (ICO's float64
-      guards against solver inaccuracy refused a step).
+    - `stop_reason`: `[num_inits]` [`Outcome`][dissil_jax.Outcome], why each run stopped
+      (decode with [`stop_reasons`][dissil_jax.FitResult.stop_reasons]): `converged`
+      ($|\\Delta J| <$ `tol`), `max_steps`, `non_finite` (the loss became NaN or infinite;
+      the constrained trainers keep their last finite, certified iterate), `infeasible`,
+      `solver_failed` or `not_certified` (a projection or an ICO SDP failed; the last
+      certified iterate is kept), `loss_increased` (ICO's float64 guard refused a step).
+      Compare with `res.stop_reason == dj.Outcome.converged`.
     """
 
-    STOP_REASONS: ClassVar[tuple[str, ...]] = (
-        "converged", "max_steps", "non_finite", "solver_failed", "loss_increased",
-        "not_certified",
-    )
+    STOP_REASONS: ClassVar[tuple[str, ...]] = _sdp.NAMES
 
     controllers: Any
     P: Float[Array, "inits n n"] | None
@@ -46,7 +47,7 @@ class FitResult(eqx.Module):
     converged: Bool[Array, " inits"]
     steps: Int[Array, " inits"]
     wall_time: Float[Array, ""]
-    stop_reason: Int[Array, " inits"] | None = None
+    stop_reason: Any = None
 
     @property
     def initial_loss(self) -> Float[Array, " inits"]:
@@ -69,15 +70,39 @@ class FitResult(eqx.Module):
         return jax.tree.map(lambda x: x[i], self.controllers)
 
     def stop_reasons(self) -> list:
-        """`stop_reason` decoded into the names of `STOP_REASONS` (nested lists for sweeps)."""
-        import numpy as np
-
+        """`stop_reason` decoded into `Outcome` names (nested lists for sweeps)."""
         if self.stop_reason is None:
             raise ValueError("this FitResult has no `stop_reason` (built by hand?).")
         names = np.asarray(self.STOP_REASONS, dtype=object)
-        return names[np.asarray(self.stop_reason)].tolist()
+        return names[np.asarray(_codes(self.stop_reason))].tolist()
 
 
-def stop_code(name: str) -> int:
-    """The `FitResult.stop_reason` code of a reason name."""
-    return FitResult.STOP_REASONS.index(name)
+def _codes(reason):
+    return reason._value if isinstance(reason, _sdp.Outcome) else reason
+
+
+_FINE = (_sdp.code("converged"), _sdp.code("max_steps"))
+
+
+def raise_if_failed(res: FitResult) -> FitResult:
+    """The trainers' `throw=True`: raise if a run ended other than `converged`/`max_steps`.
+
+    Eagerly a `ValueError` that counts the reasons; under `jit` an `EquinoxRuntimeError`
+    with the message of the worst outcome.
+    """
+    codes = _codes(res.stop_reason)
+    bad = (codes != _FINE[0]) & (codes != _FINE[1])
+    if isinstance(codes, jax.core.Tracer):
+        worst = _sdp.item(jnp.max(jnp.where(bad, codes, -1)))
+        return eqx.tree_at(lambda r: r.final_loss, res,
+                           worst.error_if(res.final_loss, jnp.any(bad)))
+    bad = np.asarray(bad)
+    if bad.any():
+        names = np.asarray(res.stop_reasons(), dtype=object)[bad]
+        counts = {n: int((names == n).sum()) for n in sorted(set(names))}
+        first = getattr(_sdp.Outcome, names.ravel()[0])
+        raise ValueError(
+            f"{int(bad.sum())} of {bad.size} runs ended in failure {counts}: "
+            f"{_sdp.Outcome[first]}. Each kept its last certified iterate; pass `throw=False` "
+            "to get the result and inspect `stop_reason`.")
+    return res

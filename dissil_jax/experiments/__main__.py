@@ -36,8 +36,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="small sizes (2 plants, 50 test states, 30 training steps)")
     p.add_argument("--lr-sweep", nargs="+", type=float, default=None, metavar="LR",
                    help="instead of the experiments, sweep PGD's and GD's learning rate over "
-                        "these values on training loss (N = first --segments, first --data, "
-                        "--inits per plant, at most 3 plants) and write lr_sweep.md")
+                        "these values on training loss in every --data x --segments "
+                        "configuration (default N = 25; --inits per plant, at most 2 plants), "
+                        "choose the rate with the smallest worst-case regret and write "
+                        "lr_sweep_EXAMPLE.{md,json}")
     return p
 
 
@@ -66,11 +68,10 @@ def _sweep(args) -> int:
     from .tuning import learning_rate_sweep, sweep_markdown
 
     spec = example_spec(args.example, args.quick)
-    segments = (args.segments or [25])[0]
-    sweeps = [learning_rate_sweep(args.example, m, args.lr_sweep, segments=segments,
-                                  data=args.data[0], inits=args.inits or 10,
-                                  plants=min(spec.num_plants, 3), seed=args.seed, spec=spec)
-              for m in ("pgd", "gd")]
+    sweeps = [learning_rate_sweep(args.example, m, args.lr_sweep, segments=n, data=data,
+                                  inits=args.inits or 10, plants=min(spec.num_plants, 2),
+                                  seed=args.seed, spec=spec)
+              for m in ("pgd", "gd") for data in args.data for n in (args.segments or [25])]
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     text = sweep_markdown(sweeps)

@@ -2,10 +2,13 @@
 
 The paper states that "an exponentially decaying learning rate was used" (paper §4.2) but
 not its value. We pick it per example and per method by running [`pgd_run`][dissil_jax.pgd_run]
-vmapped over a grid of initial learning rates on the training windows of one configuration
-(never on test data), and take the rate with the lowest median final training loss $J$
-over plants and initialisations. A run whose loss becomes non-finite (GD diverging) counts
-as $J = \\infty$.
+vmapped over a grid of initial learning rates on the training windows of several
+configurations (data regime x N; never on test data). In each configuration a rate's score
+is its median final training loss $J$ over plants and initialisations, divided by the best
+rate's median there (its regret, $\\ge 1$); the chosen rate has the smallest worst-case
+regret over the configurations ([`choose_rate`]). One rate must serve every configuration
+of the example, and a rate that is best at N = 25 can oscillate at N = 2 or on sliding
+windows. A run whose loss becomes non-finite (GD diverging) counts as $J = \\infty$.
 """
 
 from __future__ import annotations
@@ -47,7 +50,8 @@ def learning_rate_sweep(example: str, method: str, learning_rates, *, segments: 
         def run(lr, windows=windows, k_fit=k_fit):
             return dj.pgd_run(k_fit, windows, qsr, learning_rate=lr, decay=spec.pgd_decay,
                               init_scale=spec.init_scale, num_inits=inits,
-                              max_steps=spec.max_steps, tol=spec.tol).final_loss
+                              max_steps=spec.max_steps, tol=spec.tol,
+                              throw=False).final_loss
 
         J = np.asarray(jax.jit(jax.vmap(run))(jnp.asarray(lrs, windows.y.dtype)))
         losses.append(np.where(np.isfinite(J), J, np.inf))
@@ -61,19 +65,46 @@ def learning_rate_sweep(example: str, method: str, learning_rates, *, segments: 
                 best=float(lrs[int(np.argmin(median))]))
 
 
+def choose_rate(sweeps: list[dict]) -> tuple[float, np.ndarray]:
+    """The rate with the smallest worst-case regret over several sweeps of one method.
+
+    **Arguments:** `sweeps`, results of `learning_rate_sweep` over the same grid (one per
+    configuration).
+
+    **Returns:** `(rate, regret)` with `regret` `[configs, rates]`: each rate's median final
+    loss over the best median of its configuration (`inf` where the median diverged).
+    """
+    grids = {tuple(s["learning_rates"]) for s in sweeps}
+    if not sweeps or len(grids) != 1:
+        raise ValueError("`sweeps` must be a non-empty list of sweeps over one grid of rates.")
+    med = np.asarray([s["median_loss"] for s in sweeps], np.float64)
+    regret = med / med.min(axis=1, keepdims=True)
+    lrs = sweeps[0]["learning_rates"]
+    return float(lrs[int(np.argmin(regret.max(axis=0)))]), regret
+
+
 def sweep_markdown(sweeps: list[dict]) -> str:
-    """A markdown table per sweep: median final training loss and share diverged per rate."""
+    """Markdown per method: median final training loss per rate and configuration, the
+    share of diverged runs, the worst-case regret, and the rate `choose_rate` picks."""
     out = []
-    for s in sweeps:
-        out += [f"**{s['method'].upper()}, {s['example']} example** ({s['data']}, "
-                f"N = {s['segments']}, {s['plants']} plant(s) × {s['inits']} inits); "
-                f"chosen: {s['best']:g}", "",
-                "| learning rate | median final J | diverged |", "|---:|---:|---:|"]
-        for lr, med, div in zip(s["learning_rates"], s["median_loss"], s["diverged"]):
-            mark = " ←" if lr == s["best"] else ""
-            out.append(f"| {lr:g}{mark} | {med:.4g} | {100 * div:.0f} % |")
+    for method in dict.fromkeys(s["method"] for s in sweeps):
+        group = [s for s in sweeps if s["method"] == method]
+        best, regret = choose_rate(group)
+        first = group[0]
+        configs = [f"{s['data']} N={s['segments']}" for s in group]
+        out += [f"**{method.upper()}, {first['example']} example** ({first['plants']} plant(s) "
+                f"× {first['inits']} inits per configuration); chosen: {best:g}", "",
+                "| learning rate | " + " | ".join(f"median J, {c}" for c in configs)
+                + " | diverged | worst regret |",
+                "|---:|" + "---:|" * (len(configs) + 2)]
+        for j, lr in enumerate(first["learning_rates"]):
+            mark = " ←" if lr == best else ""
+            meds = " | ".join(f"{s['median_loss'][j]:.4g}" for s in group)
+            div = np.mean([s["diverged"][j] for s in group])
+            out.append(f"| {lr:g}{mark} | {meds} | {100 * div:.0f} % | "
+                       f"{regret[:, j].max():.3g} |")
         out.append("")
     return "\n".join(out)
 
 
-__all__ = ["learning_rate_sweep", "sweep_markdown"]
+__all__ = ["learning_rate_sweep", "choose_rate", "sweep_markdown"]

@@ -1,0 +1,240 @@
+"""The host-side SDP layer shared by the projection and ICO.
+
+It owns, in one place:
+
+- [`Outcome`][dissil_jax.Outcome], the one enumeration of how a projection, an SDP step or
+  a training run ended, with its messages;
+- the Clarabel settings of each problem family ([`clarabel_settings`]) and the mapping of
+  Clarabel's status strings onto `Outcome`;
+- [`Layout`], the variable vector $x = (\\operatorname{vec}A, \\operatorname{vec}B,
+  \\operatorname{vec}C, \\operatorname{vec}D, \\operatorname{triu}P)$ with batched
+  `pack`/`unpack`;
+- `certified`, the exact float64 KYP check of a whole batch at once, after rounding to the
+  caller's dtype (`cast`);
+- `thread_map`, which spreads per-item solves over the process-wide pool with BLAS held to
+  one thread.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ._supply import QSR
+
+
+class Outcome(eqx.Enumeration):
+    """How a projection, an SDP step or a training run ended.
+
+    Projections report `solved`, `unchanged`, `skipped` or one of the three failures
+    (`infeasible`, `solver_failed`, `not_certified`); trainers report why each run stopped
+    (`FitResult.stop_reason`): `converged`, `max_steps`, `non_finite`, or the failure that
+    ended it. A failure never comes with an uncertified controller: the projection returns
+    its (flagged) target, the trainers their last certified iterate.
+    """
+
+    converged = "converged: |ΔJ| < tol"
+    max_steps = "stopped at max_steps"
+    non_finite = "the loss became NaN or infinite"
+    solver_failed = (
+        "Clarabel failed to solve the SDP (max iterations or numerical trouble); the data "
+        "may be badly scaled."
+    )
+    loss_increased = "ICO's float64 re-evaluation found the loss increased; the step was refused"
+    not_certified = (
+        "the solver's point failed the exact float64 KYP check even with an enlarged margin; "
+        "no controller is returned without a certificate."
+    )
+    solved = "projected and verified by the exact float64 KYP check"
+    unchanged = "the target was already certified by P_ref and is returned as is"
+    skipped = "inactive (e.g. a converged trainer lane); returned as is"
+    infeasible = (
+        "the SDP is infeasible: `qsr` admits no strictly dissipative controller of these "
+        "sizes near the reference P. Check the supply rate (e.g. R and S signs), or pass a "
+        "different `P_ref`."
+    )
+
+
+def code(name: str) -> int:
+    """The integer code of an `Outcome` item, for host code and `pure_callback` results."""
+    return int(getattr(Outcome, name)._value)
+
+
+def item(codes) -> Outcome:
+    """Wrap integer codes (any shape, numpy or JAX) as an `Outcome` item."""
+    return type(Outcome.solved)(jnp.asarray(codes, jnp.int32), Outcome)
+
+
+NAMES: tuple[str, ...] = tuple(sorted(Outcome._name_to_item, key=code))
+FAILURES = tuple(code(n) for n in ("infeasible", "solver_failed", "not_certified"))
+_CLARABEL_OK = {"Solved", "AlmostSolved"}
+_CLARABEL_INFEASIBLE = {"PrimalInfeasible", "AlmostPrimalInfeasible"}
+
+
+def failed(codes):
+    """Elementwise: is this outcome one of the SDP failures? (numpy or JAX codes)"""
+    xp = jnp if not isinstance(codes, np.ndarray | int | np.integer) else np
+    codes = xp.asarray(codes)
+    return (codes == FAILURES[0]) | (codes == FAILURES[1]) | (codes == FAILURES[2])
+
+
+def clarabel_outcome(status: str) -> int:
+    """Clarabel's status string as an `Outcome` code: solved, infeasible or solver_failed."""
+    if status in _CLARABEL_OK:
+        return code("solved")
+    return code("infeasible" if status in _CLARABEL_INFEASIBLE else "solver_failed")
+
+
+def clarabel_settings(*, max_iter: int, equilibrate: bool):
+    """Clarabel settings for a solver whose data are later updated in place.
+
+    In-place updates (`solver.update(q=..., A=..., b=...)`) need presolve, chordal
+    decomposition and zero-dropping off. The two problem families differ in two settings:
+
+    - the projection (`max_iter=100`, `equilibrate=False`): a solver is reused across
+      targets by whichever pool thread picks them up, and a reused solver keeps the
+      equilibration of the problem that built it, which made results depend (at ~1e-5) on
+      the thread; the projection's data are well scaled, so equilibration is off and the
+      results are reproducible bit for bit;
+    - ICO (`max_iter=200`, `equilibrate=True`): one solver per initialisation, whose data
+      (loss Jacobians) span several orders of magnitude and need equilibration.
+    """
+    import clarabel
+
+    s = clarabel.DefaultSettings()
+    s.verbose = False
+    s.presolve_enable = False
+    s.chordal_decomposition_enable = False
+    s.input_sparse_dropzeros = False
+    s.max_iter = int(max_iter)
+    s.equilibrate_enable = bool(equilibrate)
+    return s
+
+
+PROJECTION_SETTINGS = dict(max_iter=100, equilibrate=False)
+ICO_SETTINGS = dict(max_iter=200, equilibrate=True)
+
+
+class Layout:
+    """The SDP variable vector of a controller with $n$ states, $p$ inputs, $m$ outputs.
+
+    $x = (\\operatorname{vec}A, \\operatorname{vec}B, \\operatorname{vec}C,
+    \\operatorname{vec}D, p)$, with `vec` row-major (numpy's `ravel`) and $p$ the upper
+    triangle of $P$ row-major (`np.triu_indices`), $P = \\sum_k p_k E_k$. The first
+    `ntheta` entries are the controller $\\theta$. `pack` and `unpack` accept leading batch
+    axes.
+    """
+
+    def __init__(self, n: int, p: int, m: int):
+        self.n, self.p, self.m = n, p, m
+        self.nA, self.nB, self.nC, self.nD = n * n, n * p, m * n, m * p
+        self.ntheta = self.nA + self.nB + self.nC + self.nD
+        self.p_rows, self.p_cols = np.triu_indices(n)
+        self.nP = len(self.p_rows)
+        self.nx = self.ntheta + self.nP
+        self._offsets = np.cumsum([0, self.nA, self.nB, self.nC, self.nD])
+        self._shapes = ((n, n), (n, p), (m, n), (m, p))
+
+    def pack(self, A, B, C, D, P=None) -> np.ndarray:
+        """$x$ (or $\\theta$ when `P` is None) of a controller, batched like the inputs."""
+        mats = [np.asarray(M, np.float64) for M in (A, B, C, D)]
+        batch = mats[0].shape[:-2]
+        parts = [M.reshape(batch + (-1,)) for M in mats]
+        if P is not None:
+            parts.append(np.asarray(P, np.float64)[..., self.p_rows, self.p_cols])
+        return np.concatenate(parts, axis=-1)
+
+    def mats(self, theta):
+        """`(A, B, C, D)` from $\\theta$ (or from $x$, ignoring $P$), batched."""
+        theta = np.asarray(theta)
+        batch, o = theta.shape[:-1], self._offsets
+        return tuple(theta[..., o[i]:o[i + 1]].reshape(batch + s)
+                     for i, s in enumerate(self._shapes))
+
+    def P(self, p, scale=1.0) -> np.ndarray:
+        """The symmetric $P$ from its upper-triangle coordinates $p$ (times `scale`), batched."""
+        p = np.asarray(p, np.float64)
+        P = np.zeros(p.shape[:-1] + (self.n, self.n))
+        P[..., self.p_rows, self.p_cols] = scale * p
+        return P + np.triu(P, 1).swapaxes(-1, -2)
+
+    def unpack(self, x):
+        """`(A, B, C, D, P)` from $x$, batched."""
+        x = np.asarray(x)
+        return (*self.mats(x), self.P(x[..., self.ntheta:]))
+
+
+def cast(x, dtype) -> np.ndarray:
+    """Round to `dtype` and back to float64, so a check sees exactly what is returned."""
+    return np.asarray(x, np.float64).astype(dtype).astype(np.float64)
+
+
+def certified(A, B, C, D, qsr: QSR, P) -> np.ndarray:
+    """The exact float64 KYP check of a batch of (controller, $P$) pairs, as a bool array.
+
+    $P\\succ 0$ and KYP$(P)\\prec 0$ beyond round-off (paper Lemma 2), evaluated for the
+    whole batch at once with stacked eigenvalue computations.
+    """
+    from ._lmi import kyp_certified  # _lmi builds on `Layout`
+
+    return np.asarray(kyp_certified(A, B, C, D, qsr, P), bool)
+
+
+# -- threads -----------------------------------------------------------------------------
+
+_POOL: ThreadPoolExecutor | None = None
+_CONTROLLER = None
+
+
+@contextlib.contextmanager
+def single_threaded_blas():
+    """Limit BLAS to one thread: threaded BLAS slows Clarabel's small dense cones badly.
+
+    The threadpoolctl controller is built once (building it scans the loaded libraries,
+    about 2 ms, which would dominate a small projection).
+    """
+    global _CONTROLLER
+    if _CONTROLLER is None:
+        import clarabel  # noqa: F401  (load the solver's libraries before the scan)
+        from threadpoolctl import ThreadpoolController
+
+        _CONTROLLER = ThreadpoolController()
+    with _CONTROLLER.limit(limits=1, user_api="blas"):
+        yield
+
+
+def pool() -> ThreadPoolExecutor:
+    """A process-wide pool for batched host solves (Clarabel releases the GIL)."""
+    global _POOL
+    if _POOL is None:
+        workers = int(os.environ.get("DISSIL_JAX_THREADS", os.cpu_count() or 1))
+        _POOL = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="dissil-sdp")
+    return _POOL
+
+
+def num_workers() -> int:
+    return pool()._max_workers  # noqa: SLF001
+
+
+def thread_map(fn, items, *, balance: bool = False) -> list:
+    """`fn` over `items` on the process pool, BLAS held to one thread; results in order.
+
+    `fn` takes a list of items. By default `items` is split into one contiguous chunk per
+    worker, so per-call overhead is paid once per worker (short, even tasks: the
+    projection). With `balance=True` every item is its own task, so long and short tasks
+    even out across workers (ICO runs of different lengths). Returns the per-call results.
+    """
+    items = list(items)
+    with single_threaded_blas():
+        workers = min(num_workers(), len(items))
+        if workers <= 1:
+            return [fn(items)] if items else []
+        if balance:
+            return list(pool().map(lambda it: fn([it]), items))
+        chunks = np.array_split(np.arange(len(items)), workers)
+        return list(pool().map(lambda idx: fn([items[i] for i in idx]), chunks))

@@ -1,0 +1,171 @@
+"""The cone blocks of the ICO SDP (see `_ico_sdp` for the maths).
+
+A block is a run of consecutive rows of the constraint $b - Ax \\in \\mathcal K$ with its
+cones. It fixes its sparsity once (`pattern`) and gives its numbers at each iterate (`fill`),
+in the same order; `ICOProblem` stacks the blocks and concatenates their numbers. The window
+blocks are in `_ico_windows`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from .._lmi import ConvexifiedLMI, svec, svec_indices
+from ._ico_layout import SQRT2, TwoStepData, VariableLayout, svec_len, svec_pos
+
+_NO_COLS, _NO_VALS = np.zeros(0, np.int64), np.zeros(0)
+
+
+class Iterate(NamedTuple):
+    """The linearisation point of one SDP and what every block computes from it."""
+
+    theta: np.ndarray  # theta_0
+    A: np.ndarray  # (A, B, C, D) of theta_0
+    B: np.ndarray
+    C: np.ndarray
+    D: np.ndarray
+    P: np.ndarray | None  # P~ (None for ICO-NC)
+    w: float  # w~
+    eps: float  # KYP margin
+    ps: float  # the unit of the SDP's P variable (`ICOProblem.p_scale`)
+    z: np.ndarray  # [N, n] A_0 x0 + B_0 u0
+    ebar: np.ndarray  # [N, m] step-1 residual at delta = 0
+
+
+class ConeBlock:
+    """The protocol of a block: `rows` (its number of rows), `cones` (its Clarabel cones, in
+    order), `pattern()`, `fill(it)` and `objective(it)`."""
+
+    rows: int
+    cones: list
+
+    def pattern(self) -> tuple[np.ndarray, np.ndarray]:
+        """`(rows, cols)` of the block's nonzeros (rows counted from the block's first row)."""
+        return self._rows, self._cols
+
+    def fill(self, it: Iterate) -> tuple[np.ndarray, np.ndarray]:
+        """`(vals, b)`: the nonzeros of $A$ in `pattern` order and the block's part of $b$."""
+        raise NotImplementedError
+
+    def objective(self, it: Iterate) -> tuple[np.ndarray, np.ndarray]:
+        """`(cols, q)`: entries of the linear objective that depend on the iterate (none)."""
+        return _NO_COLS, _NO_VALS
+
+
+class KYPBlock(ConeBlock):
+    """The convexified KYP LMI $\\mathcal M_0 + \\sum_k x_k J_k \\preceq -\\varepsilon E$,
+    balanced by $T = \\mathrm{diag}(\\tilde P^{-1/2}, I, I, \\tilde P^{-1/2})$ (one PSD cone).
+
+    It owns $P$: its columns (`layout.colP`, in units of `Iterate.ps`) and the linear part of
+    the proximal term $\\frac\\nu2\\lVert P - \\tilde P\\rVert^2$ (`reg` $= \\nu$).
+    """
+
+    def __init__(self, lmi: ConvexifiedLMI, layout: VariableLayout, reg: float):
+        import clarabel
+
+        self.lmi, self.layout, self.reg = lmi, layout, reg
+        self.size = lmi.N
+        self.rows = svec_len(lmi.N)
+        self.cones = [clarabel.PSDTriangleConeT(lmi.N)]
+        self._idx = svec_indices(lmi.N)
+        n = layout.n
+        dense = np.ones((n, n)) + np.eye(n)  # generic P~: every possible nonzero present
+        _, J, _ = self.blocks(dense)
+        nonzero = (lmi.svec(J) != 0) | (lmi.svec(lmi.J_fixed) != 0)  # [nx_lmi, rows]
+        self._var, self._rows = np.nonzero(nonzero)  # lmi variable, svec row
+        lmi_cols = np.concatenate([layout.col_theta, layout.colP])  # lmi variable -> column
+        self._cols = lmi_cols[self._var]
+
+    def blocks(self, P_tilde):
+        """`(M0, J, E)` of the balanced LMI $M_0 + \\sum_k x_k J_k \\preceq -\\varepsilon E$."""
+        n = self.layout.n
+        P_tilde = np.asarray(P_tilde, np.float64)
+        M0, J = self.lmi.blocks(P_tilde)
+        E = np.eye(self.size)
+        E[-n:, -n:] = P_tilde @ P_tilde
+        lam, V = np.linalg.eigh(P_tilde)
+        Ph = (V / np.sqrt(lam)) @ V.T  # P~^{-1/2}
+        T = np.eye(self.size)
+        T[:n, :n] = Ph
+        T[-n:, -n:] = Ph
+        M0, E = T @ M0 @ T, T @ E @ T
+        J = T @ J @ T  # broadcast over the variables (einsum here was 10x slower)
+        return M0, J, E
+
+    def fill(self, it):
+        nth = self.layout.ntheta
+        M0, J, E = self.blocks(it.P)
+        sJ = svec(J, self._idx)  # [nx_lmi, rows]
+        sJ[nth:] *= it.ps  # the SDP's P variable is P / ps (see `ICOProblem.p_scale`)
+        b = -svec(M0, self._idx) - it.eps * svec(E, self._idx) - it.theta @ sJ[:nth]
+        return sJ[self._var, self._rows], b
+
+    def objective(self, it):
+        P = np.asarray(it.P)[self.lmi.p_rows, self.lmi.p_cols]
+        return self.layout.colP, -self.reg * P / it.ps
+
+    def margin(self, theta, P) -> float:
+        """Margin $\\mu$ of δ = 0 at $\\tilde P = P$:
+        $\\mathcal M \\preceq -\\mu\\,\\mathrm{diag}(I, P^2)$.
+
+        Equivalently $-\\lambda_{\\max}$ of the un-congruenced Schur form of the KYP LMI.
+        """
+        n = self.layout.n
+        P = np.asarray(P, np.float64)
+        x = np.concatenate([theta, P[self.lmi.p_rows, self.lmi.p_cols]])
+        T = np.eye(self.size)
+        T[-n:, -n:] = np.linalg.inv(P)
+        M = T @ self.lmi.evaluate(x, P) @ T
+        return -float(np.linalg.eigvalsh((M + M.T) / 2)[-1])
+
+
+class DeltaZCone(ConeBlock):
+    """$\\lVert[\\delta A\\ \\delta B]F\\rVert_F^2/w \\le \\tau$ as the rotated SOC
+    $\\lVert(2\\operatorname{vec}([\\delta A\\ \\delta B]F), w - \\tau)\\rVert \\le w + \\tau$."""
+
+    def __init__(self, data: TwoStepData, layout: VariableLayout):
+        import clarabel
+
+        n, p, F = data.n, data.p, data.F
+        r = F.shape[1]
+        self.rows = 2 + n * r
+        self.cones = [clarabel.SecondOrderConeT(self.rows)]
+        # entry (i, l) of [dA dB] F: sum_j dAB[i, j] F[j, l]
+        ii, ll, jj = np.meshgrid(np.arange(n), np.arange(r), np.arange(n + p), indexing="ij")
+        ii, ll, jj = ii.ravel(), ll.ravel(), jj.ravel()
+        ow, otau = layout.ow, layout.otau
+        self._rows = np.concatenate([np.array([0, 0, 1, 1]), 2 + ii * r + ll])
+        self._cols = np.concatenate([np.array([ow, otau, ow, otau]), layout.colAB[ii, jj]])
+        self._vals = np.concatenate([[-1.0, -1.0, -1.0, 1.0], -2.0 * F[jj, ll]])
+        self._b = np.zeros(self.rows)
+
+    def fill(self, it):
+        return self._vals, self._b
+
+
+class YoungLMI(ConeBlock):
+    """$[[Y, \\delta C], [\\delta C^\\top, \\phi(w) I]] \\succeq 0$ with the tangent
+    $\\phi(w) = 2/\\tilde w - w/\\tilde w^2 \\le 1/w$ (one PSD cone of size $m + n$)."""
+
+    def __init__(self, layout: VariableLayout):
+        import clarabel
+
+        m, n = layout.m, layout.n
+        d = m + n
+        self.rows = svec_len(d)
+        self.cones = [clarabel.PSDTriangleConeT(d)]
+        yi, yj, ycol, yw = layout.y_svec
+        aa, jn = np.meshgrid(np.arange(m), np.arange(n), indexing="ij")
+        aa, jn = aa.ravel(), jn.ravel()
+        self._w_rows = svec_pos(m + np.arange(n), m + np.arange(n))  # the phi(w) I block
+        self._rows = np.concatenate([svec_pos(yi, yj), svec_pos(aa, m + jn), self._w_rows])
+        self._cols = np.concatenate([ycol, layout.colC[aa, jn], np.full(n, layout.ow)])
+        self._fixed = np.concatenate([-yw, np.full(m * n, -SQRT2)])
+        self._n = n
+
+    def fill(self, it):
+        b = np.zeros(self.rows)
+        b[self._w_rows] = 2.0 / it.w
+        return np.concatenate([self._fixed, np.full(self._n, 1.0 / it.w**2)]), b
