@@ -3,12 +3,39 @@
 from __future__ import annotations
 
 import enum
+import functools
 import warnings
 
 import jax.numpy as jnp
 import numpy as np
 
 from . import _sdp
+
+
+def positional_options(call: str, names: tuple[str, ...], new_form: str, *, leading: int = 1):
+    """Decorator: accept the 0.1 call with `names` positional (after `leading` positional
+    arguments), mapping them onto the keyword-only parameters with a DeprecationWarning."""
+
+    def decorate(fn):
+        @functools.wraps(fn)
+        def wrapper(*args, **kwargs):
+            head, extra = args[:leading], args[leading:]
+            if extra:
+                if len(extra) > len(names):
+                    raise TypeError(f"{call}() takes {leading} positional argument(s) and "
+                                    f"keyword-only {', '.join(names)}; got {len(args)}.")
+                for name, value in zip(names, extra):
+                    if name in kwargs:
+                        raise TypeError(f"{call}() got multiple values for `{name}`.")
+                    kwargs[name] = value
+                warnings.warn(f"passing {', '.join(f'`{n}`' for n in names)} of `{call}` "
+                              f"positionally is deprecated; call `{new_form}`. The positional "
+                              "form will be removed in 0.3.0.", DeprecationWarning, stacklevel=2)
+            return fn(*head, **kwargs)
+
+        return wrapper
+
+    return decorate
 
 
 class Status(enum.IntEnum):

@@ -20,12 +20,15 @@ from __future__ import annotations
 import contextlib
 import os
 from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._supply import QSR
+if TYPE_CHECKING:
+    from ._supply import QSR
+
 
 
 class Outcome(eqx.Enumeration):

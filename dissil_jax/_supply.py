@@ -12,13 +12,13 @@ input is the plant output and the output is (minus) the plant input.
 
 from __future__ import annotations
 
-import functools
-import warnings
 from typing import NamedTuple
 
 import equinox as eqx
 import numpy as np
 import scipy.optimize
+
+from ._deprecated import positional_options
 
 _SYM_TOL = 1e-9
 
@@ -40,29 +40,6 @@ def _as_matrix(name: str, value, shape: tuple[int, int] | None = None) -> np.nda
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"`{name}` contains NaN or inf; supply finite numbers.")
     return arr
-
-
-def _legacy_bounded_gain(fn):
-    """Accept the deprecated `bounded_gain(gamma, n_out, n_in)` (positional sizes)."""
-
-    @functools.wraps(fn)
-    def wrapper(cls, gamma, *args, **kwargs):
-        if args:
-            if len(args) > 2:
-                raise TypeError(f"QSR.bounded_gain() takes 1 positional argument (gamma) and "
-                                f"keyword-only `n_in`, `n_out`; got {1 + len(args)}.")
-            for name, value in zip(("n_out", "n_in"), args):
-                if name in kwargs:
-                    raise TypeError(f"QSR.bounded_gain() got multiple values for `{name}`.")
-                kwargs[name] = value
-            warnings.warn(
-                "`QSR.bounded_gain(gamma, n_out, n_in)` with positional sizes is deprecated; "
-                "call `QSR.bounded_gain(gamma, n_in=..., n_out=...)` (keyword-only, input "
-                "size first). The positional form will be removed in 0.3.0.",
-                DeprecationWarning, stacklevel=2)
-        return fn(cls, gamma, **kwargs)
-
-    return wrapper
 
 
 class _FrozenMatrix:
@@ -180,7 +157,8 @@ class QSR(eqx.Module):
         return cls(np.zeros((dim, dim)), 0.5 * np.eye(dim), np.zeros((dim, dim)))
 
     @classmethod
-    @_legacy_bounded_gain
+    @positional_options("QSR.bounded_gain", ("n_out", "n_in"),
+                        "QSR.bounded_gain(gamma, n_in=..., n_out=...)", leading=2)
     def bounded_gain(cls, gamma: float, *, n_in: int, n_out: int) -> QSR:
         """$\\gamma$-bounded $\\ell_2$ gain: $Q=-I$, $S=0$, $R=\\gamma^2 I$.
 
@@ -334,30 +312,8 @@ def closed_loop_certificate(plant_qsr: QSR, controller_qsr: QSR) -> ClosedLoopCe
     return ClosedLoopCertificate(holds=bool(best < -1e-12 * scale), alpha=float(10**best_la))
 
 
-def _legacy_stabilising_qsr(fn):
-    """Accept the deprecated positional `stabilising_qsr(plant_qsr, alpha, margins)`."""
-
-    @functools.wraps(fn)
-    def wrapper(plant_qsr, *args, **kwargs):
-        if args:
-            if len(args) > 2:
-                raise TypeError(f"stabilising_qsr() takes 1 positional argument (plant_qsr) "
-                                f"and keyword-only `alpha`, `margins`; got {1 + len(args)}.")
-            for name, value in zip(("alpha", "margins"), args):
-                if name in kwargs:
-                    raise TypeError(f"stabilising_qsr() got multiple values for `{name}`.")
-                kwargs[name] = value
-            warnings.warn(
-                "passing `alpha` or `margins` of `stabilising_qsr` positionally is deprecated; "
-                "call `stabilising_qsr(plant_qsr, alpha=..., margins=...)`. The positional "
-                "form will be removed in 0.3.0.",
-                DeprecationWarning, stacklevel=2)
-        return fn(plant_qsr, **kwargs)
-
-    return wrapper
-
-
-@_legacy_stabilising_qsr
+@positional_options("stabilising_qsr", ("alpha", "margins"),
+                    "stabilising_qsr(plant_qsr, alpha=..., margins=...)")
 def stabilising_qsr(plant_qsr: QSR, *, alpha: float = 1.0, margins=(1e-2, 1e-2)) -> QSR:
     """A controller supply rate that Theorem 1 pairs with `plant_qsr` (the recipe of `docs/concepts.md`, *The closed-loop theorem*).
 
