@@ -59,12 +59,25 @@ def _observability_toeplitz(K: LTIController, horizon: int):
 
 
 def rollout(
-    K: LTIController, x0: Float[Array, " n"], u_in: Float[Array, "h p"]
+    K: LTIController, x0: Float[Array, " n"] | None, u_in: Float[Array, "h p"]
 ) -> Float[Array, "h m"]:
     """Simulate the controller from state `x0` on inputs `u_in` with `lax.scan`.
 
-    Returns the outputs $\\hat y_0..\\hat y_{h-1}$ (`[h, m]`). Unbatched; vmap for batches.
+    $\\hat x_{k+1} = A\\hat x_k + B\\hat u_k$, $\\hat y_k = C\\hat x_k + D\\hat u_k$ for
+    $k = 0..h-1$, from $\\hat x_0$ = `x0`, or from rest ($\\hat x_0 = 0$) when `x0` is None.
+
+    **Arguments:** one controller `K`, its initial state `x0` (`[n̂]`, n̂ = `K.n_state`, or
+    None) and the inputs `u_in` (`[h, p]`).
+
+    **Returns:** the outputs $\\hat y_0..\\hat y_{h-1}$ (`[h, m]`). Unbatched; vmap for batches.
     """
+    u_in = jnp.asarray(u_in)
+    if x0 is None:
+        x0 = jnp.zeros((K.n_state,), jnp.result_type(K.A.dtype, u_in.dtype))
+    x0 = jnp.asarray(x0)
+    if x0.shape != (K.n_state,):
+        raise ValueError(f"`x0` must have shape ({K.n_state},) (the controller's state size), "
+                         f"got {x0.shape}.")
 
     def step(x, u):
         x_next, y = K(x, u)
@@ -74,19 +87,40 @@ def rollout(
     return y
 
 
+def _check_state_size(K: LTIController, windows: Windows) -> None:
+    if windows.x0 is not None and windows.n_state != K.n_state:
+        raise ValueError(
+            f"`windows.x0` has width {windows.n_state} but `K` has {K.n_state} states; the "
+            "controller starts at x0, so its order must be x0's width (or build the windows "
+            "with `dj.Windows(None, y, u)` to start a controller of any order at rest)."
+        )
+
+
 def predict(K: LTIController, windows: Windows) -> Float[Array, "N h m"]:
     """Controller outputs on every window (vmapped), via (O, T) or a scan by horizon.
 
-    Unbatched `K`; vmap for batches.
+    $\\hat y^{(i)} = \\mathcal O\\hat x^{(i)}_0 + \\mathcal T\\hat u^{(i)}$ (see
+    [`observability_toeplitz`][dissil_jax.observability_toeplitz]) with $\\hat x_0$ =
+    `windows.x0`, or $\\hat x_0 = 0$ when `windows.x0` is None (windows that start at
+    rest; `K` may then have any order).
+
+    **Arguments:** one controller `K` (unbatched; vmap for batches) and the `windows`.
+
+    **Returns:** `[N, h, m]`. Raises a ValueError when `windows.x0` does not have `K.n_state`
+    columns.
     """
     if K.batch_shape:
         raise ValueError("`K` must be a single controller; vmap `predict` for batches.")
-    h = windows.horizon
+    _check_state_size(K, windows)
+    h, N = windows.horizon, windows.num_windows
     if h <= _TOEPLITZ_MAX_HORIZON:
         O, T = observability_toeplitz(K, h)
-        N = windows.num_windows
-        y = windows.x0 @ O.T + windows.y.reshape(N, -1) @ T.T
+        y = windows.y.reshape(N, -1) @ T.T
+        if windows.x0 is not None:
+            y = windows.x0 @ O.T + y
         return y.reshape(N, h, K.n_out)
+    if windows.x0 is None:
+        return jax.vmap(rollout, in_axes=(None, None, 0))(K, None, windows.y)
     return jax.vmap(rollout, in_axes=(None, 0, 0))(K, windows.x0, windows.y)
 
 
@@ -98,7 +132,8 @@ def imitation_loss(K: LTIController, windows: Windows) -> Float[Array, ""]:
     i.e. the squared 2-norm of each window's stacked error over the horizon, summed over the
     $h$ time steps and averaged over the $N$ windows (paper eq. 16 compares the stacked
     prediction of eq. 15 with the stacked inputs). The trainers' stopping rule
-    $|\\Delta J| <$ `tol` refers to this $J$.
+    $|\\Delta J| <$ `tol` refers to this $J$. The predictions start from `windows.x0`, or
+    at rest ($\\hat x_0 = 0$) when it is None (see [`predict`][dissil_jax.predict]).
     """
     err = predict(K, windows) - windows.target
     return jnp.mean(jnp.sum(err**2, axis=(-2, -1)))

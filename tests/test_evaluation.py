@@ -274,3 +274,24 @@ def test_diverged_controller_counts_as_unstable(linear):
     Ks = eqx.tree_at(lambda K: K.A, Ks, Ks.A.at[1, 0, 0].set(jnp.nan))
     rho = ex.lti_spectral_radius(plant, Ks)
     assert np.isfinite(rho[0]) and rho[1] == np.inf
+
+
+def test_controllers_started_at_rest(linear):
+    """`xhat0="rest"` is x̂0 = 0 of the controllers' own order; the default stays x̂0 = x0."""
+    plant, expert = linear
+    x0 = 3 * jr.normal(jr.PRNGKey(0), (3, 6))
+    noise = ex.sample_noise(jr.PRNGKey(1), 3, 20, plant)
+    same = _random_ltis(5, 2, 6, 3, 3, 0.1)  # order 6 = the plant's: all three starts work
+    rest = ex.simulate_controllers(plant, same, x0, noise, xhat0="rest")
+    zeros = ex.simulate_controllers(plant, same, x0, noise, xhat0=jnp.zeros((3, 6)))
+    default = ex.simulate_controllers(plant, same, x0, noise)
+    np.testing.assert_array_equal(rest.x, zeros.x)
+    np.testing.assert_array_equal(default.xhat[:, :, 0], np.broadcast_to(x0, (2, 3, 6)))
+    assert np.abs(np.asarray(rest.x) - np.asarray(default.x)).max() > 1e-3
+    lower = _random_ltis(6, 2, 4, 3, 3, 0.1)  # order 4: only at rest (or an explicit xhat0)
+    with pytest.raises(ValueError, match="`controllers` have 4 states"):
+        ex.simulate_controllers(plant, lower, x0, noise)
+    tr = ex.simulate_controllers(plant, lower, x0, noise, xhat0="rest")
+    assert tr.xhat.shape == (2, 3, 21, 4)
+    ev = ex.evaluate(jr.PRNGKey(1), plant, expert, lower, x0, 20, xhat0="rest")
+    assert ev.learned.xhat.shape == (2, 3, 21, 4) and np.all(ev.learned.xhat[:, :, 0] == 0)

@@ -28,8 +28,11 @@ def _reference_pgd(K, P, windows, qsr, lr, decay, max_steps, tol):
     when the paper's J (computed independently) changes by less than `tol`."""
     grad = jax.jit(jax.grad(dj.imitation_loss))
     hist = [paper_loss(K, windows)]
+    # steps are taken on J / s^2, s^2 the power of the inputs and initial states
+    s2 = (np.mean(np.sum(np.asarray(windows.y) ** 2, axis=(1, 2)))
+          + np.mean(np.sum(np.asarray(windows.x0) ** 2, axis=1)))
     for i in range(max_steps):
-        g = grad(K, windows)
+        g = jax.tree.map(lambda a: a / s2, grad(K, windows))
         K_tilde = jax.tree.map(lambda a, b: a - lr * decay**i * b, K, g)
         if qsr is not None:
             K, P = dj.project(K_tilde, qsr, P)
@@ -271,7 +274,9 @@ def test_non_finite_loss_under_a_constraint_keeps_the_last_finite_iterate(getkey
     ref = dj.fit_pgd(key, w, QSR, **kw)
     hist = np.asarray(ref.loss_history[0])
     assert np.all(np.diff(hist) < 0)
-    threshold = (hist[2] + hist[3]) / 2
+    s2 = (np.mean(np.sum(np.asarray(w.y) ** 2, axis=(1, 2)))
+          + np.mean(np.sum(np.asarray(w.x0) ** 2, axis=1)))
+    threshold = (hist[2] + hist[3]) / 2 / s2  # the loop sees J / s^2
     true_loss = pgd._batched_loss
 
     def nan_below(K, windows):

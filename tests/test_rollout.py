@@ -136,3 +136,24 @@ def test_batched_controller_is_refused_where_one_is_required(getkey):
         dj.predict(Kb, w)
     with pytest.raises(ValueError, match="`K`"):
         dj.observability_toeplitz("not a controller", 2)
+
+
+def test_windows_at_rest_keep_the_dtype_and_vmap_over_controllers(getkey):
+    """x̂0 = 0 (`Windows(None, ...)`): float32 stays float32, and a batch of controllers of
+    order 3 (any order fits windows at rest) vmaps as in the trainers."""
+    Kb = jax.vmap(lambda k: dj.LTIController.random(3, 1, 1, scale=0.5, key=k))(
+        jax.random.split(getkey(), 4))
+    y, u = jax.random.normal(getkey(), (5, 3, 1)), jax.random.normal(getkey(), (5, 3, 1))
+    w = dj.Windows(None, y, u)
+    J = jax.vmap(dj.imitation_loss, in_axes=(0, None))(Kb, w)
+    for i in range(4):
+        Ki = jax.tree.map(lambda a: a[i], Kb)
+        ref = np.mean([np.sum((_loop_outputs(Ki, np.zeros(3), y[j]) + np.asarray(u[j])) ** 2)
+                       for j in range(5)])
+        assert float(J[i]) == pytest.approx(ref, rel=1e-12)
+    f32 = lambda t: jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), t)
+    K0 = jax.tree.map(lambda a: a[0], Kb)
+    w32 = dj.Windows(None, f32(y), f32(u))
+    assert dj.predict(f32(K0), w32).dtype == jnp.float32
+    assert dj.rollout(f32(K0), None, f32(y[0])).dtype == jnp.float32
+    assert float(dj.imitation_loss(f32(K0), w32)) == pytest.approx(float(J[0]), rel=1e-5)

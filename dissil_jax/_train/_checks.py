@@ -30,3 +30,39 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
             continue
         if not np.all(np.isfinite(v)) or np.any(np.asarray(v) < 0):
             raise ValueError(f"`{name}` must be finite and non-negative, got {v!r}.")
+
+
+def check_n_state(windows: Windows, n_state) -> int:
+    """The controller order $\\hat n$ a trainer should use for `windows`.
+
+    With recorded plant states (`windows.x0` `[N, n]`) every window starts the controller at
+    $\\hat x_0 = x_0$, so its order is fixed by the data: $\\hat n = n$, and `n_state` may be
+    omitted (None) or must equal `windows.n_state`. With `windows.x0` None (input-output logs
+    only) the controller starts at rest, $\\hat x_0 = 0$, and any order $\\hat n\\ge1$ fits the
+    data, so `n_state` is required.
+
+    **Arguments:** the `windows` and the requested `n_state` (a positive int or None).
+
+    **Returns:** $\\hat n$ (an int). Raises a ValueError naming `n_state` when it is missing
+    for windows that start at rest, is not a positive integer, or disagrees with
+    `windows.n_state`.
+    """
+    if n_state is None:
+        if windows.x0 is None:
+            raise ValueError(
+                "`n_state` is required when `windows.x0` is None: the controller starts at "
+                "rest (x̂0 = 0), so the data do not fix its order; pass e.g. `n_state=2`."
+            )
+        return windows.n_state
+    if isinstance(n_state, bool) or np.ndim(n_state) != 0 or int(n_state) != n_state \
+            or n_state < 1:
+        raise ValueError(f"`n_state` must be a positive integer, got {n_state!r}.")
+    n_state = int(n_state)
+    if windows.x0 is not None and n_state != windows.n_state:
+        raise ValueError(
+            f"`n_state` = {n_state} but `windows.x0` has width {windows.n_state}: the controller "
+            "starts at the recorded plant state x0, so its order is x0's width. Omit "
+            "`n_state`, or build the windows with `dj.Windows(None, y, u)` to start a "
+            "controller of any order at rest."
+        )
+    return n_state

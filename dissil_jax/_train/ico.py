@@ -18,6 +18,7 @@ from ._checks import check_fit_args
 from ._ico_sdp import ICOProblem
 from ._ico_solver import ICOSolver
 from ._init import INIT_SCALE, init_controllers
+from ._scale import loss_scale, scaled
 from .result import FitResult, raise_if_failed
 
 _CONVERGED, _MAX_STEPS, _LOSS_INCREASED, _NOT_CERTIFIED = (
@@ -29,6 +30,12 @@ _W_RANGE = 1e4
 
 def _check_args(windows, qsr, num_inits, max_steps, tol, init_scale):
     check_fit_args(windows, qsr, num_inits, max_steps, tol=tol, init_scale=init_scale)
+    if windows.x0 is None:
+        raise ValueError(
+            "`windows.x0` is None, but ICO needs the controller state at every window start: "
+            "its convex overbound (paper eq. 17) is built around the windows' x̂0. For "
+            "input-output logs without plant state use `dj.fit_pgd(..., n_state=...)`, which "
+            "starts the controller at rest.")
     if windows.horizon != 2:
         raise ValueError(
             f"`windows` has horizon h = {windows.horizon}, but ICO overbounds the paper's "
@@ -132,18 +139,21 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, tol, init_scale, eps, prox,
         # paper Alg. 1 "Init": random, then projected (eq. 13)
         K0, P0 = proj = project(K0, qsr, throw=False)
         P0, code0 = np.asarray(P0, np.float64), np.asarray(proj.result._value)
-    pb = ICOProblem(np.asarray(windows.x0), np.asarray(windows.y), np.asarray(windows.target),
-                    qsr, eps=eps, prox=prox, window_cone=window_cone)
+    # The SDP is built on unit-free windows (`_scale.py`): J = s2 * J_s, tol likewise.
+    s2 = float(loss_scale(windows, np, of="outputs"))
+    ws = scaled(windows, s2)
+    pb = ICOProblem(np.asarray(ws.x0), np.asarray(ws.y), np.asarray(ws.target), qsr, eps=eps,
+                    prox=prox, window_cone=window_cone)
     mats = [np.asarray(M, np.float64) for M in (K0.A, K0.B, K0.C, K0.D)]
     thetas = [pb.theta(*(M[i] for M in mats)) for i in range(num_inits)]
     user_cb = None
     if callback is not None:
         def user_cb(i, step, theta, P, J):
-            callback(i, step, LTIController(*pb.mats(theta)), P, J)
+            callback(i, step, LTIController(*pb.mats(theta)), P, s2 * J)
 
     def work(indices):
         return [_run_one(pb, thetas[i], None if qsr is None else P0[i], max_steps=max_steps,
-                         tol=tol, dtype=dtype, index=i, callback=user_cb)
+                         tol=tol / s2, dtype=dtype, index=i, callback=user_cb)
                 if not _sdp.failed(code0[i]) else _not_started(pb, thetas[i], P0[i], code0[i],
                                                                  max_steps)
                 for i in indices]
@@ -163,8 +173,8 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, tol, init_scale, eps, prox,
         controllers=controllers,
         P=P,
         certified=certified,
-        loss_history=jnp.asarray(np.stack([r["hist"] for r in results]), dtype),
-        final_loss=jnp.asarray([r["J"] for r in results], dtype),
+        loss_history=jnp.asarray(s2 * np.stack([r["hist"] for r in results]), dtype),
+        final_loss=jnp.asarray([s2 * r["J"] for r in results], dtype),
         converged=jnp.asarray(reasons == _CONVERGED),
         steps=jnp.asarray([r["steps"] for r in results], jnp.int32),
         wall_time=jnp.asarray(wall, dtype),
@@ -227,6 +237,13 @@ def fit_ico(
     $\\tilde w_0 = \\lVert z\\rVert/(\\lVert C\\rVert\\lVert e\\rVert)$; afterwards $\\tilde w$ is
     the previous optimal $w$, clipped to $[\\tilde w/4, 2\\tilde w]$ and to $10^{\\pm4}\\tilde w_0$
     (so it cannot collapse when one step happens not to move $A, B$).
+
+    **Units do not matter.** The SDP is built on the windows divided by
+    $s = \\sqrt{J(0)}$, the root of the zero controller's loss (`J(0)` of the data as
+    given), so its data, the proximal
+    weight and the Young weight are unit-free; scaling $x_0$, $y$ and $u$ by any $c > 0$
+    gives the same iterates. `loss_history`, `final_loss`, `tol` and the callback's loss are
+    in the user's units.
 
     **Safeguards.** A small proximal term $\\frac{\\mu}{2}\\lVert\\delta\\theta\\rVert^2$ (`prox`)
     keeps the step unique when the data do not determine every parameter (few windows); it can only

@@ -15,8 +15,9 @@ from .._data import Windows
 from .._projection import project
 from .._rollout import imitation_loss
 from .._supply import QSR
-from ._checks import check_fit_args
+from ._checks import check_fit_args, check_n_state
 from ._init import INIT_SCALE, init_controllers
+from ._scale import loss_scale, scaled
 from .result import FitResult, raise_if_failed
 
 _CONVERGED, _MAX_STEPS, _NON_FINITE = (
@@ -33,15 +34,22 @@ def _where(mask, new, old):
     )
 
 
-def _loop(K0, P0, code0, windows, learning_rate, decay, *, qsr, max_steps, tol, eps):
+def paper_rule(learning_rate, decay) -> optax.GradientTransformation:
+    """The paper's step rule: gradient steps $\\eta_i = \\eta_0\\rho^{\\,i}$ ("an
+    exponentially decaying learning rate", paper §4.2); `learning_rate` and `decay` may be
+    traced (a vmapped sweep)."""
+    return optax.sgd(learning_rate=lambda count: learning_rate * decay**count)
+
+
+def _loop(K0, P0, code0, windows, opt, *, qsr, max_steps, tol, eps):
     """The jit-compatible training loop over a batch of initialisations.
 
-    Pure: vmappable over (learning_rate, decay) and over the initial controllers. Runs
-    whose initial projection failed (`code0` a failure) take no step.
+    Pure: vmappable over the optimiser's hyperparameters and over the initial controllers.
+    The optimiser's state carries across steps and each update is followed by the
+    projection (projected Adam, projected SGD, ...). Runs whose initial projection failed
+    (`code0` a failure) take no step.
     """
     num_inits = K0.A.shape[0]
-    schedule = lambda count: learning_rate * decay**count
-    opt = optax.sgd(learning_rate=schedule)
     loss0, _ = _batched_loss(K0, windows)
     hist = jnp.full((num_inits, max_steps + 1), jnp.nan, loss0.dtype).at[:, 0].set(loss0)
     ok0 = ~_sdp.failed(code0)
@@ -88,18 +96,25 @@ def _loop(K0, P0, code0, windows, learning_rate, decay, *, qsr, max_steps, tol, 
     return c["K"], c["P"], c["hist"], c["loss"], c["steps"], c["reason"]
 
 
-def _run(key, windows, qsr, learning_rate, decay, init_scale, *, num_inits, max_steps, tol,
-         eps) -> FitResult:
-    """`pgd_run` without argument checks or `throw` (traceable; `qsr` static)."""
-    K0 = init_controllers(key, num_inits, windows, init_scale)
+def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_inits,
+         n_state, max_steps, tol, eps) -> FitResult:
+    """`pgd_run` without argument checks or `throw` (traceable; `qsr` and `optimizer` static).
+
+    Trains on the windows divided by the data scale (`_scale.py`), so that steps do not
+    depend on units; losses and `tol` are converted from and to the user's units.
+    """
+    s2 = loss_scale(windows)
+    K0 = init_controllers(key, num_inits, windows, init_scale, n_state=n_state)
     if qsr is None:
         P0, code0 = None, jnp.full(num_inits, _MAX_STEPS, jnp.int32)
     else:
         K0, P0 = proj = project(K0, qsr, throw=False, eps=eps)
         code0 = proj.result._value
+    opt = paper_rule(learning_rate, decay) if optimizer is None else optimizer
     K, P, hist, loss, steps, reason = _loop(
-        K0, P0, code0, windows, learning_rate, decay, qsr=qsr, max_steps=max_steps, tol=tol,
+        K0, P0, code0, scaled(windows, s2), opt, qsr=qsr, max_steps=max_steps, tol=tol / s2,
         eps=eps)
+    hist, loss = hist * s2, loss * s2
     return FitResult(
         controllers=K, P=P,
         certified=None if qsr is None else ~_sdp.failed(code0),
@@ -110,45 +125,75 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, num_inits, max_
 
 _run_jit = eqx.filter_jit(_run)
 
+#: The defaults of the paper's rule, in the normalised units of `_scale.py`: chosen by the
+#: comparison of step rules in `benchmarks/bench_optimizers.py` (four problems) and
+#: confirmed by the reproduction's own step-size sweeps (`docs/results/lr_sweep_*`).
+LEARNING_RATE, DECAY = 1.0, 0.99
+
+
+def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, decay, tol,
+             init_scale, n_state):
+    """Check the arguments; returns `(optimizer, learning_rate, decay, n_state)`.
+
+    `optimizer` is None for the paper's rule, whose (possibly traced) `learning_rate` and
+    `decay` are then used, with the defaults filled in.
+    """
+    if optimizer is not None:
+        if learning_rate is not None or decay is not None:
+            raise ValueError("pass either `optimizer` or `learning_rate`/`decay` (the paper's "
+                             "decaying-step rule), not both.")
+        if not isinstance(optimizer, optax.GradientTransformation):
+            raise ValueError(f"`optimizer` must be an `optax.GradientTransformation`, got "
+                             f"{type(optimizer).__name__}.")
+        learning_rate = decay = 0.0  # unused
+    learning_rate = LEARNING_RATE if learning_rate is None else learning_rate
+    decay = DECAY if decay is None else decay
+    check_fit_args(windows, qsr, num_inits, max_steps, learning_rate=learning_rate, decay=decay,
+                   tol=tol, init_scale=init_scale)
+    return optimizer, learning_rate, decay, check_n_state(windows, n_state)
+
 
 def pgd_run(
-    key, windows: Windows, qsr: QSR | None, *, learning_rate=1e-3, decay=0.99,
-    init_scale=INIT_SCALE, num_inits: int = 8, max_steps: int = 150, tol: float = 1e-3,
-    eps: float = 1e-6, throw: bool = True,
+    key, windows: Windows, qsr: QSR | None, *, optimizer=None, learning_rate=None, decay=None,
+    init_scale=INIT_SCALE, num_inits: int = 8, n_state: int | None = None,
+    max_steps: int = 150, tol: float = 1e-3, eps: float = 1e-6, throw: bool = True,
 ) -> FitResult:
     """The pure, traceable PGD run behind [`fit_pgd`][dissil_jax.fit_pgd].
 
     Unlike `fit_pgd` it is safe to `jax.vmap`/`jax.jit` over `key`, `learning_rate`,
-    `decay` and `init_scale` (a hyperparameter sweep); `qsr` is static (hashable).
-    `qsr=None` gives plain gradient descent. `wall_time` is NaN and `certified` comes from
-    the projection's own float64 check (a failed initial projection leaves that
-    initialisation with `certified=False` and zero steps). `throw` as in `fit_pgd`; under
-    `jit` it raises an `EquinoxRuntimeError`.
+    `decay` and `init_scale`, or over the hyperparameters an `optimizer` closes over (a
+    hyperparameter sweep); `qsr` is static (hashable). `qsr=None` gives plain gradient
+    descent. `wall_time` is NaN and `certified` comes from the projection's own float64
+    check (a failed initial projection leaves that initialisation with `certified=False`
+    and zero steps). `throw` as in `fit_pgd`; under `jit` it raises an
+    `EquinoxRuntimeError`.
 
     ```python
-    lrs = jnp.logspace(-4, -2, 5)
+    lrs = jnp.logspace(-2, 0, 5)
     run = lambda lr: dj.pgd_run(key, windows, qsr, learning_rate=lr, throw=False)
     res = jax.jit(jax.vmap(run))(lrs)     # every field gains a leading axis of size 5
     ```
     """
-    check_fit_args(windows, qsr, num_inits, max_steps, learning_rate=learning_rate, decay=decay,
-                   tol=tol, init_scale=init_scale)
-    res = _run(key, windows, qsr, learning_rate, decay, init_scale, num_inits=num_inits,
-               max_steps=max_steps, tol=tol, eps=eps)
+    optimizer, learning_rate, decay, n_state = _options(
+        windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
+        decay=decay, tol=tol, init_scale=init_scale, n_state=n_state)
+    res = _run(key, windows, qsr, learning_rate, decay, init_scale, optimizer=optimizer,
+               num_inits=num_inits, n_state=n_state, max_steps=max_steps, tol=tol, eps=eps)
     return raise_if_failed(res) if throw else res
 
 
-def _fit(key, windows, qsr, *, num_inits, max_steps, learning_rate, decay, tol, init_scale,
-         eps, throw):
+def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_inits,
+         n_state, max_steps, tol, eps, throw):
     """`pgd_run`, compiled once per static configuration, timed and certified as a batch."""
-    check_fit_args(windows, qsr, num_inits, max_steps, learning_rate=learning_rate, decay=decay,
-                   tol=tol, init_scale=init_scale)
+    optimizer, learning_rate, decay, n_state = _options(
+        windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
+        decay=decay, tol=tol, init_scale=init_scale, n_state=n_state)
     start = time.perf_counter()
     dtype = windows.y.dtype
     res = _run_jit(key, windows, qsr, *(jnp.asarray(v, dtype) for v in
                                         (learning_rate, decay, init_scale)),
-                   num_inits=int(num_inits), max_steps=int(max_steps), tol=float(tol),
-                   eps=float(eps))
+                   optimizer=optimizer, num_inits=int(num_inits), n_state=n_state,
+                   max_steps=int(max_steps), tol=float(tol), eps=float(eps))
     jax.block_until_ready(res)
     certified = res.certified
     if qsr is not None:
@@ -163,34 +208,50 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, learning_rate, decay, tol, 
 
 
 def fit_pgd(
-    key, windows: Windows, qsr: QSR, *, num_inits: int = 8, max_steps: int = 150,
-    learning_rate: float = 1e-3, decay: float = 0.99, tol: float = 1e-3,
-    init_scale: float = INIT_SCALE, eps: float = 1e-6, throw: bool = True,
+    key, windows: Windows, qsr: QSR, *, optimizer=None, learning_rate: float | None = None,
+    decay: float | None = None, num_inits: int = 8, n_state: int | None = None,
+    max_steps: int = 150, tol: float = 1e-3, init_scale: float = INIT_SCALE,
+    eps: float = 1e-6, throw: bool = True,
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers by projected gradient descent (paper Alg. 2).
 
     For each of `num_inits` random initialisations $K_0$ (entries
     $\\mathcal N(0,\\sigma^2)$, $\\sigma=$ `init_scale`, then projected), iterate
 
-    $$\\tilde K_{i} = K_i - \\eta_i\\nabla J(K_i),\\qquad
-    K_{i+1} = \\Pi_{\\tilde P = P_i}(\\tilde K_i), \\qquad \\eta_i = \\eta_0\\,\\rho^{\\,i},$$
+    $$\\tilde K_{i} = K_i + \\Delta_i\\bigl(\\nabla J_s(K_0),\\dots,\\nabla J_s(K_i)\\bigr),
+    \\qquad K_{i+1} = \\Pi_{\\tilde P = P_i}(\\tilde K_i),$$
 
-    with $J$ the imitation MSE ([`imitation_loss`][dissil_jax.imitation_loss]) and
-    $\\Pi$ the projection of paper eq. 13 ([`project`][dissil_jax.project]) linearised at
-    the previous iterate's $P$, until $|J(K_{i+1}) - J(K_i)| <$ `tol` or `max_steps`.
-    All initialisations run in one compiled `lax.while_loop`; each step sends the whole
-    batch to the host once, where Clarabel solves it on a thread pool.
+    with $\\Pi$ the projection of paper eq. 13 ([`project`][dissil_jax.project]) linearised
+    at the previous iterate's $P$ and $\\Delta_i$ the paper's rule
+    $\\Delta_i = -\\eta_0\\rho^{\\,i}\\nabla J_s(K_i)$ (the default), or the update of any
+    optax optimiser, whose state carries across steps (projected Adam, projected
+    momentum, ...).
+    The run stops when $|J(K_{i+1}) - J(K_i)| <$ `tol` or after `max_steps`. All
+    initialisations run in one compiled `lax.while_loop`; each step sends the whole batch
+    to the host once, where Clarabel solves it on a thread pool.
+
+    **Units do not matter.** The steps are taken on $J_s = J/s^2$, the imitation loss
+    ([`imitation_loss`][dissil_jax.imitation_loss]) of the windows divided by
+    $s = \\sqrt{J(0)}$, the root of the zero controller's loss. Scaling $x_0$, $y$ and $u$
+    by any $c > 0$ leaves every step unchanged; `loss_history`, `final_loss` and `tol` are
+    in the user's units ($J = s^2 J_s$).
 
     **Arguments:**
 
     - `key`: PRNG key for the initialisations.
-    - `windows`: the demonstrations ([`Windows`][dissil_jax.Windows]); the controller has
-      `windows.n_state` states.
+    - `windows`: the demonstrations ([`Windows`][dissil_jax.Windows]).
     - `qsr`: the controller's supply rate ($Q\\preceq0$).
-    - `num_inits`, `max_steps` (paper: 150), `tol` (paper: 1e-3 linear, 1e-5 nonlinear;
-      `0.0` runs every step), `learning_rate` $\\eta_0$, `decay` $\\rho$, `init_scale`
-      $\\sigma$ (default 1: the paper's N(0, 1) draw, see below), `eps` (LMI strictness
-      margin).
+    - `optimizer`, `learning_rate`, `decay`: the step rule. By default the paper's rule
+      with `learning_rate` $\\eta_0 = 1$ (in the normalised units above) and `decay`
+      $\\rho = 0.99$, chosen by measurement on four problems against Adam and ICO
+      (`benchmarks/bench_optimizers.py`); or any `optax.GradientTransformation` as
+      `optimizer` (then leave `learning_rate` and `decay` unset).
+    - `num_inits`: number of random initialisations.
+    - `n_state`: the controller order $\\hat n$; required when `windows.x0` is None (the
+      controller starts at rest), otherwise it must equal `windows.n_state`.
+    - `max_steps` (paper: 150), `tol` (paper: 1e-3 linear, 1e-5 nonlinear; `0.0` runs
+      every step), `init_scale` $\\sigma$ (default 1: the paper's N(0, 1) draw, see
+      below), `eps` (LMI strictness margin).
     - `throw`: raise a `ValueError` when a run ends in failure (`stop_reason` other than
       `converged` or `max_steps`: a failed projection, or a non-finite loss). With
       `throw=False` the result is returned and `stop_reason` says what happened; a failed
@@ -203,18 +264,24 @@ def fit_pgd(
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult]; every controller carries a `P`
     that passes the exact float64 KYP check (`certified`).
+
+    ```python
+    res = dj.fit_pgd(key, windows, dj.QSR.passive(2))                 # the paper's rule
+    res = dj.fit_pgd(key, windows, dj.QSR.passive(2), optimizer=optax.adam(1e-2))
+    ```
     """
     if qsr is None:
         raise ValueError("`qsr` is required for PGD; use `dj.fit_gd` for the unconstrained run.")
-    return _fit(key, windows, qsr, num_inits=num_inits, max_steps=max_steps,
-                learning_rate=learning_rate, decay=decay, tol=tol, init_scale=init_scale,
-                eps=eps, throw=throw)
+    return _fit(key, windows, qsr, optimizer=optimizer, learning_rate=learning_rate,
+                decay=decay, init_scale=init_scale, num_inits=num_inits, n_state=n_state,
+                max_steps=max_steps, tol=tol, eps=eps, throw=throw)
 
 
 def fit_gd(
-    key, windows: Windows, *, num_inits: int = 8, max_steps: int = 150,
-    learning_rate: float = 1e-3, decay: float = 0.99, tol: float = 1e-3,
-    init_scale: float = INIT_SCALE, throw: bool = True,
+    key, windows: Windows, *, optimizer=None, learning_rate: float | None = None,
+    decay: float | None = None, num_inits: int = 8, n_state: int | None = None,
+    max_steps: int = 150, tol: float = 1e-3, init_scale: float = INIT_SCALE,
+    throw: bool = True,
 ) -> FitResult:
     """Plain gradient descent on the imitation loss: [`fit_pgd`][dissil_jax.fit_pgd] without $\\Pi$.
 
@@ -222,8 +289,6 @@ def fit_gd(
     None). Same arguments and defaults as `fit_pgd`; with `throw=True` a diverging run
     (`non_finite`) raises.
     """
-    return _fit(key, windows, None, num_inits=num_inits, max_steps=max_steps,
-                learning_rate=learning_rate, decay=decay, tol=tol, init_scale=init_scale,
-                eps=0.0, throw=throw)
-
-
+    return _fit(key, windows, None, optimizer=optimizer, learning_rate=learning_rate,
+                decay=decay, init_scale=init_scale, num_inits=num_inits, n_state=n_state,
+                max_steps=max_steps, tol=tol, eps=0.0, throw=throw)

@@ -4,6 +4,7 @@ from .data import (
     demonstration_windows as demonstration_windows,
     demonstrations as demonstrations,
     initial_segments as initial_segments,
+    realisable_windows as realisable_windows,
     sliding_windows as sliding_windows,
     windows_per_trajectory as windows_per_trajectory,
 )

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 import jax.random as jr
 from jaxtyping import PRNGKeyArray
@@ -163,5 +164,32 @@ def demonstration_windows(
     return sliding_windows(traj, num_windows, horizon, span)
 
 
-__all__ = ["REGIMES", "demonstration_windows", "demonstrations",
-           "initial_segments", "sliding_windows", "windows_per_trajectory"]
+def realisable_windows(
+    key: PRNGKeyArray, qsr, *, n_state: int, num_windows: int, horizon: int = 2,
+    noise: float = 0.0, scale: float = 1.0,
+):
+    """Windows that a $(Q,S,R)$-dissipative controller of order `n_state` fits exactly.
+
+    The expert $K_\\star$ is a random draw (entries $\\mathcal N(0, 1)$) projected onto the
+    dissipative set of `qsr` ([`dj.project`][dissil_jax.project]); the windows start at
+    $\\hat x_0\\sim\\mathcal N(0, I)$ with inputs $y_k\\sim\\mathcal N(0, I)$, and
+    $u_k = -\\hat y_k + \\nu_k$ with $\\nu_k\\sim\\mathcal N(0, \\text{noise}^2 I)$, so
+    with `noise=0` the loss of $K_\\star$ is zero. `scale` multiplies $x_0$, $y$ and $u$ (a
+    change of units). Used by the optimiser comparison and the tests.
+
+    **Returns:** `(windows, K_star)`.
+    """
+    import dissil_jax as dj
+
+    kK, kx, ky, kn = jr.split(key, 4)
+    K = dj.LTIController.random(n_state, qsr.n_in, qsr.n_out, scale=1.0, key=kK)
+    K, _ = dj.project(K, qsr)
+    x0 = jr.normal(kx, (num_windows, n_state))
+    y = jr.normal(ky, (num_windows, horizon, qsr.n_in))
+    u = -jax.vmap(lambda x, yk: dj.rollout(K, x, yk))(x0, y)
+    u = u + noise * jr.normal(kn, u.shape)
+    return Windows(scale * x0, scale * y, scale * u), K
+
+
+__all__ = ["REGIMES", "demonstration_windows", "demonstrations", "initial_segments",
+           "realisable_windows", "sliding_windows", "windows_per_trajectory"]

@@ -193,20 +193,26 @@ def evaluate(
     *,
     plant_noise: float = PLANT_NOISE,
     control_noise: float = CONTROL_NOISE,
-    xhat0=None,
+    xhat0: Float[Array, "N nh"] | str | None = None,
 ) -> Evaluation:
     """Closed-loop test of a batch of learned controllers against the expert (paper §5).
 
     Draws one noise realisation per test state (from `key`), simulates the expert and every
     controller with it for `steps` steps, and returns verdicts and MSEs. Paper test sets:
     $x_0\\sim\\mathcal N(0, 20^2I)$ (linear), 1,000 states $x_0\\sim\\mathcal N(0, 15^2)$
-    (nonlinear); `docs/problems.md` documents the horizons we use.
+    (nonlinear); `docs/problems.md` documents the horizons we use. The protocol runs the
+    test loops for at least the expert's `equilibrium_horizon`.
+
+    `xhat0` is the controllers' initial state, passed to
+    [`simulate_controllers`][dissil_jax.experiments.simulate_controllers]: None (default)
+    starts them at the plant state, $\\hat x_0 = x_0$; `"rest"` starts them at
+    $\\hat x_0 = 0$ of their own order (controllers trained on `dj.Windows(None, y, u)`, whose
+    order may differ from the plant's); an `[N, n̂]` array is used as given. The stability
+    verdict of an LTI loop does not depend on it; the MSE does.
 
     ```python
     ev = evaluate(key, plant, expert, fit.controllers, x0_test, steps=50)
-
-    The protocol runs the test loops for at least the expert's
-    [`equilibrium_horizon`][dissil_jax.experiments.equilibrium_horizon].
+    ev_rest = evaluate(key, plant, expert, fit.controllers, x0_test, steps=50, xhat0="rest")
     print(summarize(ev, fit))
     ```
     """

@@ -55,14 +55,14 @@ def example_spec(name: str, quick: bool = False) -> ExampleSpec:
         spec = ExampleSpec(
             name="linear", qsr=QSR.passive(3), num_plants=10, train_std=1.0, test_std=20.0,
             num_test=100, equilibrium_search=2000, min_test_steps=1, tol=1e-3, max_steps=150,
-            hidden=(150, 150), pgd_learning_rate=0.03, gd_learning_rate=0.01, pgd_decay=0.99,
+            hidden=(150, 150), pgd_learning_rate=0.3, gd_learning_rate=0.1, pgd_decay=0.99,
             init_scale=1.0,
         )
     elif name == "nonlinear":
         spec = ExampleSpec(
             name="nonlinear", qsr=QSR(-29.867, 3.556, 0.601), num_plants=1, train_std=5.0,
             test_std=15.0, num_test=1000, equilibrium_search=200, min_test_steps=30, tol=1e-5,
-            max_steps=150, hidden=(25, 25), pgd_learning_rate=1e-2, gd_learning_rate=3e-3,
+            max_steps=150, hidden=(25, 25), pgd_learning_rate=1.0, gd_learning_rate=0.3,
             pgd_decay=0.99, init_scale=1.0,
         )
     else:

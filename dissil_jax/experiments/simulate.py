@@ -227,19 +227,39 @@ def _check_controller(plant, controller, xhat0) -> None:
                          f"{xhat0.shape[1:]}; pass `xhat0` of the controller's state size.")
 
 
+def _initial_controller_state(plant, controllers, x0, xhat0) -> Array:
+    """`xhat0` as an `[N, n̂]` array: None -> `x0`, "rest" -> zeros of the controllers' order."""
+    if xhat0 is None:
+        return x0
+    if isinstance(xhat0, str):
+        if xhat0 != "rest":
+            raise ValueError(f'`xhat0` must be None, "rest" or an [N, n̂] array, got {xhat0!r}.')
+        n_hat = getattr(controllers, "n_state", None)
+        if not isinstance(n_hat, int):  # memoryless (e.g. MLPController): any size is carried
+            n_hat = plant.n_state
+        return jnp.zeros((x0.shape[0], n_hat), x0.dtype)
+    xhat0 = jnp.asarray(xhat0)
+    if xhat0.ndim != 2 or xhat0.shape[0] != x0.shape[0]:
+        raise ValueError(f"`xhat0` must have shape [{x0.shape[0]}, n̂], got {xhat0.shape}.")
+    if not bool(jnp.all(jnp.isfinite(xhat0))):
+        raise ValueError("`xhat0` contains NaN or inf.")
+    return xhat0
+
+
 def simulate_controllers(
     plant,
     controllers: Any,
     x0: Float[Array, "N n"],
     noise: Noise,
-    xhat0: Float[Array, "N nh"] | None = None,
+    xhat0: Float[Array, "N nh"] | str | None = None,
     *,
     loop_iterations: int | None = None,
 ) -> Trajectories:
     """Simulate a batch of controllers in negative feedback with the plant (vmapped twice).
 
     For each controller (leading batch axis of `controllers`) and each initial state:
-    $\\hat x_0 = x_0$ (or `xhat0`), and for $k < T$
+    $\\hat x_0 = x_0$ by default, $\\hat x_0 = 0$ with `xhat0="rest"`, or the given
+    `xhat0`; and for $k < T$
 
     $$u_k = -\\hat y_k + e_k,\\quad y_k = h(x_k,u_k),\\quad (\\hat x_{k+1}, \\hat y_k) =
     K(\\hat x_k, y_k),\\quad x_{k+1} = f(x_k,u_k) + w_k,$$
@@ -249,8 +269,15 @@ def simulate_controllers(
     or any equinox module, batched the same way, with `__call__(xhat, uhat) -> (xhat_next,
     yhat)`; a memoryless controller returns `xhat` unchanged.
 
+    The default $\\hat x_0 = x_0$ matches controllers trained on windows that record the
+    plant state (their order is the plant's $n$). Controllers trained at rest
+    (`dj.Windows(None, y, u)`) start at rest: `xhat0="rest"` gives $\\hat x_0 = 0$ of size
+    `controllers.n_state`, any order $\\hat n$ (for a controller without `n_state`, e.g. the
+    memoryless `MLPController`, zeros of the plant's state size, which it carries unchanged).
+
     **Arguments:** the `plant`, the batched `controllers`, initial states `x0` `[N, n]`, one
-    `noise` realisation shared by all controllers, optional `xhat0` `[N, n̂]`,
+    `noise` realisation shared by all controllers, the initial controller state `xhat0`
+    (None: $\\hat x_0 = x_0$; `"rest"`: $\\hat x_0 = 0$; or an `[N, n̂]` array),
     `loop_iterations` (default 1 for `LTIController`, 10 otherwise).
 
     **Returns:** [`Trajectories`][dissil_jax.experiments.Trajectories] with a leading
@@ -258,11 +285,7 @@ def simulate_controllers(
     """
     x0 = _check_x0(x0, plant.n_state)
     _check_noise(noise, x0.shape[0], plant)
-    if xhat0 is None:
-        xhat0 = x0
-    xhat0 = jnp.asarray(xhat0)
-    if xhat0.ndim != 2 or xhat0.shape[0] != x0.shape[0]:
-        raise ValueError(f"`xhat0` must have shape [{x0.shape[0]}, n̂], got {xhat0.shape}.")
+    xhat0 = _initial_controller_state(plant, controllers, x0, xhat0)
     _batch_size(controllers)
     if isinstance(controllers, LTIController):
         if controllers.A.ndim != 3:
@@ -271,7 +294,8 @@ def simulate_controllers(
         if controllers.n_state != xhat0.shape[1]:
             raise ValueError(
                 f"`controllers` have {controllers.n_state} states but the initial controller "
-                f"state has {xhat0.shape[1]} (x̂0 = x0 by default); pass `xhat0`."
+                f"state has {xhat0.shape[1]} (x̂0 = x0 by default); pass `xhat0=\"rest\"` to "
+                "start them at rest, or an [N, n̂] `xhat0`."
             )
     first = jax.tree.map(lambda l: l[0] if eqx.is_array(l) and l.ndim > 0 else l, controllers)
     _check_controller(plant, first, xhat0)

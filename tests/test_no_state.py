@@ -1,0 +1,310 @@
+"""Training and evaluation from input-output logs alone: `dj.Windows(None, y, u)`.
+
+Every reference below is a plain numpy loop started at rest (x̂0 = 0); none uses the
+library's (O, T) matrices or its simulators.
+"""
+
+import jax
+import jax.flatten_util  # noqa: F401
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+
+import dissil_jax as dj
+from dissil_jax import _rollout, experiments as ex
+from dissil_jax._train._checks import check_n_state
+from dissil_jax._train._init import init_controllers
+from dissil_jax.experts import lqr_expert
+from dissil_jax.systems import mass_spring_chain, paper_nonlinear_plant
+
+
+def _outputs_from_rest(K, y):
+    """ŷ_k = C x̂_k + D y_k, x̂_{k+1} = A x̂_k + B y_k from x̂_0 = 0 (one window, numpy)."""
+    A, B, C, D = (np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
+    x, out = np.zeros(A.shape[0]), []
+    for yk in np.asarray(y, np.float64):
+        out.append(C @ x + D @ yk)
+        x = A @ x + B @ yk
+    return np.array(out)
+
+
+def _loss_from_rest(K, y, u):
+    """Paper eq. 16 with x̂_0 = 0: mean over windows of sum_k ||ŷ_k + u_k||^2 (numpy)."""
+    return np.mean([np.sum((_outputs_from_rest(K, y[i]) + np.asarray(u[i])) ** 2)
+                    for i in range(y.shape[0])])
+
+
+def _random_windows(key, N, h, p, m, x0=None):
+    ky, ku = jr.split(key)
+    return dj.Windows(x0, jr.normal(ky, (N, h, p)), jr.normal(ku, (N, h, m)))
+
+
+# -- Windows(None, ...) ---------------------------------------------------------------------
+
+
+def test_windows_at_rest_construction(getkey):
+    w = _random_windows(getkey(), 5, 3, 2, 1)
+    assert w.x0 is None and w.n_state is None
+    assert (w.num_windows, w.horizon, w.n_in, w.n_out) == (5, 3, 2, 1)
+    np.testing.assert_array_equal(w.target, -np.asarray(w.u))
+    # A pytree like any other: it goes through jit and tree maps with x0 still None.
+    w2 = jax.jit(lambda v: jax.tree.map(lambda a: 2 * a, v))(w)
+    assert w2.x0 is None
+    np.testing.assert_allclose(w2.y, 2 * np.asarray(w.y))
+
+
+def test_windows_at_rest_validation():
+    z = lambda *s: jnp.zeros(s)
+    with pytest.raises(ValueError, match="`y`"):
+        dj.Windows(None, z(3, 2), z(3, 2, 1))
+    with pytest.raises(ValueError, match="`u`"):
+        dj.Windows(None, z(3, 2, 1), z(3, 2))
+    with pytest.raises(ValueError, match="`y` and `u` must share the window axis"):
+        dj.Windows(None, z(4, 2, 1), z(3, 2, 1))
+    with pytest.raises(ValueError, match="horizon"):
+        dj.Windows(None, z(3, 2, 1), z(3, 4, 1))
+    with pytest.raises(ValueError, match="at least one window"):
+        dj.Windows(None, z(0, 2, 1), z(0, 2, 1))
+    with pytest.raises(ValueError, match="`y` contains NaN"):
+        dj.Windows(None, jnp.full((3, 2, 1), jnp.nan), z(3, 2, 1))
+    with pytest.raises(ValueError, match="`u` contains NaN"):
+        dj.Windows(None, z(3, 2, 1), jnp.full((3, 2, 1), jnp.inf))
+    with pytest.raises(ValueError, match="`x0` must have shape"):
+        dj.Windows(z(3), z(3, 2, 1), z(3, 2, 1))
+
+
+# -- loss, predict and rollout from rest ----------------------------------------------------
+
+
+@pytest.mark.parametrize("n_hat", [1, 2, 3])
+@pytest.mark.parametrize("h", [2, 5, 40])  # 40 > the Toeplitz cut-off: the scan path
+def test_loss_at_rest_equals_plain_loop(getkey, n_hat, h):
+    p, m, N = 2, 2, 6
+    K = dj.LTIController.random(n_hat, p, m, scale=0.4, key=getkey())
+    w = _random_windows(getkey(), N, h, p, m)
+    ref = np.stack([_outputs_from_rest(K, w.y[i]) for i in range(N)])
+    np.testing.assert_allclose(dj.predict(K, w), ref, rtol=1e-11, atol=1e-11)
+    assert float(dj.imitation_loss(K, w)) == pytest.approx(_loss_from_rest(K, w.y, w.u),
+                                                           rel=1e-11)
+    assert float(jax.jit(dj.imitation_loss)(K, w)) == pytest.approx(
+        _loss_from_rest(K, w.y, w.u), rel=1e-11)
+    np.testing.assert_allclose(dj.rollout(K, None, w.y[0]), ref[0], rtol=1e-11, atol=1e-11)
+
+
+def test_both_predict_paths_agree_at_rest(getkey, monkeypatch):
+    K = dj.LTIController.random(3, 1, 2, scale=0.5, key=getkey())
+    w = _random_windows(getkey(), 4, 6, 1, 2)
+    a = dj.predict(K, w)
+    monkeypatch.setattr(_rollout, "_TOEPLITZ_MAX_HORIZON", 0)
+    b = dj.predict(K, w)
+    np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(b[2], _outputs_from_rest(K, w.y[2]), atol=1e-12)
+
+
+def test_loss_at_rest_differs_from_loss_at_a_state(getkey):
+    """With x0 given the same controller sees O x0 on top: the two losses differ."""
+    K = dj.LTIController.random(2, 1, 1, scale=0.5, key=getkey())
+    rest = _random_windows(getkey(), 5, 4, 1, 1)
+    at_x0 = dj.Windows(jnp.ones((5, 2)), rest.y, rest.u)
+    at_zero = dj.Windows(jnp.zeros((5, 2)), rest.y, rest.u)
+    assert float(dj.imitation_loss(K, rest)) == pytest.approx(
+        float(dj.imitation_loss(K, at_zero)), rel=1e-12)
+    assert abs(float(dj.imitation_loss(K, rest)) - float(dj.imitation_loss(K, at_x0))) > 1e-3
+
+
+def test_gradient_at_rest_matches_finite_differences(getkey):
+    K = dj.LTIController.random(2, 1, 1, scale=0.5, key=getkey())
+    w = _random_windows(getkey(), 5, 4, 1, 1)
+    g = jax.grad(dj.imitation_loss)(K, w)
+    flat, unravel = jax.flatten_util.ravel_pytree(K)
+    gflat, _ = jax.flatten_util.ravel_pytree(g)
+    f = lambda v: _loss_from_rest(unravel(v), w.y, w.u)
+    eps = 1e-6
+    fd = np.array([(f(flat.at[i].add(eps)) - f(flat.at[i].add(-eps))) / (2 * eps)
+                   for i in range(flat.size)])
+    np.testing.assert_allclose(gflat, fd, rtol=1e-6, atol=1e-8)
+
+
+def test_state_width_must_match_controller_order(getkey):
+    K = dj.LTIController.random(2, 1, 1, key=getkey())
+    w = _random_windows(getkey(), 3, 2, 1, 1, x0=jnp.ones((3, 1)))
+    for fn in (dj.predict, dj.imitation_loss):
+        with pytest.raises(ValueError, match="`windows.x0` has width 1 but `K` has 2 states"):
+            fn(K, w)
+    with pytest.raises(ValueError, match=r"`x0` must have shape \(2,\)"):
+        dj.rollout(K, jnp.ones(1), w.y[0])
+
+
+# -- check_n_state and init_controllers -----------------------------------------------------
+
+
+def test_check_n_state(getkey):
+    rest = _random_windows(getkey(), 3, 2, 1, 1)
+    logged = _random_windows(getkey(), 3, 2, 1, 1, x0=jnp.ones((3, 2)))
+    with pytest.raises(ValueError, match="`n_state` is required when `windows.x0` is None"):
+        check_n_state(rest, None)
+    for bad in (0, -1, 1.5, True, "2", np.ones(2)):
+        with pytest.raises(ValueError, match="`n_state` must be a positive integer"):
+            check_n_state(rest, bad)
+    assert check_n_state(rest, 3) == 3 and check_n_state(rest, np.int64(1)) == 1
+    assert type(check_n_state(rest, np.int64(1))) is int
+    assert check_n_state(logged, None) == 2 and check_n_state(logged, 2) == 2
+    with pytest.raises(ValueError, match="`n_state` = 3 but `windows.x0` has width 2"):
+        check_n_state(logged, 3)
+
+
+@pytest.mark.parametrize("n_hat", [1, 3])
+def test_init_controllers_with_n_state(getkey, n_hat):
+    w = _random_windows(getkey(), 3, 2, 2, 1)
+    key = getkey()
+    K = init_controllers(key, 4, w, 0.5, n_state=n_hat)
+    assert K.batch_shape == (4,) and (K.n_state, K.n_in, K.n_out) == (n_hat, 2, 1)
+    for i, k in enumerate(jr.split(key, 4)):  # initialisation i is the draw of key i
+        ref = dj.LTIController.random(n_hat, 2, 1, scale=1.0, dtype=w.y.dtype, key=k)
+        for M, R in zip((K.A, K.B, K.C, K.D), (ref.A, ref.B, ref.C, ref.D)):
+            np.testing.assert_allclose(M[i], 0.5 * np.asarray(R), rtol=1e-14)
+    with pytest.raises(ValueError, match="`n_state` is required"):
+        init_controllers(key, 4, w, 0.5)
+    logged = _random_windows(getkey(), 3, 2, 2, 1, x0=jnp.ones((3, 2)))
+    assert init_controllers(key, 2, logged, 1.0).n_state == 2  # default: x0's width
+
+
+def test_mlp_pairs_ignore_x0(getkey):
+    from dissil_jax._train.mlp import _pairs
+
+    w = _random_windows(getkey(), 3, 2, 1, 1)
+    X, T = _pairs(w)
+    np.testing.assert_array_equal(X, w.y)
+    np.testing.assert_array_equal(T, -np.asarray(w.u))
+
+
+# -- closed loop from rest ------------------------------------------------------------------
+
+
+def _loop_from_rest(plant_mats, step, Ks_np, x0, w, e):
+    """Closed loop of each controller with x̂_0 = 0 (numpy); returns x [K, N, T+1, n].
+
+    Linear output y = Cx + Du, so u = (I + Dc D)^{-1}(-Cc x̂ - Dc C x + e) exactly.
+    """
+    _, _, C, D = plant_mats
+    out = []
+    for Ac, Bc, Cc, Dc in Ks_np:
+        x, xh = np.asarray(x0, np.float64), np.zeros((x0.shape[0], Ac.shape[0]))
+        xs = [x]
+        for k in range(w.shape[1]):
+            u = np.linalg.solve(np.eye(Dc.shape[0]) + Dc @ D,
+                                (-xh @ Cc.T - x @ C.T @ Dc.T + e[:, k]).T).T
+            y = x @ C.T + u @ D.T
+            x, xh = step(x, u) + w[:, k], xh @ Ac.T + y @ Bc.T
+            xs.append(x)
+        out.append(np.stack(xs, axis=1))
+    return np.stack(out)
+
+
+def _np_ltis(Ks):
+    return [tuple(np.asarray(M[i], np.float64) for M in (Ks.A, Ks.B, Ks.C, Ks.D))
+            for i in range(Ks.A.shape[0])]
+
+
+def test_simulate_nonlinear_plant_at_rest_with_a_second_order_controller(getkey):
+    """n̂ = 2 on the 1-state nonlinear plant: only possible at rest."""
+    plant = paper_nonlinear_plant()
+    rng = np.random.default_rng(0)
+    Ks = dj.LTIController(*(0.2 * rng.normal(size=(3, *s))
+                            for s in ((2, 2), (2, 1), (1, 2), (1, 1))))
+    x0 = 3 * jr.normal(getkey(), (4, 1))
+    noise = ex.sample_noise(getkey(), 4, 12, plant)
+    with pytest.raises(ValueError, match='`xhat0="rest"`'):
+        ex.simulate_controllers(plant, Ks, x0, noise)
+    tr = ex.simulate_controllers(plant, Ks, x0, noise, xhat0="rest")
+    assert tr.xhat.shape == (3, 4, 13, 2)
+    np.testing.assert_array_equal(tr.xhat[:, :, 0], 0.0)
+    A, B, C, D = plant.matrices()
+    alpha = float(plant.alpha)
+    step = lambda x, u: x @ A.T + alpha * np.sin(x) + u @ B.T
+    ref = _loop_from_rest((A, B, C, D), step, _np_ltis(Ks), x0, np.asarray(noise.w),
+                          np.asarray(noise.e))
+    np.testing.assert_allclose(tr.x, ref, rtol=1e-9, atol=1e-9)
+    # An explicit zero xhat0 is the same thing.
+    tr0 = ex.simulate_controllers(plant, Ks, x0, noise, xhat0=jnp.zeros((4, 2)))
+    np.testing.assert_allclose(tr0.x, tr.x, rtol=1e-12, atol=1e-12)
+
+
+def test_simulate_rest_argument_errors_and_memoryless(getkey):
+    plant = paper_nonlinear_plant()
+    Ks = dj.LTIController(*(jnp.zeros((2, *s)) for s in ((1, 1), (1, 1), (1, 1), (1, 1))))
+    x0 = jnp.ones((3, 1))
+    noise = ex.sample_noise(getkey(), 3, 4, plant)
+    with pytest.raises(ValueError, match="`xhat0` must be None, \"rest\""):
+        ex.simulate_controllers(plant, Ks, x0, noise, xhat0="zero")
+    with pytest.raises(ValueError, match="`xhat0` contains NaN"):
+        ex.simulate_controllers(plant, Ks, x0, noise, xhat0=jnp.full((3, 1), jnp.nan))
+    mlp = jax.vmap(lambda k: dj.MLPController(1, 1, (4, 4), key=k))(jr.split(getkey(), 2))
+    tr = ex.simulate_controllers(plant, mlp, x0, noise, xhat0="rest")
+    np.testing.assert_array_equal(tr.xhat, 0.0)  # carried unchanged, zeros of plant size
+    assert tr.xhat.shape == (2, 3, 5, 1)
+
+
+def test_evaluate_at_rest_against_plain_loops(getkey):
+    """Order-2 controllers on the 6-state chain, started at rest, vs numpy loops."""
+    ch = mass_spring_chain(0)
+    plant, expert = ch.plant, lqr_expert(ch.Ac, ch.Bc, ch.Cc)
+    rng = np.random.default_rng(1)
+    Ks = dj.LTIController(*(0.05 * rng.normal(size=(3, *s))
+                            for s in ((2, 2), (2, 3), (3, 2), (3, 3))))
+    x0 = 5 * jr.normal(getkey(), (4, 6))
+    key, steps = getkey(), 40
+    ev = ex.evaluate(key, plant, expert, Ks, x0, steps, xhat0="rest")
+    noise = ex.sample_noise(key, 4, steps, plant, dtype=x0.dtype)  # evaluate's draw
+    w, e = np.asarray(noise.w), np.asarray(noise.e)
+    A, B, C, D = plant.matrices()
+    Kx = np.asarray(expert.K)
+    xe, xs = np.asarray(x0, np.float64), [np.asarray(x0, np.float64)]
+    for k in range(steps):  # expert: u = -K x + e
+        xe = xe @ A.T + (-xe @ Kx.T + e[:, k]) @ B.T + w[:, k]
+        xs.append(xe)
+    x_exp = np.stack(xs, axis=1)
+    x_ctl = _loop_from_rest((A, B, C, D), lambda x, u: x @ A.T + u @ B.T, _np_ltis(Ks),
+                            x0, w, e)
+    np.testing.assert_allclose(ev.expert.x, x_exp, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(ev.learned.x, x_ctl, rtol=1e-9, atol=1e-9)
+    assert ev.exact and ev.stable.all()
+    ref_mse = np.sum((x_ctl[:, :, 1:] - x_exp[None, :, 1:]) ** 2, axis=-1).mean(axis=(1, 2))
+    np.testing.assert_allclose(ev.mse, ref_mse, rtol=1e-9)
+    # Defaults unchanged: x̂0 = x0 needs order 6, so these order-2 controllers are refused.
+    with pytest.raises(ValueError, match="`controllers` have 2 states"):
+        ex.evaluate(key, plant, expert, Ks, x0, steps)
+
+
+# -- the issue's acceptance test: training from input-output logs alone --------------------
+
+
+def test_fit_pgd_learns_a_passive_expert_from_rest():
+    """A certified passive order-3 expert, run from x = 0 on random inputs, is learned back.
+
+    Every window is the beginning of an expert trajectory from rest, so with x̂0 = 0 the
+    order-3 expert fits the data exactly; PGD must bring every run to <= 5 % of its
+    initial loss and return certified controllers.
+    """
+    p = m = 2
+    qsr = dj.QSR.passive(m)
+    K_star, _ = dj.project(dj.LTIController.random(3, p, m, scale=1.0, key=jr.PRNGKey(0)), qsr)
+    assert dj.certify(K_star, qsr).holds
+    y = jr.normal(jr.PRNGKey(1), (32, 8, p))
+    u = -np.stack([_outputs_from_rest(K_star, yi) for yi in y])  # u = -ŷ (negative feedback)
+    windows = dj.Windows(None, y, u)
+    assert float(dj.imitation_loss(K_star, windows)) < 1e-20
+    with pytest.raises(ValueError, match="`n_state` is required"):
+        dj.fit_pgd(jr.PRNGKey(2), windows, qsr, num_inits=2, max_steps=1)
+    res = dj.fit_pgd(jr.PRNGKey(2), windows, qsr, n_state=3, num_inits=8, learning_rate=0.3,
+                     decay=0.99, max_steps=150, tol=0.0)
+    assert res.controllers.n_state == 3
+    ratio = np.asarray(res.final_loss) / np.asarray(res.initial_loss)
+    assert np.all(ratio <= 0.05), ratio
+    assert np.all(np.asarray(res.certified))
+    for i in range(res.num_inits):
+        K = jax.tree.map(lambda a: a[i], res.controllers)
+        assert dj.certify(K, qsr).holds
+        # The reported loss is the loss from rest of the returned controller.
+        assert float(res.final_loss[i]) == pytest.approx(_loss_from_rest(K, y, u), rel=1e-8)

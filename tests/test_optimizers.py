@@ -1,0 +1,90 @@
+"""PGD with any optax optimiser, and defaults that learn out of the box."""
+
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import optax
+import pytest
+from helpers import dissipation_ok, index
+
+import dissil_jax as dj
+from dissil_jax._train._init import init_controllers
+from dissil_jax._train._scale import loss_scale, scaled
+from dissil_jax.experiments import realisable_windows
+
+QSR = dj.QSR.passive(2)
+
+
+@pytest.fixture(scope="module")
+def realisable():
+    """The issue's problem: a passive order-2 expert, m = p = 2, 40 noiseless windows."""
+    windows, _ = realisable_windows(jr.PRNGKey(0), QSR, n_state=2, num_windows=40)
+    return windows
+
+
+def _all_certified(res):
+    assert bool(np.all(res.certified))
+    for i in range(res.num_inits):
+        assert dissipation_ok(index(res.controllers, i), QSR, res.P[i])
+
+
+def test_defaults_learn(realisable):
+    """All defaults: the batch ends at <= 1 % of its initial loss (total and median), no run
+    above 3 %, every controller certified."""
+    res = dj.fit_pgd(jr.PRNGKey(1), realisable, QSR)
+    assert res.num_inits == 8
+    ratio = np.asarray(res.final_loss / res.initial_loss)
+    assert float(np.sum(res.final_loss) / np.sum(res.initial_loss)) <= 0.01
+    assert np.median(ratio) <= 0.01 and np.all(ratio <= 0.03), ratio
+    _all_certified(res)
+
+
+def test_adam_1e2_learns(realisable):
+    """Projected Adam at 1e-2 needs more steps (its steps are 1e-2 in parameter units); some
+    runs stall near the boundary of the set (documented on the optimiser page)."""
+    res = dj.fit_pgd(jr.PRNGKey(1), realisable, QSR, optimizer=optax.adam(1e-2),
+                     max_steps=600, tol=1e-6)
+    ratio = np.asarray(res.final_loss / res.initial_loss)
+    assert np.median(ratio) <= 0.01 and np.all(ratio <= 0.1), ratio
+    _all_certified(res)
+
+
+def test_optimizer_state_carries_across_steps(realisable):
+    """fit_pgd with SGD + momentum equals a plain loop: update, then project at the previous
+    P, with the optimiser state threaded through (projected momentum)."""
+    opt = optax.sgd(0.05, momentum=0.9)
+    key, steps = jr.PRNGKey(2), 6
+    res = dj.fit_pgd(key, realisable, QSR, optimizer=opt, num_inits=2, max_steps=steps,
+                     tol=0.0)
+    ws = scaled(realisable, loss_scale(realisable))
+    grad = jax.jit(jax.grad(dj.imitation_loss))
+    K0, P0 = dj.project(init_controllers(key, 2, realisable, 1.0), QSR)
+    for i in range(2):
+        K, P = index(K0, i), P0[i]
+        state = opt.init(K)
+        for _ in range(steps):
+            updates, state = opt.update(grad(K, ws), state, K)
+            K, P = dj.project(optax.apply_updates(K, updates), QSR, P)
+        for name in "ABCD":  # K0 is drawn inside jit there: last-bit differences, amplified
+            np.testing.assert_allclose(getattr(index(res.controllers, i), name),
+                                       getattr(K, name), rtol=1e-5, atol=1e-6)
+
+
+def test_vmapped_adam_sweep_equals_separate_runs(realisable):
+    rates = jnp.asarray([1e-2, 1e-1])
+    run = lambda lr: dj.pgd_run(jr.PRNGKey(3), realisable, QSR, optimizer=optax.adam(lr),
+                                num_inits=2, max_steps=5, tol=0.0).final_loss
+    swept = jax.jit(jax.vmap(run))(rates)
+    for j, lr in enumerate([1e-2, 1e-1]):
+        one = dj.fit_pgd(jr.PRNGKey(3), realisable, QSR, optimizer=optax.adam(lr),
+                         num_inits=2, max_steps=5, tol=0.0)
+        np.testing.assert_allclose(swept[j], one.final_loss, rtol=1e-6)
+
+
+def test_step_rule_arguments(realisable):
+    with pytest.raises(ValueError, match="not both"):
+        dj.fit_pgd(jr.PRNGKey(0), realisable, QSR, optimizer=optax.adam(0.1),
+                   learning_rate=0.1)
+    with pytest.raises(ValueError, match="`optimizer`"):
+        dj.pgd_run(jr.PRNGKey(0), realisable, QSR, optimizer=lambda g: g)

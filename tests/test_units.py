@@ -1,0 +1,69 @@
+"""Training does not depend on the units of the demonstrations (x0, y, u scaled together)."""
+
+import jax.random as jr
+import numpy as np
+import pytest
+from helpers import dissipation_ok, index
+
+import dissil_jax as dj
+from dissil_jax.experiments import realisable_windows
+
+QSR = dj.QSR.passive(2)
+
+
+def _windows(scale, noise=0.1):
+    w, _ = realisable_windows(jr.PRNGKey(4), QSR, n_state=2, num_windows=30, noise=noise,
+                              scale=scale)
+    return w
+
+
+def _rel(a, b):
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return float(np.max(np.abs(a - b)) / max(np.max(np.abs(b)), 1e-300))
+
+
+def _same_controllers(res, ref, rtol):
+    for name in "ABCD":
+        assert _rel(getattr(res.controllers, name), getattr(ref.controllers, name)) <= rtol
+
+
+def _certified(res, qsr=QSR):
+    assert bool(np.all(res.certified))
+    for i in range(res.num_inits):
+        assert dissipation_ok(index(res.controllers, i), qsr, res.P[i])
+
+
+@pytest.mark.parametrize("c", [1e-4, 1e-2, 1e2, 1e4])
+def test_pgd_is_unit_free(c):
+    kw = dict(num_inits=3, max_steps=15, tol=0.0)
+    ref = dj.fit_pgd(jr.PRNGKey(0), _windows(1.0), QSR, **kw)
+    res = dj.fit_pgd(jr.PRNGKey(0), _windows(c), QSR, **kw)
+    _same_controllers(res, ref, 1e-4)
+    # losses are reported in the user's units: J scales with c^2
+    np.testing.assert_allclose(res.loss_history, c**2 * ref.loss_history, rtol=1e-4)
+    _certified(res)
+
+
+@pytest.mark.parametrize("c", [1e-4, 1e4])
+def test_ico_is_unit_free(c):
+    kw = dict(num_inits=2, max_steps=6, tol=0.0)
+    ref = dj.fit_ico(jr.PRNGKey(0), _windows(1.0), QSR, **kw)
+    res = dj.fit_ico(jr.PRNGKey(0), _windows(c), QSR, **kw)
+    _same_controllers(res, ref, 1e-5)
+    np.testing.assert_allclose(res.loss_history, c**2 * ref.loss_history, rtol=1e-5)
+    _certified(res)
+
+
+def test_ico_trains_on_data_scaled_by_1e6():
+    res = dj.fit_ico(jr.PRNGKey(0), _windows(1e6), QSR, num_inits=2, max_steps=8, tol=0.0)
+    assert res.stop_reasons() == ["max_steps"] * 2  # throw=True would have raised otherwise
+    assert bool(np.all(res.final_loss < 0.05 * res.initial_loss))
+    _certified(res)
+
+
+def test_tol_is_in_the_users_units():
+    """The same run stops at the same step when tol is scaled with the loss (c^2)."""
+    a = dj.fit_pgd(jr.PRNGKey(0), _windows(1.0), QSR, num_inits=3, tol=1e-2)
+    b = dj.fit_pgd(jr.PRNGKey(0), _windows(10.0), QSR, num_inits=3, tol=1.0)
+    np.testing.assert_array_equal(a.steps, b.steps)
+    assert bool(np.any(a.converged))
