@@ -22,7 +22,7 @@ def main(quick: bool = False):
     jax.config.update("jax_enable_x64", True)
     windows = demonstrations(jax.random.PRNGKey(0), num=25)
     qsr = dj.QSR(-29.867, 3.556, 0.601)
-    lrs = jnp.logspace(-4, -1.5, 4 if quick else 8)
+    lrs = jnp.logspace(-2, 0.5, 4 if quick else 8)  # normalised units: the default is 1
     steps = 30 if quick else 150
 
     def run(lr):
