@@ -11,6 +11,7 @@ Choices the paper leaves open (see `docs/problems.md`) are collected in `Example
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections import Counter
 
@@ -73,6 +74,7 @@ def example_spec(name: str, quick: bool = False) -> ExampleSpec:
     return spec
 
 
+@functools.lru_cache(maxsize=None)
 def make_problem(spec: ExampleSpec, plant_index: int, seed: int):
     """(plant, expert) number `plant_index` of the example (deterministic in the seed)."""
     from ..experts import lqr_expert, nmpc_expert
@@ -118,17 +120,30 @@ def _finite_mean(values: np.ndarray) -> float:
     return float(finite.mean()) if finite.size else float("nan")
 
 
+@functools.lru_cache(maxsize=None)
 def training_data(spec: ExampleSpec, plant_index: int, seed: int, data: str, segments: int):
     """`(plant, expert, windows, (k_fit, k_test, k_noise))` of one plant of a configuration.
 
     The windows depend only on (seed, plant, data regime, N), so every method, and the
-    step-size sweep, sees the same demonstrations.
+    step-size sweep, sees the same demonstrations; they are computed once per process.
     """
     plant, expert = make_problem(spec, plant_index, seed)
     k_data, k_fit, k_test, k_noise = jr.split(jr.fold_in(jr.PRNGKey(seed), plant_index), 4)
     k_data = jr.fold_in(k_data, segments * 2 + REGIMES.index(data))
     windows = demonstration_windows(k_data, plant, expert, segments, data, x0_std=spec.train_std)
     return plant, expert, windows, (k_fit, k_test, k_noise)
+
+
+@functools.lru_cache(maxsize=None)
+def _test_setup(spec: ExampleSpec, plant_index: int, seed: int):
+    """Test states, the expert's equilibrium horizon and the test length of one plant
+    (they depend on the seed and the plant only: computed once per process)."""
+    plant, expert, windows, (_, k_test, k_noise) = training_data(spec, plant_index, seed,
+                                                                 "initial", 2)
+    x0 = spec.test_std * jr.normal(k_test, (spec.num_test, plant.n_state), windows.y.dtype)
+    T = equilibrium_horizon(jr.fold_in(k_noise, 1), plant, expert, x0,
+                            max_steps=spec.equilibrium_search)
+    return x0, T, max(T, spec.min_test_steps)
 
 
 def run_config(example: str, data: str, method: str, segments: int, *, inits: int,
@@ -146,10 +161,7 @@ def run_config(example: str, data: str, method: str, segments: int, *, inits: in
         res = fit(method, k_fit, windows, spec, inits)
         jax.block_until_ready(res.final_loss)
         train_time += time.perf_counter() - t
-        x0 = spec.test_std * jr.normal(k_test, (spec.num_test, plant.n_state), windows.y.dtype)
-        T = equilibrium_horizon(jr.fold_in(k_noise, 1), plant, expert, x0,
-                                max_steps=spec.equilibrium_search)
-        steps = max(T, spec.min_test_steps)
+        x0, T, steps = _test_setup(spec, i, seed)
         ev = evaluate(k_noise, plant, expert, res.controllers, x0, steps)
         horizons.append((T, steps))
         mse.append(np.asarray(ev.mse))
