@@ -21,8 +21,9 @@ def _same(a, b) -> bool:
 # -- LTIController.random(key, n, n_in, n_out, scale, dtype) -> (n_state, n_in, n_out, *, ..., key)
 
 
-def test_random_key_first_positional():
-    key = jax.random.PRNGKey(0)
+@pytest.mark.parametrize("make_key", [jax.random.PRNGKey, jax.random.key], ids=["raw", "typed"])
+def test_random_key_first_positional(make_key):
+    key = make_key(0)
     with pytest.warns(DeprecationWarning, match=r"LTIController\.random"):
         old = dj.LTIController.random(key, 3, 2, 1)
     assert _same(old, dj.LTIController.random(3, 2, 1, key=key))
@@ -48,13 +49,6 @@ def test_random_old_keyword_n():
     with pytest.warns(DeprecationWarning, match=r"LTIController\.random"):
         old = dj.LTIController.random(key=key, n=2, n_in=1, n_out=1, scale=0.5)
     assert _same(old, dj.LTIController.random(2, 1, 1, scale=0.5, key=key))
-
-
-def test_random_typed_key_first():
-    key = jax.random.key(4)
-    with pytest.warns(DeprecationWarning, match=r"LTIController\.random"):
-        old = dj.LTIController.random(key, 2, 1, 1)
-    assert _same(old, dj.LTIController.random(2, 1, 1, key=key))
 
 
 def test_random_key_first_under_vmap():

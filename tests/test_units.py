@@ -33,25 +33,23 @@ def _certified(res, qsr=QSR):
         assert dissipation_ok(index(res.controllers, i), qsr, res.P[i])
 
 
+def _check_unit_free(fit, c, rtol, **kw):
+    """Same controllers for data scaled by c; losses reported in the user's units (c^2 J)."""
+    ref = fit(jr.PRNGKey(0), _windows(1.0), QSR, tol=0.0, **kw)
+    res = fit(jr.PRNGKey(0), _windows(c), QSR, tol=0.0, **kw)
+    _same_controllers(res, ref, rtol)
+    np.testing.assert_allclose(res.loss_history, c**2 * ref.loss_history, rtol=rtol)
+    _certified(res)
+
+
 @pytest.mark.parametrize("c", [1e-4, 1e-2, 1e2, 1e4])
 def test_pgd_is_unit_free(c):
-    kw = dict(num_inits=3, max_steps=15, tol=0.0)
-    ref = dj.fit_pgd(jr.PRNGKey(0), _windows(1.0), QSR, **kw)
-    res = dj.fit_pgd(jr.PRNGKey(0), _windows(c), QSR, **kw)
-    _same_controllers(res, ref, 1e-4)
-    # losses are reported in the user's units: J scales with c^2
-    np.testing.assert_allclose(res.loss_history, c**2 * ref.loss_history, rtol=1e-4)
-    _certified(res)
+    _check_unit_free(dj.fit_pgd, c, 1e-4, num_inits=3, max_steps=15)
 
 
 @pytest.mark.parametrize("c", [1e-4, 1e4])
 def test_ico_is_unit_free(c):
-    kw = dict(num_inits=2, max_steps=6, tol=0.0)
-    ref = dj.fit_ico(jr.PRNGKey(0), _windows(1.0), QSR, **kw)
-    res = dj.fit_ico(jr.PRNGKey(0), _windows(c), QSR, **kw)
-    _same_controllers(res, ref, 1e-5)
-    np.testing.assert_allclose(res.loss_history, c**2 * ref.loss_history, rtol=1e-5)
-    _certified(res)
+    _check_unit_free(dj.fit_ico, c, 1e-5, num_inits=2, max_steps=6)
 
 
 def test_ico_trains_on_data_scaled_by_1e6():
