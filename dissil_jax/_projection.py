@@ -225,8 +225,8 @@ def _host_batch(A, B, C, D, P_ref, active, *, qsr, has_ref, eps, reg, refine):
     if len(todo):
         targets = _lmi(qsr, n).layout.pack(*(M[todo] for M in flat[:4]))
         P_tilde = flat[4][todo] if has_ref else np.broadcast_to(np.eye(n), (len(todo), n, n))
-        sol, codes[todo] = _project_rows(qsr, targets, np.array(P_tilde), 1 if has_ref else
-                                         max(1, refine), eps=eps, reg=reg, dtype=dtype)
+        sol, codes[todo] = _project_rows(qsr, targets, P_tilde, 1 if has_ref else max(1, refine),
+                                         eps=eps, reg=reg, dtype=dtype)
         done = todo[codes[todo] == _SOLVED]
         for o, M in zip(out, sol):
             o[done] = M[codes[todo] == _SOLVED]

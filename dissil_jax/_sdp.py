@@ -81,8 +81,6 @@ _CLARABEL_INFEASIBLE = {"PrimalInfeasible", "AlmostPrimalInfeasible"}
 
 def failed(codes):
     """Elementwise: is this outcome one of the SDP failures? (numpy or JAX codes)"""
-    xp = jnp if not isinstance(codes, np.ndarray | int | np.integer) else np
-    codes = xp.asarray(codes)
     return (codes == FAILURES[0]) | (codes == FAILURES[1]) | (codes == FAILURES[2])
 
 

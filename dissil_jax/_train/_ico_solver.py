@@ -37,5 +37,5 @@ class ICOSolver:
         if outcome != _sdp.code("solved"):
             return None, None, None, outcome, float(sol.solve_time)
         x = np.asarray(sol.x)
-        P = None if pb.qsr is None else pb.lmi.layout.P(x[pb.oP:pb.oY], ps)
+        P = None if pb.qsr is None else pb.layout.P(x[pb.oP:pb.oY], ps)
         return x[:pb.ntheta], P, float(x[pb.ow]), outcome, float(sol.solve_time)

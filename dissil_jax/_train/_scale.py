@@ -14,7 +14,6 @@ and state zero the loss does not depend on the controller and $s = 1$.)
 from __future__ import annotations
 
 import jax.numpy as jnp
-import numpy as np
 
 from .._data import Windows
 
@@ -31,15 +30,13 @@ def loss_scale(windows: Windows, xp=jnp, *, of: str = "inputs"):
         s2 = xp.mean(xp.sum(xp.asarray(windows.u) ** 2, axis=(-2, -1)))
         return xp.where(s2 > 0, s2, 1.0)
     s2 = xp.mean(xp.sum(xp.asarray(windows.y) ** 2, axis=(-2, -1)))
-    x0 = getattr(windows, "x0", None)
-    if x0 is not None:
-        s2 = s2 + xp.mean(xp.sum(xp.asarray(x0) ** 2, axis=-1))
+    if windows.x0 is not None:
+        s2 = s2 + xp.mean(xp.sum(xp.asarray(windows.x0) ** 2, axis=-1))
     return xp.where(s2 > 0, s2, 1.0)
 
 
 def scaled(windows: Windows, s2) -> Windows:
     """The windows divided by $s = \\sqrt{s^2}$ (x0 stays None for windows at rest)."""
-    xp = np if isinstance(s2, np.ndarray | float) else jnp
-    s = xp.sqrt(s2)
-    x0 = getattr(windows, "x0", None)
+    s = s2**0.5
+    x0 = windows.x0
     return Windows(None if x0 is None else x0 / s, windows.y / s, windows.u / s)

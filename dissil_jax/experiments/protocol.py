@@ -74,7 +74,7 @@ def example_spec(name: str, quick: bool = False) -> ExampleSpec:
     return spec
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def make_problem(spec: ExampleSpec, plant_index: int, seed: int):
     """(plant, expert) number `plant_index` of the example (deterministic in the seed)."""
     from ..experts import lqr_expert, nmpc_expert
@@ -120,7 +120,7 @@ def _finite_mean(values: np.ndarray) -> float:
     return float(finite.mean()) if finite.size else float("nan")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def training_data(spec: ExampleSpec, plant_index: int, seed: int, data: str, segments: int):
     """`(plant, expert, windows, (k_fit, k_test, k_noise))` of one plant of a configuration.
 
@@ -134,7 +134,7 @@ def training_data(spec: ExampleSpec, plant_index: int, seed: int, data: str, seg
     return plant, expert, windows, (k_fit, k_test, k_noise)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _test_setup(spec: ExampleSpec, plant_index: int, seed: int):
     """Test states, the expert's equilibrium horizon and the test length of one plant
     (they depend on the seed and the plant only: computed once per process)."""
