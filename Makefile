@@ -21,11 +21,12 @@ demo: $(STAMP)
 		--segments 25 --inits 10 --methods pgd gd ico ico_nc mlp --out runs/demo
 
 # The paper's full protocol (all sizes, both regimes, both examples); see README for its time.
+# Two worker processes share the configurations of each example (one solver thread each).
 reproduce: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m dissil_jax.experiments nonlinear \
-		--data initial sliding --inits 100 --out runs/reproduce
+		--data initial sliding --inits 100 --jobs 2 --out runs/reproduce
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m dissil_jax.experiments linear \
-		--data initial sliding --inits 10 --out runs/reproduce
+		--data initial sliding --inits 10 --jobs 2 --out runs/reproduce
 
 lint: $(STAMP)
 	$(BIN)/ruff check dissil_jax tests examples benchmarks

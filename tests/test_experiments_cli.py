@@ -117,3 +117,17 @@ def test_command_line_entry_point_runs(tmp_path):
     records = json.loads((tmp_path / "summary.json").read_text())
     assert records[0]["method"] == "pgd" and records[0]["certified"] is True
     assert "nonlinear_median.png" in proc.stdout
+
+
+def test_jobs_share_configurations_without_changing_records(tmp_path):
+    """`--jobs 2` (spawned workers, one solver thread each) gives the serial run's records."""
+    argv = ["nonlinear", "--data", "initial", "--segments", "2", "3", "--inits", "2",
+            "--methods", "pgd", "ico_nc", "--quick"]
+    assert cli.main(argv + ["--out", str(tmp_path / "serial")]) == 0
+    assert cli.main(argv + ["--out", str(tmp_path / "jobs"), "--jobs", "2"]) == 0
+    assert cli.main(argv + ["--out", str(tmp_path / "bad"), "--jobs", "0"]) == 2
+    serial, jobs = (json.loads((tmp_path / d / "summary.json").read_text())
+                    for d in ("serial", "jobs"))
+    assert len(serial) == 4
+    drop = lambda r: {k: v for k, v in r.items() if k != "train_time_s"}  # noqa: E731
+    assert [drop(r) for r in jobs] == [drop(r) for r in serial]
