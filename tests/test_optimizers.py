@@ -50,10 +50,14 @@ def test_adam_1e2_learns(realisable):
     _all_certified(res)
 
 
-def test_optimizer_state_carries_across_steps(realisable):
-    """fit_pgd with SGD + momentum equals a plain loop: update, then project at the previous
-    P, with the optimiser state threaded through (projected momentum)."""
-    opt = optax.sgd(0.05, momentum=0.9)
+@pytest.mark.parametrize("opt", [
+    optax.sgd(0.05, momentum=0.9),
+    # a global-norm clip that binds: one run's gradient must not shrink another run's step
+    optax.chain(optax.clip_by_global_norm(0.05), optax.sgd(0.05, momentum=0.9)),
+], ids=["momentum", "clipped"])
+def test_optimizer_state_carries_across_steps(realisable, opt):
+    """fit_pgd equals a plain loop per initialisation: update, then project at the previous
+    P, with that run's own optimiser state threaded through (projected momentum)."""
     key, steps = jr.PRNGKey(2), 6
     res = dj.fit_pgd(key, realisable, QSR, optimizer=opt, num_inits=2, max_steps=steps,
                      tol=0.0)

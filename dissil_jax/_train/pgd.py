@@ -45,8 +45,10 @@ def _loop(K0, P0, code0, windows, opt, *, qsr, max_steps, tol, eps):
     """The jit-compatible training loop over a batch of initialisations.
 
     Pure: vmappable over the optimiser's hyperparameters and over the initial controllers.
-    The optimiser's state carries across steps and each update is followed by the
-    projection (projected Adam, projected SGD, ...). Runs whose initial projection failed
+    Each initialisation has its own optimiser state (the optimiser is vmapped over the
+    batch, so a transformation such as `optax.clip_by_global_norm` never couples two
+    runs); the state carries across steps and each update is followed by the projection
+    (projected Adam, projected SGD, ...). Runs whose initial projection failed
     (`code0` a failure) take no step.
     """
     num_inits = K0.A.shape[0]
@@ -54,7 +56,7 @@ def _loop(K0, P0, code0, windows, opt, *, qsr, max_steps, tol, eps):
     hist = jnp.full((num_inits, max_steps + 1), jnp.nan, loss0.dtype).at[:, 0].set(loss0)
     ok0 = ~_sdp.failed(code0)
     carry = dict(
-        step=jnp.zeros((), jnp.int32), K=K0, P=P0, opt=opt.init(K0), loss=loss0, hist=hist,
+        step=jnp.zeros((), jnp.int32), K=K0, P=P0, opt=jax.vmap(opt.init)(K0), loss=loss0, hist=hist,
         done=~ok0, steps=jnp.zeros(num_inits, jnp.int32),
         reason=jnp.where(ok0, _MAX_STEPS, code0).astype(jnp.int32),
     )
@@ -65,7 +67,7 @@ def _loop(K0, P0, code0, windows, opt, *, qsr, max_steps, tol, eps):
     def body(c):
         active = ~c["done"]
         _, grads = _batched_loss(c["K"], windows)
-        updates, opt_state = opt.update(grads, c["opt"], c["K"])
+        updates, opt_state = jax.vmap(opt.update)(grads, c["opt"], c["K"])
         K_new = optax.apply_updates(c["K"], updates)
         P_new, failed = c["P"], jnp.zeros(num_inits, bool)
         code = jnp.full(num_inits, _CONVERGED, jnp.int32)
