@@ -103,7 +103,8 @@ def test_demo_configuration_matches_the_papers_claims(tmp_path):
 
 
 def test_command_line_entry_point_runs(tmp_path):
-    """`python -m dissil_jax.experiments` as `make demo` calls it (float64 set up by the CLI)."""
+    """`python -m dissil_jax.experiments` as `make demo` calls it (float64 set up by the
+    CLI), with spawned workers as `make reproduce` runs it."""
     import os
     import subprocess
     import sys
@@ -111,7 +112,7 @@ def test_command_line_entry_point_runs(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
     proc = subprocess.run(
         [sys.executable, "-m", "dissil_jax.experiments", "nonlinear", "--segments", "2",
-         "--inits", "2", "--methods", "pgd", "--out", str(tmp_path), "--quick"],
+         "--inits", "2", "--methods", "pgd", "--out", str(tmp_path), "--quick", "--jobs", "2"],
         capture_output=True, text=True, timeout=600, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     records = json.loads((tmp_path / "summary.json").read_text())

@@ -85,43 +85,6 @@ def _sweep(args) -> int:
     return 0
 
 
-# Relative cost of one configuration, for handing the dearest out first: PGD's projections
-# dominate, then ICO's SDPs; cost grows with N.
-_COST = {"pgd": 8.0, "ico": 2.0}
-
-
-def _worker_init(threads: int, x64: bool) -> None:
-    import jax
-
-    os.environ["DISSIL_JAX_THREADS"] = str(threads)
-    jax.config.update("jax_enable_x64", x64)
-
-
-def _in_workers(run, configs, jobs: int, bar) -> list[dict]:
-    """`run(*config)` for every config on `jobs` spawned processes; records in config order.
-
-    Each worker keeps its own per-process caches (plants, data, test setups) and a solver
-    pool of `cores // jobs` threads; the dearest configurations go first, so the workers
-    finish together. Every record depends only on its configuration and the seed.
-    """
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    import jax
-
-    order = sorted(range(len(configs)),
-                   key=lambda i: -_COST.get(configs[i][1], 1.0) * configs[i][2])
-    threads = max(1, (os.cpu_count() or 1) // jobs)
-    records = [None] * len(configs)
-    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"),
-                             initializer=_worker_init, initargs=(threads, bool(jax.config.jax_enable_x64))) as ex:
-        futures = {ex.submit(run, *configs[i]): i for i in order}
-        for f in as_completed(futures):
-            records[futures[f]] = f.result()
-            bar.update()
-    return records
-
-
 def _run(args) -> int:
     from tqdm import tqdm
 
@@ -152,7 +115,9 @@ def _run(args) -> int:
             records.append(run(data, method, n))
             bar.update()
     else:
-        records = _in_workers(run, configs, args.jobs, bar)
+        from ._jobs import in_workers
+
+        records = in_workers(run, configs, args.jobs, bar)
     bar.close()
     all_records = merge_records(load_records(args.out), records)
     tables, figures = write_report(all_records, args.out)
