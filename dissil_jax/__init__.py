@@ -19,6 +19,7 @@ from ._supply import (
     closed_loop_certificate as closed_loop_certificate,
     stabilising_qsr as stabilising_qsr,
 )
+from ._sweep import sweep as sweep
 
 __version__ = "0.1.0"
 
@@ -31,6 +32,7 @@ from ._plant_qsr import (
     sector_lemma_matrix as sector_lemma_matrix,
     sector_plant_qsr as sector_plant_qsr,
 )
+from ._train.direct import direct_run as direct_run, fit_direct as fit_direct
 from ._train.ico import fit_ico as fit_ico, fit_ico_nc as fit_ico_nc
 from ._train.mlp import MLPController as MLPController, fit_mlp as fit_mlp
 from ._train.pgd import fit_gd as fit_gd, fit_pgd as fit_pgd, pgd_run as pgd_run

@@ -10,6 +10,7 @@ rounded and checked (exact float64 KYP) as one batch. JAX side: `jax.pure_callba
 
 from __future__ import annotations
 
+import collections
 import threading
 from functools import partial
 
@@ -25,8 +26,9 @@ from ._projection_args import check_options as _check_options, check_qsr as _che
 from ._sdp import Outcome
 from ._supply import QSR
 
-# Clarabel's own reported solve time and solve count, summed over all threads (benchmarks).
-SOLVER_STATS = {"solve_time": 0.0, "solves": 0}
+# Clarabel's own reported solve time and solve count, summed over all threads, and the
+# number of host callbacks by (shard, batch size) (benchmarks).
+SOLVER_STATS = {"solve_time": 0.0, "solves": 0, "callbacks": collections.Counter()}
 _STATS_LOCK = threading.Lock()
 _LOCAL = threading.local()
 _LMI_CACHE: dict = {}
@@ -121,7 +123,7 @@ def _thread_solver(qsr: QSR, n: int, eps: float, reg: float) -> _ProjectionSolve
     return solver
 
 
-def _solve_batch(qsr, targets, P_tilde, eps, *, base_eps, reg, dtype):
+def _solve_batch(qsr, targets, P_tilde, eps, *, base_eps, reg, dtype, shards):
     """Solve Π for every row; returns `(A, B, C, D, P)` rounded to `dtype`, codes, certified."""
     n = P_tilde.shape[-1]
     lmi = _lmi(qsr, n)
@@ -141,13 +143,13 @@ def _solve_batch(qsr, targets, P_tilde, eps, *, base_eps, reg, dtype):
             SOLVER_STATS["solve_time"] += spent
             SOLVER_STATS["solves"] += len(rows)
 
-    _sdp.thread_map(work, range(count))
+    _sdp.thread_map(work, range(count), shards=shards)
     sol = tuple(_sdp.cast(M, dtype) for M in lmi.layout.unpack(xs))
     ok = (codes == _SOLVED) & _sdp.certified(*sol[:4], qsr, sol[4])
     return sol, codes, ok
 
 
-def _certified_solve(qsr, targets, P_tilde, *, eps, reg, dtype):
+def _certified_solve(qsr, targets, P_tilde, *, eps, reg, dtype, shards):
     """Solve Π for every row at its $\\tilde P$ and keep only certified solutions.
 
     A solution that fails the exact check after rounding is re-solved with the margin
@@ -159,7 +161,7 @@ def _certified_solve(qsr, targets, P_tilde, *, eps, reg, dtype):
     found, codes, sols = np.zeros(count, bool), np.empty(count, np.int32), None
     for attempt in range(_ATTEMPTS):
         sol, c, ok = _solve_batch(qsr, targets[todo], P_tilde[todo], cur_eps[todo],
-                                  base_eps=eps, reg=reg, dtype=dtype)
+                                  base_eps=eps, reg=reg, dtype=dtype, shards=shards)
         if sols is None:
             sols = [np.full((count,) + M.shape[1:], np.nan) for M in sol]
         for S, M in zip(sols, sol):
@@ -174,7 +176,7 @@ def _certified_solve(qsr, targets, P_tilde, *, eps, reg, dtype):
     return sols, found, codes
 
 
-def _project_rows(qsr, targets, P_tilde, rounds, *, eps, reg, dtype):
+def _project_rows(qsr, targets, P_tilde, rounds, *, eps, reg, dtype, shards):
     """Project every row, re-linearising $P^{-1}$'s overbound `rounds` times.
 
     Each round starts at the $P$ of the row's closest certified solution so far; a row
@@ -188,7 +190,7 @@ def _project_rows(qsr, targets, P_tilde, rounds, *, eps, reg, dtype):
     live, P_tilde, best = np.arange(count), P_tilde.copy(), None
     for _ in range(rounds):
         sols, found, codes[live] = _certified_solve(qsr, targets[live], P_tilde[live], eps=eps,
-                                                    reg=reg, dtype=dtype)
+                                                    reg=reg, dtype=dtype, shards=shards)
         if best is None:
             best = [np.full((count,) + M.shape[1:], np.nan) for M in sols]
         dist = np.sum((layout.pack(*sols[:4]) - targets[live]) ** 2, axis=-1)
@@ -204,14 +206,20 @@ def _project_rows(qsr, targets, P_tilde, rounds, *, eps, reg, dtype):
     return best, codes
 
 
-def _host_batch(A, B, C, D, P_ref, active, *, qsr, has_ref, eps, reg, refine):
+def _host_batch(A, B, C, D, P_ref, active, shard, *, qsr, has_ref, eps, reg, refine, shards):
     """pure_callback target: arrays carry identical leading batch axes (broadcast_all).
 
     Active targets already certified by `P_ref` come back unchanged; the others are
     projected as one batch (`_project_rows`). Failed rows return their target, flagged.
+    `shard` is the calling device's index (broadcast like the batch) and `shards` the
+    number of callbacks running at once on this host (`_sdp.shard`); each uses its share
+    of the thread pool.
     """
     dtype = np.asarray(A).dtype
     batch, n = A.shape[:-2], A.shape[-1]
+    with _STATS_LOCK:
+        index = int(np.ravel(shard)[0]) if np.size(shard) else 0
+        SOLVER_STATS["callbacks"][index, int(np.prod(batch))] += 1
     flat = [np.asarray(M, np.float64).reshape((-1,) + M.shape[len(batch):])
             for M in (A, B, C, D, P_ref)]
     act = np.asarray(active).reshape(-1)
@@ -226,7 +234,7 @@ def _host_batch(A, B, C, D, P_ref, active, *, qsr, has_ref, eps, reg, refine):
         targets = _lmi(qsr, n).layout.pack(*(M[todo] for M in flat[:4]))
         P_tilde = flat[4][todo] if has_ref else np.broadcast_to(np.eye(n), (len(todo), n, n))
         sol, codes[todo] = _project_rows(qsr, targets, P_tilde, 1 if has_ref else max(1, refine),
-                                         eps=eps, reg=reg, dtype=dtype)
+                                         eps=eps, reg=reg, dtype=dtype, shards=shards)
         done = todo[codes[todo] == _SOLVED]
         for o, M in zip(out, sol):
             o[done] = M[codes[todo] == _SOLVED]
@@ -265,7 +273,12 @@ jax.tree_util.register_pytree_node(
 
 
 def _project_one(K: LTIController, P_ref, active, *, qsr: QSR, eps, reg, refine):
-    """The unbatched JAX side: one `pure_callback` (vmapped calls batch on the host)."""
+    """The unbatched JAX side: one `pure_callback` (vmapped calls batch on the host).
+
+    Inside `jax.shard_map` (e.g. [`sweep`][dissil_jax.sweep]) each device calls its own
+    copy with its local batch, on its own host; outside, XLA places the call
+    on one device and gathers the batch there.
+    """
     n, dtype = K.n_state, K.A.dtype
     has_ref = P_ref is not None
     if has_ref:
@@ -275,11 +288,12 @@ def _project_one(K: LTIController, P_ref, active, *, qsr: QSR, eps, reg, refine)
     else:
         P_ref = jnp.eye(n, dtype=dtype)
     shapes = tuple(jax.ShapeDtypeStruct(M.shape, dtype) for M in (K.A, K.B, K.C, K.D, P_ref))
+    shard, shards = _sdp.shard()
     callback = partial(_host_batch, qsr=qsr, has_ref=has_ref, eps=float(eps), reg=float(reg),
-                       refine=int(refine))
+                       refine=int(refine), shards=shards)
     A, B, C, D, P, codes = jax.pure_callback(
         callback, (*shapes, jax.ShapeDtypeStruct((), jnp.int32)), K.A, K.B, K.C, K.D, P_ref,
-        jnp.asarray(active, bool), vmap_method="broadcast_all")
+        jnp.asarray(active, bool), shard, vmap_method="broadcast_all")
     return LTIController(A, B, C, D), P, codes
 
 
@@ -318,7 +332,8 @@ def project(
       `refine` times; each round can only move closer to the target.
 
     Works eagerly, under `jax.jit` and under `jax.vmap` (the host then solves the whole
-    batch on a thread pool). `qsr` is a static, hashable value: close over it or pass it
+    batch on a thread pool); under `jax.shard_map` (e.g. [`sweep`][dissil_jax.sweep])
+    each device sends its own batch to its own host. `qsr` is a static, hashable value: close over it or pass it
     as a static argument. For float64 set JAX's `jax_enable_x64` flag globally in your
     application (or `JAX_ENABLE_X64=1`); the thread-local `jax.enable_x64` context does not
     reach the host-callback thread.

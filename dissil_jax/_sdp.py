@@ -12,17 +12,20 @@ It owns, in one place:
 - `certified`, the exact float64 KYP check of a whole batch at once, after rounding to the
   caller's dtype (`cast`);
 - `thread_map`, which spreads per-item solves over the process-wide pool with BLAS held to
-  one thread.
+  one thread, giving each of several concurrent shards its share of the pool (`shard`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -195,6 +198,11 @@ def certified(A, B, C, D, qsr: QSR, P) -> np.ndarray:
 
 _POOL: ThreadPoolExecutor | None = None
 _CONTROLLER = None
+# The BLAS limit is process-wide: it is applied by the first of several concurrent users
+# (the callbacks of several shards) and restored by the last one, so that one
+# caller's exit does not lift the limit under another's solves.
+_BLAS_LOCK = threading.Lock()
+_BLAS_USERS, _BLAS_LIMITER = 0, None
 
 
 @contextlib.contextmanager
@@ -204,14 +212,24 @@ def single_threaded_blas():
     The threadpoolctl controller is built once (building it scans the loaded libraries,
     about 2 ms, which would dominate a small projection).
     """
-    global _CONTROLLER
-    if _CONTROLLER is None:
-        import clarabel  # noqa: F401  (load the solver's libraries before the scan)
-        from threadpoolctl import ThreadpoolController
+    global _CONTROLLER, _BLAS_USERS, _BLAS_LIMITER
+    with _BLAS_LOCK:
+        if _CONTROLLER is None:
+            import clarabel  # noqa: F401  (load the solver's libraries before the scan)
+            from threadpoolctl import ThreadpoolController
 
-        _CONTROLLER = ThreadpoolController()
-    with _CONTROLLER.limit(limits=1, user_api="blas"):
+            _CONTROLLER = ThreadpoolController()
+        if _BLAS_USERS == 0:
+            _BLAS_LIMITER = _CONTROLLER.limit(limits=1, user_api="blas")
+        _BLAS_USERS += 1
+    try:
         yield
+    finally:
+        with _BLAS_LOCK:
+            _BLAS_USERS -= 1
+            if _BLAS_USERS == 0:
+                _BLAS_LIMITER.restore_original_limits()
+                _BLAS_LIMITER = None
 
 
 def pool() -> ThreadPoolExecutor:
@@ -227,19 +245,43 @@ def num_workers() -> int:
     return pool()._max_workers  # noqa: SLF001
 
 
-def thread_map(fn, items, *, balance: bool = False) -> list:
+def shard() -> tuple:
+    """At trace time: `(index, shards)` of the host callback about to be traced.
+
+    Inside `jax.shard_map` every device runs its own copy of the callback, concurrently:
+    `index` is the device's position among the shards (a traced int32) and
+    `shards` how many of them call back at once on this host, the product of the manual
+    mesh axes' sizes but at most this host's device count (a mesh over several hosts puts
+    `jax.local_device_count()` of its shards on each). Outside `shard_map`, `(0, 1)`: one
+    callback serves the whole batch.
+    """
+    mesh = jax.sharding.get_abstract_mesh()
+    axes = tuple(mesh.manual_axes)
+    index = jax.lax.axis_index(axes) if axes else 0
+    shards = math.prod(mesh.shape[a] for a in axes)
+    return jnp.asarray(index, jnp.int32), max(1, min(shards, jax.local_device_count()))
+
+
+def thread_map(fn, items, *, balance: bool = False, shards: int = 1) -> list:
     """`fn` over `items` on the process pool, BLAS held to one thread; results in order.
 
     `fn` takes a list of items. By default `items` is split into one contiguous chunk per
     worker, so per-call overhead is paid once per worker (short, even tasks: the
     projection). With `balance=True` every item is its own task, so long and short tasks
-    even out across workers (ICO runs of different lengths). Returns the per-call results.
+    even out across workers (ICO runs of different lengths). `shards` callers running at
+    once (one per device, `shard`) each split `items` into at most
+    `num_workers() // shards` chunks and solve them on the pool (never on their own
+    threads), so together they keep at most `num_workers()` solves running and do not
+    oversubscribe the host's cores (`balance` tasks are not capped: only ICO, outside any
+    callback, uses it). Returns the per-call results.
     """
     items = list(items)
     with single_threaded_blas():
-        workers = min(num_workers(), len(items))
-        if workers <= 1:
-            return [fn(items)] if items else []
+        workers = min(max(1, num_workers() // max(1, shards)), len(items))
+        if not items:
+            return []
+        if workers <= 1 and shards <= 1:  # the only caller: solve on its own thread
+            return [fn(items)]
         if balance:
             return list(pool().map(lambda it: fn([it]), items))
         chunks = np.array_split(np.arange(len(items)), workers)

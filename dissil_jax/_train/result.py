@@ -35,6 +35,10 @@ class FitResult(eqx.Module):
       `solver_failed` or `not_certified` (a projection or an ICO SDP failed; the last
       certified iterate is kept), `loss_increased` (ICO's float64 guard refused a step).
       Compare with `res.stop_reason == dj.Outcome.converged`.
+    - `projected`: `[num_inits]` bool or None. Only
+      [`fit_direct`][dissil_jax.fit_direct] sets it: True where the direct map's controller
+      failed the final float64 check and was replaced by its projection
+      ([`project`][dissil_jax.project]); None for the other trainers.
     """
 
     STOP_REASONS: ClassVar[tuple[str, ...]] = _sdp.NAMES
@@ -48,6 +52,7 @@ class FitResult(eqx.Module):
     steps: Int[Array, " inits"]
     wall_time: Float[Array, ""]
     stop_reason: Any = None
+    projected: Bool[Array, " inits"] | None = None
 
     @property
     def initial_loss(self) -> Float[Array, " inits"]:

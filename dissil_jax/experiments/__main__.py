@@ -19,7 +19,7 @@ import time
 
 def _parser() -> argparse.ArgumentParser:
     from .data import REGIMES
-    from .protocol import EXAMPLES, METHODS
+    from .protocol import EXAMPLES, METHODS, PAPER_METHODS
 
     p = argparse.ArgumentParser(prog="python -m dissil_jax.experiments",
                                 description="Reproduce the paper's tables and figures.")
@@ -30,7 +30,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="numbers of training segments N (default: the paper's)")
     p.add_argument("--inits", type=int, default=None,
                    help="random initialisations per plant (default: 10 linear, 100 nonlinear)")
-    p.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
+    p.add_argument("--methods", nargs="+", choices=METHODS, default=list(PAPER_METHODS),
+                   help="default: the paper's methods; `direct` (dj.fit_direct) is ours")
     p.add_argument("--out", default="runs/latest", help="output directory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true",

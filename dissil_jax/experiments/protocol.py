@@ -24,9 +24,13 @@ from .data import REGIMES, demonstration_windows
 from .metrics import _quantiles as _q, evaluate
 from .simulate import equilibrium_horizon
 
-METHODS = ("ico", "ico_nc", "pgd", "gd", "mlp")
+METHODS = ("ico", "ico_nc", "pgd", "gd", "mlp", "direct")
+#: The paper's methods: the command line's default. `direct` (`dj.fit_direct`) is
+#: our extension, run with `--methods direct`.
+PAPER_METHODS = ("ico", "ico_nc", "pgd", "gd", "mlp")
 EXAMPLES = ("linear", "nonlinear")
-METHOD_LABELS = {"ico": "ICO", "ico_nc": "ICO-NC", "pgd": "PGD", "gd": "GD", "mlp": "GD+NN"}
+METHOD_LABELS = {"ico": "ICO", "ico_nc": "ICO-NC", "pgd": "PGD", "gd": "GD", "mlp": "GD+NN",
+                 "direct": "Direct (ours)"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,6 +52,13 @@ class ExampleSpec:
     gd_learning_rate: float  # initial step of GD (idem)
     pgd_decay: float  # per-step decay of both (paper: "exponentially decaying")
     init_scale: float
+    # `dj.fit_direct` (ours, not the paper's): Adam's step, the scale of the initial draw of
+    # the map's parameters (not controller entries) and the stopping tolerance, chosen on
+    # training loss by `benchmarks/bench_direct.py`. tol 0 runs all `max_steps`: a step
+    # costs microseconds, and Adam's |dJ| can drop below the paper's tol on a plateau.
+    direct_learning_rate: float = 0.3
+    direct_init_scale: float = 0.5
+    direct_tol: float = 0.0
 
 
 def example_spec(name: str, quick: bool = False) -> ExampleSpec:
@@ -57,14 +68,14 @@ def example_spec(name: str, quick: bool = False) -> ExampleSpec:
             name="linear", qsr=QSR.passive(3), num_plants=10, train_std=1.0, test_std=20.0,
             num_test=100, equilibrium_search=2000, min_test_steps=1, tol=1e-3, max_steps=150,
             hidden=(150, 150), pgd_learning_rate=0.3, gd_learning_rate=0.1, pgd_decay=0.99,
-            init_scale=1.0,
+            init_scale=1.0, direct_learning_rate=0.5,
         )
     elif name == "nonlinear":
         spec = ExampleSpec(
             name="nonlinear", qsr=QSR(-29.867, 3.556, 0.601), num_plants=1, train_std=5.0,
             test_std=15.0, num_test=1000, equilibrium_search=200, min_test_steps=30, tol=1e-5,
             max_steps=150, hidden=(25, 25), pgd_learning_rate=1.0, gd_learning_rate=0.3,
-            pgd_decay=0.99, init_scale=1.0,
+            pgd_decay=0.99, init_scale=1.0, direct_learning_rate=0.1,
         )
     else:
         raise ValueError(f"`example` must be one of {EXAMPLES}, got {name!r}.")
@@ -104,6 +115,10 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
         return dj.fit_ico(key, windows, spec.qsr, init_scale=spec.init_scale, **common)
     if method == "ico_nc":
         return dj.fit_ico_nc(key, windows, init_scale=spec.init_scale, **common)
+    if method == "direct":
+        return dj.fit_direct(key, windows, spec.qsr, learning_rate=spec.direct_learning_rate,
+                             init_scale=spec.direct_init_scale,
+                             **dict(common, tol=spec.direct_tol))
     if method == "mlp":
         return dj.fit_mlp(key, windows, hidden=spec.hidden, num_inits=inits, tol=spec.tol,
                           throw=False)
@@ -190,5 +205,5 @@ def run_config(example: str, data: str, method: str, segments: int, *, inits: in
     return record
 
 
-__all__ = ["METHODS", "EXAMPLES", "METHOD_LABELS", "ExampleSpec", "example_spec",
-           "make_problem", "fit", "run_config", "training_data"]
+__all__ = ["METHODS", "PAPER_METHODS", "EXAMPLES", "METHOD_LABELS", "ExampleSpec",
+           "example_spec", "make_problem", "fit", "run_config", "training_data"]

@@ -12,7 +12,7 @@ from ._paper import FIGURES, SEGMENTS, TABLES
 from .protocol import METHOD_LABELS, METHODS
 
 _COLORS = {"ico": "#0047ab", "ico_nc": "#00bfff", "pgd": "#ff4000", "gd": "#ffa600",
-           "mlp": "#c05fa8"}
+           "mlp": "#c05fa8", "direct": "#2e8b57"}
 _DATA_TITLES = {"initial": "Initial segments", "sliding": "Sliding window"}
 
 
@@ -165,7 +165,9 @@ def plot_figures(records: list[dict], out_dir: pathlib.Path) -> list[pathlib.Pat
                     col = _COLORS[m]
                     key = "mse_median" if stat != "max" else "mse_max"
                     y, inf = _finite_or_ceiling([r[key] for r in mr], ceiling)
-                    ax.plot(x[~inf], y[~inf], "-o", color=col, label=f"{METHOD_LABELS[m]} (ours)")
+                    label = METHOD_LABELS[m]  # "Direct (ours)" is ours already
+                    label = label if "(ours)" in label else f"{label} (ours)"
+                    ax.plot(x[~inf], y[~inf], "-o", color=col, label=label)
                     ax.plot(x[inf], y[inf], "x", color=col, ms=10, mew=2)
                     if stat == "quartiles":
                         lo, _ = _finite_or_ceiling([r["mse_q1"] for r in mr], ceiling)

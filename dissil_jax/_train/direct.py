@@ -1,0 +1,278 @@
+"""Projection-free training through the direct parameterisation."""
+
+from __future__ import annotations
+
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from .. import _sdp
+from .._data import Windows
+from .._direct_map import MARGIN, check_margin, direct_map, init_params
+from .._projection import project
+from .._rollout import imitation_loss
+from .._supply import QSR
+from ._checks import check_fit_args, check_n_state
+from ._scale import loss_scale, scaled
+from .result import FitResult, raise_if_failed
+
+_CONVERGED, _MAX_STEPS, _NON_FINITE = (
+    _sdp.code(r) for r in ("converged", "max_steps", "non_finite"))
+
+#: Defaults chosen on training loss (`benchmarks/bench_direct.py`, the paper's two examples,
+#: three linear plants): Adam's step in the normalised units of `_scale.py` (the parameters
+#: are unit-free) with the smallest worst-case regret (best: 0.1 nonlinear, 0.5 linear), and
+#: the scale of the initial draw of W and V; with 1.0 the contractions start nearly
+#: saturated and the median training loss was up to 3x worse.
+LEARNING_RATE, INIT_SCALE = 0.3, 0.5
+
+
+def _where(mask, new, old):
+    """Per-initialisation select on pytrees whose leaves have the init axis first."""
+    return jax.tree.map(
+        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - mask.ndim)), a, b),
+        new, old)
+
+
+def _loss_fn(qsr, margin):
+    def loss(theta, windows):
+        K, P = direct_map(theta, qsr, margin)
+        return imitation_loss(K, windows), (K, P)
+
+    return jax.vmap(jax.value_and_grad(loss, has_aux=True), in_axes=(0, None))
+
+
+def _loop(theta0, windows, opt, *, qsr, margin, max_steps, tol):
+    """Unconstrained descent on $J_s(K(\\theta))$ for a batch of initialisations.
+
+    Pure JAX (one `lax.while_loop`, no callback), so it can be jitted, vmapped over the
+    optimiser's hyperparameters and sharded. Iteration $k = 0..$`max_steps` takes step $k$
+    (none at $k = 0$) and evaluates the map, the loss and its gradient once, so they are
+    traced once; a run whose loss stops being finite keeps its last finite iterate.
+    Returns `(K, P, loss_history, final_loss, steps, reason)`.
+    """
+    batched = _loss_fn(qsr, margin)
+    num_inits = theta0.X.shape[0]
+    (loss0, aux0), _ = jax.eval_shape(batched, theta0, windows)
+    zeros = lambda tree: jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), tree)
+    carry = dict(k=jnp.zeros((), jnp.int32), theta=theta0, grad=zeros(theta0), aux=zeros(aux0),
+                 opt=opt.init(theta0), loss=jnp.full(num_inits, jnp.nan, loss0.dtype),
+                 hist=jnp.full((num_inits, max_steps + 1), jnp.nan, loss0.dtype),
+                 done=jnp.zeros(num_inits, bool), steps=jnp.zeros(num_inits, jnp.int32),
+                 reason=jnp.full(num_inits, _MAX_STEPS, jnp.int32))
+
+    def cond(c):
+        return (c["k"] <= max_steps) & jnp.any(~c["done"])
+
+    def body(c):
+        first, active = c["k"] == 0, ~c["done"]
+        updates, opt_state = opt.update(c["grad"], c["opt"], c["theta"])
+        theta = optax.apply_updates(c["theta"], updates)
+        theta, opt_state = jax.tree.map(lambda a, b: jnp.where(first, a, b),
+                                        (c["theta"], c["opt"]), (theta, opt_state))
+        (loss, aux), grad = batched(theta, windows)
+        finite = jnp.isfinite(loss)
+        for g in jax.tree.leaves(grad):
+            finite &= jnp.all(jnp.isfinite(g), axis=tuple(range(1, g.ndim)))
+        keep = ~active | ~finite
+        theta, grad, aux = _where(keep, (c["theta"], c["grad"], c["aux"]), (theta, grad, aux))
+        loss = jnp.where(keep & ~first, c["loss"], loss)
+        stop = active & (~finite | (~first & (jnp.abs(loss - c["loss"]) < tol)))
+        code = jnp.where(finite, _CONVERGED, _NON_FINITE)
+        hist = c["hist"].at[:, c["k"]].set(jnp.where(active, loss, jnp.nan))
+        return dict(k=c["k"] + 1, theta=theta, grad=grad, aux=aux, opt=opt_state, loss=loss,
+                    hist=hist, done=c["done"] | stop,
+                    steps=c["steps"] + (active & ~first).astype(jnp.int32),
+                    reason=jnp.where(stop, code, c["reason"]).astype(jnp.int32))
+
+    c = jax.lax.while_loop(cond, body, carry)
+    return (*c["aux"], c["hist"], c["loss"], c["steps"], c["reason"])
+
+
+def _run(key, windows, qsr, learning_rate, init_scale, *, optimizer, num_inits, n_state,
+         max_steps, tol, margin) -> FitResult:
+    """`direct_run` without argument checks or `throw` (traceable; `qsr`, `optimizer` static)."""
+    s2 = loss_scale(windows)
+    dtype = windows.y.dtype
+    theta0 = init_params(key, num_inits, n_state, windows.n_in, windows.n_out, init_scale,
+                         dtype)
+    opt = optax.adam(learning_rate) if optimizer is None else optimizer
+    K, P, hist, loss, steps, reason = _loop(theta0, scaled(windows, s2), opt, qsr=qsr,
+                                            margin=margin, max_steps=max_steps, tol=tol / s2)
+    return FitResult(
+        controllers=K, P=P, certified=None,
+        loss_history=hist * s2, final_loss=loss * s2, converged=reason == _CONVERGED,
+        steps=steps, wall_time=jnp.asarray(jnp.nan, hist.dtype), stop_reason=_sdp.item(reason),
+        projected=jnp.zeros(num_inits, bool))
+
+
+_run_jit = eqx.filter_jit(_run)
+
+
+def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, tol,
+             init_scale, n_state, margin):
+    """Check the arguments; returns `(optimizer, learning_rate, n_state, margin)`."""
+    if qsr is None:
+        raise ValueError("`qsr` is required: the direct map parameterises the (Q,S,R)-"
+                         "dissipative controllers; use `dj.fit_gd` for unconstrained training.")
+    if optimizer is not None:
+        if learning_rate is not None:
+            raise ValueError("pass either `optimizer` or `learning_rate` (Adam's step), "
+                             "not both.")
+        if not isinstance(optimizer, optax.GradientTransformation):
+            raise ValueError(f"`optimizer` must be an `optax.GradientTransformation`, got "
+                             f"{type(optimizer).__name__}.")
+        learning_rate = 0.0  # unused
+    learning_rate = LEARNING_RATE if learning_rate is None else learning_rate
+    check_fit_args(windows, qsr, num_inits, max_steps, learning_rate=learning_rate, tol=tol,
+                   init_scale=init_scale)
+    return optimizer, learning_rate, check_n_state(windows, n_state), check_margin(margin)
+
+
+def direct_run(
+    key, windows: Windows, qsr: QSR, *, optimizer=None, learning_rate=None,
+    init_scale=INIT_SCALE, num_inits: int = 8, n_state: int | None = None,
+    max_steps: int = 150, tol: float = 1e-3, margin: float = MARGIN, throw: bool = True,
+) -> FitResult:
+    """The pure, traceable run behind [`fit_direct`][dissil_jax.fit_direct].
+
+    Pure JAX from the initial draw to the result: no host callback (with `throw=False`;
+    `throw=True` adds equinox's error check after the loop), so it can be `jax.jit`-ed,
+    `jax.vmap`-ped over `key`, `learning_rate`, `init_scale` (or the hyperparameters an
+    `optimizer` closes over), differentiated and sharded over devices with `jax.sharding`
+    (a `NamedSharding` on the swept axis); `qsr` and `margin` are static. Derivatives:
+    reverse mode through the map (training uses it), forward mode (`jax.jvp`,
+    `jax.jacfwd`) through the whole run (a `lax.while_loop`), e.g. the final loss's
+    derivative in the learning rate. `wall_time` is NaN, `projected` is
+    all False and `certified` is None: the exact check is float64 work on the host, which
+    [`fit_direct`][dissil_jax.fit_direct] does after the run (or call
+    `dj.certify(res.controllers, qsr, P=res.P)`, which accepts the sweep's batch axes).
+
+    ```python
+    lrs = jnp.array([0.01, 0.03, 0.1])
+    run = lambda lr: dj.direct_run(key, windows, qsr, learning_rate=lr, throw=False)
+    res = jax.jit(jax.vmap(run))(lrs)     # every field gains a leading axis of size 3
+    ```
+    """
+    optimizer, learning_rate, n_state, margin = _options(
+        windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
+        tol=tol, init_scale=init_scale, n_state=n_state, margin=margin)
+    res = _run(key, windows, qsr, learning_rate, init_scale, optimizer=optimizer,
+               num_inits=num_inits, n_state=n_state, max_steps=max_steps, tol=tol,
+               margin=margin)
+    return raise_if_failed(res) if throw else res
+
+
+def certify_or_project(res: FitResult, qsr: QSR, windows: Windows, *, eps: float) -> FitResult:
+    """The final check of `fit_direct`: exact float64 KYP of every `(controller, P)`.
+
+    A pair that fails (rounding, or an ill-conditioned map: essentially never with the
+    default margin) is replaced by its projection ([`dj.project`][dissil_jax.project]),
+    linearised at the map's $P$ or, if that fails, from $\\tilde P = I$ with refinement;
+    it is flagged in `projected`, and its `final_loss` is that of the projected controller.
+    If both projections fail, the run keeps the map's controller with `certified` False and
+    `stop_reason` the projection's failure.
+    """
+    K, P = res.controllers, res.P
+    ok = _sdp.certified(K.A, K.B, K.C, K.D, qsr, P)
+    projected = np.zeros(ok.shape, bool)
+    reason = np.asarray(res.stop_reason._value).copy()
+    final = np.asarray(res.final_loss).copy()
+    loss = jax.vmap(imitation_loss, in_axes=(0, None))
+    for P_ref in ("map", None):
+        bad = np.nonzero(~ok)[0]
+        if not len(bad):
+            break
+        take = lambda tree: jax.tree.map(lambda a: a[bad], tree)
+        proj = project(take(K), qsr, take(P) if P_ref else None, throw=False, eps=eps)
+        codes = np.asarray(proj.result._value)
+        good = ~_sdp.failed(codes)
+        idx = bad[good]
+        K = jax.tree.map(lambda a, b: a.at[idx].set(b[good]), K, proj.controller)
+        P = P.at[idx].set(proj.P[good])
+        final[idx] = np.asarray(loss(proj.controller, windows))[good]
+        reason[bad[~good]] = codes[~good]
+        reason[idx] = np.asarray(res.stop_reason._value)[idx]
+        projected[idx] = ok[idx] = True
+    return eqx.tree_at(
+        lambda r: (r.controllers, r.P, r.certified, r.projected, r.final_loss, r.stop_reason),
+        res, (K, P, jnp.asarray(ok), jnp.asarray(projected),
+              jnp.asarray(final, res.final_loss.dtype), _sdp.item(reason)),
+        is_leaf=lambda x: x is None)
+
+
+def fit_direct(
+    key, windows: Windows, qsr: QSR, *, optimizer=None, learning_rate: float | None = None,
+    num_inits: int = 8, n_state: int | None = None, max_steps: int = 150, tol: float = 1e-3,
+    init_scale: float = INIT_SCALE, margin: float = MARGIN, eps: float = 1e-6,
+    throw: bool = True,
+) -> FitResult:
+    """Learn $(Q,S,R)$-dissipative controllers without projections, through a direct map.
+
+    Every controller is the image $K(\\theta)$ of free parameters $\\theta$ under a smooth
+    map ([concepts](concepts.md#a-direct-parameterisation)) whose values satisfy
+
+    $$\\mathrm{KYP}(P(\\theta))\\preceq-\\varepsilon\\operatorname{diag}(P(\\theta),\\Phi_0),
+    \\qquad P(\\theta)\\succeq\\varepsilon I$$
+
+    for every $\\theta$ and every supply rate with $Q\\preceq0$: $Q\\prec0$, passivity and
+    the degenerate cones ($Q = 0$) and rank-deficient $Q$ alike; no step inverts $Q$. So
+    training is unconstrained gradient descent on $J_s(K(\\theta))$, the imitation loss
+    ([`imitation_loss`][dissil_jax.imitation_loss]) of the windows in normalised units
+    (as [`fit_pgd`][dissil_jax.fit_pgd]: scaling $x_0$, $y$, $u$ by $c>0$ changes nothing;
+    losses and `tol` are in the user's units), all in one compiled `lax.while_loop`
+    without leaving the device. The run stops when $|J(K_{i+1}) - J(K_i)| <$ `tol` or after
+    `max_steps`.
+
+    **Certified at the end.** Each returned $(K, P)$ is checked in float64 on the host
+    (the check of [`certify`][dissil_jax.certify] with `P` given), after rounding to the
+    data's dtype. The margin $\\varepsilon$ makes a failure rare; a controller that fails
+    is replaced by its [`project`][dissil_jax.project]ion and flagged in
+    `FitResult.projected`.
+
+    **Arguments:**
+
+    - `key`: PRNG key for the initialisations.
+    - `windows`: the demonstrations ([`Windows`][dissil_jax.Windows]).
+    - `qsr`: the controller's supply rate ($Q\\preceq0$).
+    - `optimizer`, `learning_rate`: by default `optax.adam(learning_rate)` with
+      `learning_rate` 0.3 (parameters and loss are unit-free; chosen on training loss in
+      `benchmarks/bench_direct.py`), or any `optax.GradientTransformation` as `optimizer`.
+    - `num_inits`, `n_state`, `max_steps`, `tol`: as in [`fit_pgd`][dissil_jax.fit_pgd].
+    - `init_scale` $\\sigma$: the initial $\\theta$ has $X = I$ (so $P\\approx I$, the
+      projection's starting point) and i.i.d. $\\mathcal N(0,\\sigma^2)$ entries in $W$
+      and $V$: a random dissipative controller. $\\sigma = 1$ starts at about half the
+      loss of PGD's projected N(0, 1) draw, but with the map's contractions near
+      saturation, where gradients are small; the default $\\sigma = 0.5$ (a quarter to
+      40 % of PGD's initial loss) trained better on both of the paper's examples.
+    - `margin` $\\varepsilon\\in(0,1)$: the map's strictness margin (static).
+    - `eps`: the margin of the fallback projection.
+    - `throw`: raise a `ValueError` when a run ends in failure (a non-finite loss, or a
+      failed fallback projection); with `throw=False` see `stop_reason`.
+
+    **Returns:** a [`FitResult`][dissil_jax.FitResult] with `certified` from the float64
+    check and `projected` (bool per initialisation).
+
+    ```python
+    res = dj.fit_direct(key, windows, dj.QSR.passive(3), num_inits=20)
+    assert bool(res.certified.all())
+    ```
+    """
+    optimizer, learning_rate, n_state, margin = _options(
+        windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
+        tol=tol, init_scale=init_scale, n_state=n_state, margin=margin)
+    start = time.perf_counter()
+    dtype = windows.y.dtype
+    res = _run_jit(key, windows, qsr, *(jnp.asarray(v, dtype) for v in
+                                        (learning_rate, init_scale)),
+                   optimizer=optimizer, num_inits=int(num_inits), n_state=n_state,
+                   max_steps=int(max_steps), tol=float(tol), margin=margin)
+    jax.block_until_ready(res)
+    res = certify_or_project(res, qsr, windows, eps=float(eps))
+    res = eqx.tree_at(lambda r: r.wall_time, res,
+                      jnp.asarray(time.perf_counter() - start, dtype))
+    return raise_if_failed(res) if throw else res
