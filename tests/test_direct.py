@@ -106,9 +106,12 @@ def test_grad_through_the_map():
 # -- training -----------------------------------------------------------------------------
 
 
-#: The issue's four kinds in float64 and float32, two more in float64 (all: map tests above).
+#: The four kinds (Q < 0, Q = 0, Q ~ 0, rank-deficient Q) in float64 and float32, two more
+#: in float64 (all: map tests above). float32 rows run with the slow tests; float32 at the
+#: linear example's sizes stays in the fast suite (`test_issue_failure_case_q_minus_1e4`).
 _ISSUE = ("strict_paper", "passive", "q_minus_1e-4", "rank_deficient")
-FIT_CASES = [(n, d) for d in ("float64", "float32") for n in _ISSUE] + [
+FIT_CASES = [(n, "float64") for n in _ISSUE] + [
+    pytest.param(n, "float32", marks=pytest.mark.slow) for n in _ISSUE] + [
     ("degenerate_cone", "float64"), ("gain_2x3", "float64")]
 
 
