@@ -235,9 +235,9 @@ def fit_pgd(
     **Units do not matter.** The steps are taken on $J_s = J/s^2$, the imitation loss
     ([`imitation_loss`][dissil_jax.imitation_loss]) of the windows divided by
     $s$, the root mean power of their initial states and inputs,
-    $s^2 = \\frac1N\\sum_i(\\lVert x_0^{(i)}\\rVert^2 + \\sum_k\\lVert y^{(i)}_k\\rVert^2)$. Scaling $x_0$, $y$ and $u$
-    by any $c > 0$ leaves every step unchanged; `loss_history`, `final_loss` and `tol` are
-    in the user's units ($J = s^2 J_s$).
+    $s^2 = \\frac1N\\sum_i(\\lVert x_0^{(i)}\\rVert^2 + \\sum_k\\lVert y^{(i)}_k\\rVert^2)$.
+    Scaling $x_0$, $y$ and $u$ by any $c > 0$ leaves every step unchanged; `loss_history`,
+    `final_loss` and `tol` are in the user's units ($J = s^2 J_s$).
 
     **Arguments:**
 
