@@ -72,14 +72,15 @@ class _ProjectionSolver:
                 sel[c * n + a, i3 + c, i3 + a] = 2.0
         self.b_g = lmi.svec(sel).T  # [L, n*n]
         self.eps_svec = lmi.svec(np.eye(N))
-        diag = np.concatenate([np.ones(lmi.ntheta), np.full(lmi.nP, reg)])
-        self.P_obj = sp.diags(diag).tocsc()
+        self.reg_diag = np.full(lmi.nP, reg)
         self.cones = [clarabel.PSDTriangleConeT(N)]
         self.solver = None
         self._clarabel = clarabel
 
-    def data(self, targets, P_tilde, eps):
-        """Clarabel's `(q, A values, b)` for a batch: `targets` [B, ntheta], `P_tilde` [B, n, n]."""
+    def data(self, targets, P_tilde, eps, weights):
+        """Clarabel's `(q, A values, b, P values)` for a batch: `targets` and `weights`
+        [B, ntheta] (the objective is $\\sum_k w_k(\\theta_k - \\tilde\\theta_k)^2$), `P_tilde`
+        [B, n, n]."""
         Pt = np.asarray(P_tilde, np.float64).reshape(len(targets), -1)
         vals = np.broadcast_to(self.vals0, (len(targets),) + self.vals0.shape).copy()
         # einsum (not BLAS) so that a row's numbers do not depend on the batch size
@@ -87,17 +88,20 @@ class _ProjectionSolver:
         b = (self.b_fixed + np.einsum("bk,lk->bl", Pt, self.b_g)
              - (np.asarray(eps)[:, None] - self.eps) * self.eps_svec)
         p_tilde = np.asarray(P_tilde, np.float64)[:, self.lmi.p_rows, self.lmi.p_cols]
-        q = -np.concatenate([targets, self.reg * p_tilde], axis=1)
-        return q, vals, b
+        q = -np.concatenate([weights * targets, self.reg * p_tilde], axis=1)
+        diag = np.concatenate([weights, np.broadcast_to(self.reg_diag, p_tilde.shape)], axis=1)
+        return q, vals, b, diag
 
-    def solve(self, q, vals, b):
+    def solve(self, q, vals, b, diag):
         """One solve; returns `(x or None, Outcome code, Clarabel's solve time)`."""
         if self.solver is None:
             A = sp.csc_matrix((vals, self.indices, self.indptr), shape=self.csc_shape)
+            k = np.arange(len(diag) + 1)  # diagonal objective, explicit zeros kept (reg = 0)
+            P_obj = sp.csc_matrix((diag, k[:-1], k), shape=(len(diag),) * 2)
             settings = _sdp.clarabel_settings(**_sdp.PROJECTION_SETTINGS)
-            self.solver = self._clarabel.DefaultSolver(self.P_obj, q, A, b, self.cones, settings)
+            self.solver = self._clarabel.DefaultSolver(P_obj, q, A, b, self.cones, settings)
         else:
-            self.solver.update(q=q, A=vals, b=b)
+            self.solver.update(P=diag, q=q, A=vals, b=b)
         sol = self.solver.solve()
         outcome = _sdp.clarabel_outcome(str(sol.status))
         return (np.asarray(sol.x) if outcome == _SOLVED else None), outcome, sol.solve_time
@@ -123,19 +127,19 @@ def _thread_solver(qsr: QSR, n: int, eps: float, reg: float) -> _ProjectionSolve
     return solver
 
 
-def _solve_batch(qsr, targets, P_tilde, eps, *, base_eps, reg, dtype, shards):
+def _solve_batch(qsr, targets, P_tilde, eps, weights, *, base_eps, reg, dtype, shards):
     """Solve Π for every row; returns `(A, B, C, D, P)` rounded to `dtype`, codes, certified."""
     n = P_tilde.shape[-1]
     lmi = _lmi(qsr, n)
     count = len(targets)
-    q, vals, b = _thread_solver(qsr, n, base_eps, reg).data(targets, P_tilde, eps)
+    q, vals, b, diag = _thread_solver(qsr, n, base_eps, reg).data(targets, P_tilde, eps, weights)
     xs = np.full((count, lmi.nx), np.nan)
     codes = np.empty(count, np.int32)
 
     def work(rows):
         solver, spent = _thread_solver(qsr, n, base_eps, reg), 0.0
         for i in rows:
-            x, codes[i], t = solver.solve(q[i], vals[i], b[i])
+            x, codes[i], t = solver.solve(q[i], vals[i], b[i], diag[i])
             spent += t
             if x is not None:
                 xs[i] = x
@@ -149,7 +153,7 @@ def _solve_batch(qsr, targets, P_tilde, eps, *, base_eps, reg, dtype, shards):
     return sol, codes, ok
 
 
-def _certified_solve(qsr, targets, P_tilde, *, eps, reg, dtype, shards):
+def _certified_solve(qsr, targets, P_tilde, weights, *, eps, reg, dtype, shards):
     """Solve Π for every row at its $\\tilde P$ and keep only certified solutions.
 
     A solution that fails the exact check after rounding is re-solved with the margin
@@ -161,7 +165,7 @@ def _certified_solve(qsr, targets, P_tilde, *, eps, reg, dtype, shards):
     found, codes, sols = np.zeros(count, bool), np.empty(count, np.int32), None
     for attempt in range(_ATTEMPTS):
         sol, c, ok = _solve_batch(qsr, targets[todo], P_tilde[todo], cur_eps[todo],
-                                  base_eps=eps, reg=reg, dtype=dtype, shards=shards)
+                                  weights[todo], base_eps=eps, reg=reg, dtype=dtype, shards=shards)
         if sols is None:
             sols = [np.full((count,) + M.shape[1:], np.nan) for M in sol]
         for S, M in zip(sols, sol):
@@ -176,7 +180,7 @@ def _certified_solve(qsr, targets, P_tilde, *, eps, reg, dtype, shards):
     return sols, found, codes
 
 
-def _project_rows(qsr, targets, P_tilde, rounds, *, eps, reg, dtype, shards):
+def _project_rows(qsr, targets, P_tilde, weights, rounds, *, eps, reg, dtype, shards):
     """Project every row, re-linearising $P^{-1}$'s overbound `rounds` times.
 
     Each round starts at the $P$ of the row's closest certified solution so far; a row
@@ -189,11 +193,12 @@ def _project_rows(qsr, targets, P_tilde, rounds, *, eps, reg, dtype, shards):
     codes = np.full(count, _sdp.code("solver_failed"), np.int32)
     live, P_tilde, best = np.arange(count), P_tilde.copy(), None
     for _ in range(rounds):
-        sols, found, codes[live] = _certified_solve(qsr, targets[live], P_tilde[live], eps=eps,
-                                                    reg=reg, dtype=dtype, shards=shards)
+        sols, found, codes[live] = _certified_solve(
+            qsr, targets[live], P_tilde[live], weights[live], eps=eps, reg=reg, dtype=dtype,
+            shards=shards)
         if best is None:
             best = [np.full((count,) + M.shape[1:], np.nan) for M in sols]
-        dist = np.sum((layout.pack(*sols[:4]) - targets[live]) ** 2, axis=-1)
+        dist = np.sum(weights[live] * (layout.pack(*sols[:4]) - targets[live]) ** 2, axis=-1)
         better = found & (dist < best_dist[live])
         for Bm, S in zip(best, sols):
             Bm[live[better]] = S[better]
@@ -206,14 +211,15 @@ def _project_rows(qsr, targets, P_tilde, rounds, *, eps, reg, dtype, shards):
     return best, codes
 
 
-def _host_batch(A, B, C, D, P_ref, active, shard, *, qsr, has_ref, eps, reg, refine, shards):
+def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, shard, *, qsr, has_ref, eps, reg,
+                refine, shards):
     """pure_callback target: arrays carry identical leading batch axes (broadcast_all).
 
     Active targets already certified by `P_ref` come back unchanged; the others are
     projected as one batch (`_project_rows`). Failed rows return their target, flagged.
     `shard` is the calling device's index (broadcast like the batch) and `shards` the
     number of callbacks running at once on this host (`_sdp.shard`); each uses its share
-    of the thread pool.
+    of the thread pool. `WA`..`WD` are the metric's weights (scaled per row to at most 1).
     """
     dtype = np.asarray(A).dtype
     batch, n = A.shape[:-2], A.shape[-1]
@@ -231,9 +237,13 @@ def _host_batch(A, B, C, D, P_ref, active, shard, *, qsr, has_ref, eps, reg, ref
         codes[todo[keep]] = _UNCHANGED
         todo = todo[~keep]
     if len(todo):
-        targets = _lmi(qsr, n).layout.pack(*(M[todo] for M in flat[:4]))
+        layout = _lmi(qsr, n).layout
+        targets = layout.pack(*(M[todo] for M in flat[:4]))
+        w = layout.pack(*(np.asarray(W, np.float64).reshape((-1,) + W.shape[len(batch):])[todo]
+                          for W in (WA, WB, WC, WD)))
+        w /= w.max(axis=1, keepdims=True)
         P_tilde = flat[4][todo] if has_ref else np.broadcast_to(np.eye(n), (len(todo), n, n))
-        sol, codes[todo] = _project_rows(qsr, targets, P_tilde, 1 if has_ref else max(1, refine),
+        sol, codes[todo] = _project_rows(qsr, targets, P_tilde, w, 1 if has_ref else max(1, refine),
                                          eps=eps, reg=reg, dtype=dtype, shards=shards)
         done = todo[codes[todo] == _SOLVED]
         for o, M in zip(out, sol):
@@ -272,7 +282,8 @@ jax.tree_util.register_pytree_node(
     lambda _, children: Projection(*children))
 
 
-def _project_one(K: LTIController, P_ref, active, *, qsr: QSR, eps, reg, refine):
+def _project_one(K: LTIController, P_ref, W: LTIController, active, *, qsr: QSR, eps, reg,
+                 refine):
     """The unbatched JAX side: one `pure_callback` (vmapped calls batch on the host).
 
     Inside `jax.shard_map` (e.g. [`sweep`][dissil_jax.sweep]) each device calls its own
@@ -293,7 +304,7 @@ def _project_one(K: LTIController, P_ref, active, *, qsr: QSR, eps, reg, refine)
                        refine=int(refine), shards=shards)
     A, B, C, D, P, codes = jax.pure_callback(
         callback, (*shapes, jax.ShapeDtypeStruct((), jnp.int32)), K.A, K.B, K.C, K.D, P_ref,
-        jnp.asarray(active, bool), shard, vmap_method="broadcast_all")
+        W.A, W.B, W.C, W.D, jnp.asarray(active, bool), shard, vmap_method="broadcast_all")
     return LTIController(A, B, C, D), P, codes
 
 
@@ -311,19 +322,21 @@ def _raise_on_failure(P, codes):
 
 def project(
     K: LTIController, qsr: QSR, P_ref=None, *, throw: bool = True, active=True,
-    eps: float = 1e-6, reg: float = 1e-6, refine: int = 3,
+    eps: float = 1e-6, reg: float = 1e-6, refine: int = 3, metric: LTIController | None = None,
 ) -> Projection:
     """Project `K` onto the convexified $(Q,S,R)$-dissipative set (paper eq. 13).
 
     $$\\Pi(\\tilde K) = \\arg\\min_{A,B,C,D,P}\\ \\lVert (A,B,C,D) - (\\tilde A,\\tilde B,\\tilde C,
-    \\tilde D)\\rVert_F^2 + \\mu\\lVert P-\\tilde P\\rVert^2 \\quad\\text{s.t.}\\quad
+    \\tilde D)\\rVert_W^2 + \\mu\\lVert P-\\tilde P\\rVert^2 \\quad\\text{s.t.}\\quad
     \\mathcal M(A,B,C,D,P;\\tilde P) \\preceq -\\varepsilon I,$$
 
     where $\\mathcal M$ is the convexified KYP LMI (paper Corollary 1 + Remark 1, with
     $-Q = LL^\\top$; see [`ConvexifiedLMI`](concepts.md)). The set is an inner
     approximation: every point in it is truly dissipative, and the exact float64 KYP
     check is run on the returned (dtype-rounded) controller and $P$ before it leaves the
-    host. $\\mu$ (`reg`) is a tiny proximal weight that makes $P$ unique.
+    host. $\\mu$ (`reg`) is a tiny proximal weight that makes $P$ unique. The distance is
+    Frobenius ($W = 1$) unless a `metric` gives each entry its own weight,
+    $\\lVert X\\rVert_W^2 = \\sum_{ij} W_{ij} X_{ij}^2$ over the four matrices.
 
     - `P_ref` given: $\\tilde P = $ `P_ref`; a target already certified by `P_ref` comes
       back unchanged without a solve (`result` is `Outcome.unchanged`), so a certified
@@ -352,6 +365,9 @@ def project(
     - `eps`: strictness margin of the LMI, guarding the certificate against rounding.
     - `reg`: proximal weight $\\mu$ on $P$.
     - `refine`: re-linearisation rounds when `P_ref` is None.
+    - `metric`: positive weights $W$ as an `LTIController` shaped (and batched) like `K`;
+      only their ratios matter. Projected adaptive optimisers need it (see
+      [`fit_pgd`][dissil_jax.fit_pgd]).
 
     **Returns:** a [`Projection`][dissil_jax.Projection] `(K_proj, P)` with `.result`.
 
@@ -362,12 +378,13 @@ def project(
     ```
     """
     _check_qsr(K, qsr)
-    _check_options(K, P_ref, active, eps, reg, refine)
+    _check_options(K, P_ref, active, eps, reg, refine, metric)
     fn = partial(_project_one, qsr=qsr, eps=eps, reg=reg, refine=refine)
     in_ref, in_act = None if P_ref is None else 0, 0 if jnp.ndim(active) else None
+    W = jax.tree.map(jnp.ones_like, K) if metric is None else metric
     for _ in K.batch_shape:
-        fn = jax.vmap(fn, in_axes=(0, in_ref, in_act))
-    K_out, P, codes = fn(K, P_ref, active)
+        fn = jax.vmap(fn, in_axes=(0, in_ref, 0, in_act))
+    K_out, P, codes = fn(K, P_ref, W, active)
     if throw:
         P = _raise_on_failure(P, codes)
     return Projection(K_out, P, _sdp.item(codes))

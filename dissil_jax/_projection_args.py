@@ -19,7 +19,23 @@ def check_qsr(K: LTIController, qsr: QSR) -> None:
     qsr.neg_q_factor()  # raises a ValueError naming `qsr.Q` if Q has a positive eigenvalue
 
 
-def check_options(K: LTIController, P_ref, active, eps, reg, refine) -> None:
+def check_metric(K: LTIController, metric) -> None:
+    if metric is None:
+        return
+    if not isinstance(metric, LTIController):
+        raise ValueError(f"`metric` must be a `dj.LTIController` of weights, got "
+                         f"{type(metric).__name__}.")
+    for name in "ABCD":
+        W, M = getattr(metric, name), getattr(K, name)
+        if W.shape != M.shape:
+            raise ValueError(f"`metric.{name}` must have the shape {M.shape} of `K.{name}`, "
+                             f"got {W.shape}.")
+        if not isinstance(W, jax.core.Tracer) and not np.all(np.isfinite(W) & (W > 0)):
+            raise ValueError(f"`metric.{name}` must be positive and finite.")
+
+
+def check_options(K: LTIController, P_ref, active, eps, reg, refine, metric=None) -> None:
+    check_metric(K, metric)
     for name, v, lo_ok in (("eps", eps, False), ("reg", reg, True)):
         if not (np.ndim(v) == 0 and np.isfinite(v) and (v > 0 or (lo_ok and v == 0))):
             raise ValueError(f"`{name}` must be a finite {'non-negative' if lo_ok else 'positive'}"

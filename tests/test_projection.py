@@ -263,12 +263,12 @@ def _corrupt_solves(monkeypatch, broken=lambda n: True):
     original, original_data = _projection._ProjectionSolver.solve, _projection._ProjectionSolver.data
     calls, margins = [], []
 
-    def data(self, targets, P_tilde, eps):
+    def data(self, targets, P_tilde, eps, weights):
         margins.extend(np.asarray(eps).tolist())
-        return original_data(self, targets, P_tilde, eps)
+        return original_data(self, targets, P_tilde, eps, weights)
 
-    def corrupted(self, q, vals, b):
-        x, status, t = original(self, q, vals, b)
+    def corrupted(self, q, vals, b, diag):
+        x, status, t = original(self, q, vals, b, diag)
         calls.append(margins[len(calls)])
         if x is not None and broken(len(calls)):
             x = x.copy()
