@@ -4,8 +4,11 @@ import cvxpy as cp
 import numpy as np
 
 
-def cvxpy_projection_problem(qsr, n, eps=1e-6, reg=1e-6):
-    """A DPP-parametrised cvxpy problem of paper eq. 13 (target and P~ are Parameters)."""
+def cvxpy_projection_problem(qsr, n, eps=1e-6, reg=1e-6, weights=None):
+    """A DPP-parametrised cvxpy problem of paper eq. 13 (target and P~ are Parameters).
+
+    `weights`: optional per-entry weights of the distance (`dj.project`'s `metric`), the
+    four arrays `(W_A, W_B, W_C, W_D)`, fixed in the problem."""
     m, p = qsr.S.shape
     L = qsr.neg_q_factor()
     r = L.shape[1]
@@ -29,8 +32,11 @@ def cvxpy_projection_problem(qsr, n, eps=1e-6, reg=1e-6):
                   [Pt @ A, Pt @ B, P - 2 * Pt]]
     M = cp.bmat(blocks)
     N = M.shape[0]
-    obj = (cp.sum_squares(A - tA) + cp.sum_squares(B - tB) + cp.sum_squares(C - tC)
-           + cp.sum_squares(D - tD) + reg * cp.sum_squares(P - Pt))
+    diffs = [X - T for X, T in ((A, tA), (B, tB), (C, tC), (D, tD))]
+    if weights is not None:
+        diffs = [cp.multiply(np.sqrt(np.asarray(w, np.float64)), d)
+                 for w, d in zip(weights, diffs)]
+    obj = sum(cp.sum_squares(d) for d in diffs) + reg * cp.sum_squares(P - Pt)
     prob = cp.Problem(cp.Minimize(obj), [(M + M.T) / 2 << -eps * np.eye(N)])
     return prob, (tA, tB, tC, tD, Pt), (A, B, C, D, P)
 

@@ -9,16 +9,20 @@ Problems (all with the library's unit normalisation, so step sizes are unit-free
 Candidates: the paper's decaying-step rule (`learning_rate` η0, decay 0.99) at several η0,
 `optax.adam` at several rates, and ICO (no step size). Each runs 8 initialisations for
 150 steps with `tol=0`. Reported per problem: the median over initialisations of the final
-loss over the initial loss, the median number of steps to reach 1 % of the initial loss
-(— if the median run never does), and the wall time per run. A candidate's regret on a
-problem is its median final/initial ratio over the best candidate's; among the candidates
-whose worst-case regret is within 2x of the smallest, the default is the fastest (least
-total wall time). Ratios are what to read; the machine is shared and noisy.
+loss over the initial loss, after all 150 steps and where the run would have stopped with
+`fit_pgd`'s default `tol` (the same iterates, cut at the first step whose loss changed by
+less than `tol`), the median number of steps to reach 1 % of the initial loss (— if the
+median run never does), and the wall time per run. A default is used with the default
+`tol`, so it is judged there: a candidate's regret on a problem is its median final/initial
+ratio at the default `tol` over the best candidate's; among the candidates whose
+worst-case regret is within 2x of the smallest, the default is the fastest (least total
+wall time). Ratios are what to read; the machine is shared and noisy.
 
 Usage: python benchmarks/bench_optimizers.py [--quick]
 """
 
 import argparse
+import inspect
 import os
 import time
 
@@ -58,6 +62,9 @@ def candidates(quick):
     return out
 
 
+DEFAULT_TOL = inspect.signature(dj.fit_pgd).parameters["tol"].default
+
+
 def run(name, kw, windows, qsr, steps, inits):
     key = jr.PRNGKey(1)
     t0 = time.perf_counter()
@@ -79,7 +86,18 @@ def run(name, kw, windows, qsr, steps, inits):
     assert bool(np.all(res.certified)), f"{name}: a controller is not certified"
     CURVES[name] = np.nanmedian(np.fmin.accumulate(np.nan_to_num(ratio, nan=np.inf), axis=1),
                                 axis=0)
-    return float(np.median(final)), med_steps, wall
+    return float(np.median(final)), med_steps, wall, float(np.median(stopped(hist)))
+
+
+def stopped(hist, tol=DEFAULT_TOL):
+    """Final/initial loss of each run had it stopped at the default `tol`: the same iterates
+    up to the first step whose loss changed by less than `tol` (user units)."""
+    out = []
+    for row in hist:
+        row = row[~np.isnan(row)]
+        small = np.nonzero(np.abs(np.diff(row)) < tol)[0]
+        out.append(row[small[0] + 1 if len(small) else -1] / row[0])
+    return np.array(out)
 
 
 CURVES = {}
@@ -119,13 +137,15 @@ def main(quick=False):
             curves[pname, cname] = CURVES[cname]
             print(pname, cname, table[pname, cname], flush=True)
     names = [c for c in cands if c != "ICO"]
-    ratios = np.array([[table[p, c][0] for c in names] for p in probs])
+    ratios = np.array([[table[p, c][3] for c in names] for p in probs])
     regret = ratios / ratios.min(axis=1, keepdims=True)
     worst = regret.max(axis=0)
     near = [c for c, r in zip(names, worst) if r <= 2 * worst.min()]
     best = min(near, key=lambda c: sum(table[p, c][2] for p in probs))
-    print(f"\n{len(probs)} problems, {inits} initialisations x {steps} steps, tol=0\n")
-    head = " | ".join(f"{p}: final/initial, steps to 1 %, s/run" for p in probs)
+    print(f"\n{len(probs)} problems, {inits} initialisations x {steps} steps, tol=0 "
+          f"(and stopped at the default tol={DEFAULT_TOL:g})\n")
+    head = " | ".join(f"{p}: final/initial (tol 0; default tol), steps to 1 %, s/run"
+                      for p in probs)
     print(f"| candidate | {head} | worst regret |")
     print("|---|" + "---|" * (len(probs) + 1))
     for c in cands:
@@ -136,7 +156,7 @@ def main(quick=False):
                 cells.append("n/a")
                 continue
             st = "—" if r[1] > steps else f"{r[1]:.0f}"
-            cells.append(f"{r[0]:.2e}, {st}, {r[2]:.3f}")
+            cells.append(f"{r[0]:.2e}; {r[3]:.2e}, {st}, {r[2]:.3f}")
         wr = f"{regret[:, names.index(c)].max():.3g}" if c in names else "—"
         mark = " ←" if c == best else ""
         print(f"| {c}{mark} | " + " | ".join(cells) + f" | {wr} |")

@@ -367,7 +367,7 @@ def project(
     - `refine`: re-linearisation rounds when `P_ref` is None.
     - `metric`: positive weights $W$ as an `LTIController` shaped (and batched) like `K`;
       only their ratios matter. Projected adaptive optimisers need it (see
-      [`fit_pgd`][dissil_jax.fit_pgd]).
+      [`fit_pgd`][dissil_jax.fit_pgd] and [Concepts](concepts.md#projecting-an-adaptive-step)).
 
     **Returns:** a [`Projection`][dissil_jax.Projection] `(K_proj, P)` with `.result`.
 

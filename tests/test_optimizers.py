@@ -41,12 +41,15 @@ def test_defaults_learn(realisable):
 
 
 def test_adam_1e2_learns(realisable):
-    """Projected Adam at 1e-2 needs more steps (its steps are 1e-2 in parameter units); some
-    runs stall near the boundary of the set (documented on the optimiser page)."""
+    """Projected Adam at 1e-2: every run ends at <= 1 % of its initial loss, all certified.
+
+    Its steps are about 1e-2 per entry, so it needs more than the default 150 steps (the
+    PGD tutorial). Projected in the Frobenius distance instead of Adam's own metric, runs
+    drift along the boundary and end at up to 11 % (benchmarks/bench_adam_metric.py)."""
     res = dj.fit_pgd(jr.PRNGKey(1), realisable, QSR, optimizer=optax.adam(1e-2),
-                     max_steps=600, tol=1e-6)
+                     max_steps=2000, tol=0.0)
     ratio = np.asarray(res.final_loss / res.initial_loss)
-    assert np.median(ratio) <= 0.01 and np.all(ratio <= 0.1), ratio
+    assert np.all(ratio <= 0.01), ratio
     _all_certified(res)
 
 

@@ -276,7 +276,11 @@ def fit_pgd(
       with `learning_rate` $\\eta_0 = 1$ (in the normalised units above) and `decay`
       $\\rho = 0.99$, chosen by measurement on four problems against Adam and ICO
       (`benchmarks/bench_optimizers.py`); or any `optax.GradientTransformation` as
-      `optimizer` (then leave `learning_rate` and `decay` unset).
+      `optimizer` (then leave `learning_rate` and `decay` unset). When the optimiser's
+      state holds a second moment $\\nu$ (Adam, RMSProp, ...), $\\Pi$ measures distance
+      in its metric $\\sqrt\\nu$ (`project`'s `metric`), so that the fixed points of the
+      projected steps are the constrained minima
+      ([Concepts](concepts.md#projecting-an-adaptive-step)).
     - `num_inits`: number of random initialisations.
     - `n_state`: the controller order $\\hat n$; required when `windows.x0` is None (the
       controller starts at rest), otherwise it must equal `windows.n_state`.
