@@ -74,7 +74,7 @@ class _ProjectionSolver:
         self.eps_svec = lmi.svec(np.eye(N))
         self.reg_diag = np.full(lmi.nP, reg)
         self.cones = [clarabel.PSDTriangleConeT(N)]
-        self.solver = None
+        self.solver, self.diag = None, None
         self._clarabel = clarabel
 
     def data(self, targets, P_tilde, eps, weights):
@@ -100,8 +100,11 @@ class _ProjectionSolver:
             P_obj = sp.csc_matrix((diag, k[:-1], k), shape=(len(diag),) * 2)
             settings = _sdp.clarabel_settings(**_sdp.PROJECTION_SETTINGS)
             self.solver = self._clarabel.DefaultSolver(P_obj, q, A, b, self.cones, settings)
+        elif np.array_equal(diag, self.diag):  # the same distance (always, without a metric)
+            self.solver.update(q=q, A=vals, b=b)
         else:
             self.solver.update(P=diag, q=q, A=vals, b=b)
+        self.diag = diag
         sol = self.solver.solve()
         outcome = _sdp.clarabel_outcome(str(sol.status))
         return (np.asarray(sol.x) if outcome == _SOLVED else None), outcome, sol.solve_time
