@@ -3,18 +3,31 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo reproduce install lint bench docs clean
+.PHONY: test test-kernels demo reproduce install lint bench docs constraints clean
 
-$(STAMP): pyproject.toml
+# Exact, tested versions from constraints.txt, so that a fresh `make test` resolves the same
+# packages today and later; `pip install dissil_jax` alone uses pyproject's lower bounds.
+$(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e ".[dev]"
+	$(BIN)/python -m pip install -q -c constraints.txt -e ".[dev]"
 	touch $(STAMP)
 
 install: $(STAMP)
 
 test: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -m "not slow" tests
+
+# The numerically tight tests again under other CPUs' BLAS kernels (numpy's and scipy's
+# OpenBLAS pick them by OPENBLAS_CORETYPE): with the native run they cover the Haswell-,
+# SkylakeX- and Zen-class kernels. CI runs this after `make test`.
+KERNELS ?= Haswell SkylakeX Zen
+test-kernels: $(STAMP)
+	for k in $(KERNELS); do \
+		echo "== OPENBLAS_CORETYPE=$$k"; \
+		OPENBLAS_CORETYPE=$$k OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -p no:cacheprovider \
+			-m "numerics and not slow" tests || exit 1; \
+	done
 
 demo: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m dissil_jax.experiments nonlinear --data initial \
@@ -36,6 +49,11 @@ bench: $(STAMP)
 
 docs: $(STAMP)
 	$(BIN)/mkdocs build --strict
+
+# Re-pin constraints.txt to what the venv has now (after an upgrade; then run `make test`).
+constraints: $(STAMP)
+	{ sed -n '1,3p' constraints.txt; $(BIN)/python -m pip freeze --exclude-editable \
+		| grep -v '^dissil' ; } > constraints.tmp && mv constraints.tmp constraints.txt
 
 clean:
 	rm -rf $(VENV) .pytest_cache

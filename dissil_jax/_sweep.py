@@ -64,7 +64,7 @@ def sweep(fn, mesh: Mesh | None = None):
         raise ValueError(f"`mesh` must be a `jax.sharding.Mesh`, got {type(mesh).__name__}.")
     # Auto axes: with Explicit ones (the default of `jax.make_mesh`) dropping the padding
     # of an uneven sweep would need an explicit output sharding.
-    mesh = mesh.update(axis_types=(AxisType.Auto,) * len(mesh.axis_names))
+    mesh = Mesh(mesh.devices, mesh.axis_names, axis_types=(AxisType.Auto,) * len(mesh.axis_names))
     spec = PartitionSpec(tuple(mesh.axis_names))
     # check_vma=False: a lane's loop carry may start invariant across devices (GD's initial
     # controllers depend on the closed-over key only) and become device-varying in the body,

@@ -4,9 +4,6 @@ MathJax is served from the site (copied from the pip-installed sphinx-mathjax-of
 wheel by docs/javascripts/mathjax_assets.py), not from a CDN.
 """
 
-import os
-import subprocess
-import sys
 from html.parser import HTMLParser
 from pathlib import Path
 from urllib.parse import unquote, urlsplit
@@ -46,16 +43,9 @@ def _resolve(site: Path, page: Path, src: str) -> Path:
     return (base / path.lstrip("/")).resolve()
 
 
-@pytest.fixture(scope="module")
-def site(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("site")
-    result = subprocess.run(
-        [sys.executable, "-m", "mkdocs", "build", "--strict", "-d", str(out)],
-        cwd=REPO, capture_output=True, text=True, timeout=300,
-        env={**os.environ, "NO_MKDOCS_2_WARNING": "1"},
-    )
-    assert result.returncode == 0, f"mkdocs build --strict failed:\n{result.stderr[-4000:]}"
-    return out
+@pytest.fixture
+def site(built_site) -> Path:
+    return built_site
 
 
 def _pages(site: Path) -> list[Path]:
