@@ -15,8 +15,12 @@ $(STAMP): pyproject.toml constraints.txt
 
 install: $(STAMP)
 
+# Two pytest workers (the tests are mostly single-threaded compilation); the docs tests share
+# one worker so that the site is built once.
+PYTEST := OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadgroup
+
 test: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -m "not slow" tests
+	$(PYTEST) -m "not slow" tests
 
 # The numerically tight tests again under other CPUs' BLAS kernels (numpy's and scipy's
 # OpenBLAS pick them by OPENBLAS_CORETYPE): with the native run they cover the Haswell-,
@@ -25,8 +29,8 @@ KERNELS ?= Haswell SkylakeX Zen
 test-kernels: $(STAMP)
 	for k in $(KERNELS); do \
 		echo "== OPENBLAS_CORETYPE=$$k"; \
-		OPENBLAS_CORETYPE=$$k OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -p no:cacheprovider \
-			-m "numerics and not slow" tests || exit 1; \
+		OPENBLAS_CORETYPE=$$k $(PYTEST) -p no:cacheprovider -m "numerics and not slow" tests \
+			|| exit 1; \
 	done
 
 demo: $(STAMP)

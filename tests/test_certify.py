@@ -7,6 +7,8 @@ from helpers import dissipation_matrix, dissipation_ok
 
 import dissil_jax as dj
 
+pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+
 
 def _first_order(a, b, c, d):
     return dj.LTIController([[a]], [[b]], [[c]], [[d]])

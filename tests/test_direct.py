@@ -341,19 +341,6 @@ def test_sharded_sweep_equals_unsharded(tmp_path):
     assert len({s for row in out["steps"] for s in row}) > 1  # runs stop at different steps
 
 
-def test_experiments_cli_runs_direct(tmp_path):
-    from dissil_jax.experiments import __main__ as cli
-
-    out = tmp_path / "run"
-    assert cli.main(["nonlinear", "--data", "initial", "--segments", "2", "--inits", "2",
-                     "--methods", "direct", "--out", str(out), "--quick"]) == 0
-    (rec,) = json.loads((out / "summary.json").read_text())
-    assert rec["method"] == "direct" and rec["certified"] is True
-    assert rec["percent_stable"] == 100.0
-    assert "Direct (ours)" in (out / "tables.md").read_text()
-    assert "direct" not in cli._parser().parse_args(["linear"]).methods  # not a paper method
-
-
 def test_protocol_uses_the_specs_direct_settings(getkey):
     spec = dataclasses.replace(example_spec("nonlinear"), max_steps=6, direct_tol=1e-9,
                                direct_learning_rate=0.123, direct_init_scale=0.7)

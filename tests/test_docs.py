@@ -32,6 +32,7 @@ def test_api_reference_covers_public_names():
     )
 
 
+@pytest.mark.xdist_group("site")  # with tests/test_site.py: one build per run
 def test_docs_build_strict(built_site):
     assert (built_site / "api" / "index.html").exists()
 

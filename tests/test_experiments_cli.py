@@ -102,33 +102,34 @@ def test_demo_configuration_matches_the_papers_claims(tmp_path):
     assert by["pgd"]["mse_median"] < 0.2
 
 
-def test_command_line_entry_point_runs(tmp_path):
-    """`python -m dissil_jax.experiments` as `make demo` calls it (float64 set up by the
-    CLI), with spawned workers as `make reproduce` runs it."""
+def test_entry_point_with_jobs_gives_the_serial_records(tmp_path):
+    """`python -m dissil_jax.experiments` as `make demo` calls it (float64 set up by the CLI),
+    with spawned workers as `make reproduce` runs it (`--jobs 2`, one solver thread each),
+    writes the records of the serial in-process run; `--methods direct` runs our extension.
+
+    One test for the three, since each CLI run compiles the NMPC expert's closed loop anew.
+    """
     import os
     import subprocess
     import sys
 
-    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
-    proc = subprocess.run(
-        [sys.executable, "-m", "dissil_jax.experiments", "nonlinear", "--segments", "2",
-         "--inits", "2", "--methods", "pgd", "--out", str(tmp_path), "--quick", "--jobs", "2"],
-        capture_output=True, text=True, timeout=600, env=env)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    records = json.loads((tmp_path / "summary.json").read_text())
-    assert records[0]["method"] == "pgd" and records[0]["certified"] is True
-    assert "nonlinear_median.png" in proc.stdout
-
-
-def test_jobs_share_configurations_without_changing_records(tmp_path):
-    """`--jobs 2` (spawned workers, one solver thread each) gives the serial run's records."""
     argv = ["nonlinear", "--data", "initial", "--segments", "2", "3", "--inits", "2",
-            "--methods", "pgd", "ico_nc", "--quick"]
+            "--methods", "pgd", "ico_nc", "direct", "--quick"]
     assert cli.main(argv + ["--out", str(tmp_path / "serial")]) == 0
-    assert cli.main(argv + ["--out", str(tmp_path / "jobs"), "--jobs", "2"]) == 0
     assert cli.main(argv + ["--out", str(tmp_path / "bad"), "--jobs", "0"]) == 2
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    proc = subprocess.run([sys.executable, "-m", "dissil_jax.experiments", *argv, "--out",
+                           str(tmp_path / "jobs"), "--jobs", "2"],
+                          capture_output=True, text=True, timeout=600, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "nonlinear_median.png" in proc.stdout
     serial, jobs = (json.loads((tmp_path / d / "summary.json").read_text())
                     for d in ("serial", "jobs"))
-    assert len(serial) == 4
+    assert len(serial) == 6
     drop = lambda r: {k: v for k, v in r.items() if k != "train_time_s"}  # noqa: E731
     assert [drop(r) for r in jobs] == [drop(r) for r in serial]
+    for rec in serial:
+        if rec["method"] in ("pgd", "direct"):
+            assert rec["certified"] is True and rec["percent_stable"] == 100.0, rec
+    assert "Direct (ours)" in (tmp_path / "serial" / "tables.md").read_text()
+    assert "direct" not in cli._parser().parse_args(["linear"]).methods  # not a paper method

@@ -13,6 +13,8 @@ from dissil_jax import experiments as ex
 from dissil_jax.experts import NMPCExpert, lqr_expert, lqr_gain, nmpc_expert
 from dissil_jax.systems import mass_spring_chain, paper_nonlinear_plant
 
+pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+
 
 @pytest.mark.parametrize("E, F", [(10.0, 1.0), (1.0, 3.0)])
 def test_lqr_gain_riccati_residual(E, F):

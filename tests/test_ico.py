@@ -18,6 +18,8 @@ from dissil_jax._train._ico_sdp import ICOProblem
 from dissil_jax._train._ico_solver import ICOSolver
 from dissil_jax._train._ico_windows import stacked_factor
 
+pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+
 NONLINEAR_QSR = dj.QSR(-29.867, 3.556, 0.601)  # the paper's nonlinear-example controller
 
 

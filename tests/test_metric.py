@@ -18,6 +18,8 @@ from dissil_jax._train.pgd import METRIC_FLOOR, optimizer_metric
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
 from _reference import cvxpy_projection_problem, solve_reference  # noqa: E402
 
+pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+
 QSR = dj.QSR.passive(2)
 
 

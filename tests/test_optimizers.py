@@ -6,7 +6,7 @@ import jax.random as jr
 import numpy as np
 import optax
 import pytest
-from helpers import dissipation_ok, index
+from helpers import dissipation_ok, index, through_solves
 
 import dissil_jax as dj
 from dissil_jax._train._init import init_controllers
@@ -53,6 +53,7 @@ def test_adam_1e2_learns(realisable):
     _all_certified(res)
 
 
+@pytest.mark.numerics
 @pytest.mark.parametrize("opt", [
     optax.sgd(0.05, momentum=0.9),
     # a global-norm clip that binds: one run's gradient must not shrink another run's step
@@ -73,11 +74,15 @@ def test_optimizer_state_carries_across_steps(realisable, opt):
         for _ in range(steps):
             updates, state = opt.update(grad(K, ws), state, K)
             K, P = dj.project(optax.apply_updates(K, updates), QSR, P)
-        for name in "ABCD":  # K0 is drawn inside jit there: last-bit differences, amplified
+        # K0 is drawn inside jit there (last-bit differences) and both pass through
+        # steps + 1 solves: they agree to the solver's tolerance (helpers.through_solves)
+        tol = through_solves(steps + 1)
+        for name in "ABCD":
             np.testing.assert_allclose(getattr(index(res.controllers, i), name),
-                                       getattr(K, name), rtol=1e-5, atol=1e-6)
+                                       getattr(K, name), rtol=tol, atol=tol * 1e-2)
 
 
+@pytest.mark.numerics
 def test_vmapped_adam_sweep_equals_separate_runs(realisable):
     rates = jnp.asarray([1e-2, 1e-1])
     run = lambda lr: dj.pgd_run(jr.PRNGKey(3), realisable, QSR, optimizer=optax.adam(lr),
@@ -86,7 +91,8 @@ def test_vmapped_adam_sweep_equals_separate_runs(realisable):
     for j, lr in enumerate([1e-2, 1e-1]):
         one = dj.fit_pgd(jr.PRNGKey(3), realisable, QSR, optimizer=optax.adam(lr),
                          num_inits=2, max_steps=5, tol=0.0)
-        np.testing.assert_allclose(swept[j], one.final_loss, rtol=1e-6)
+        # a batched and a separate run: the solver's tolerance over 6 solves
+        np.testing.assert_allclose(swept[j], one.final_loss, rtol=through_solves(6))
 
 
 def test_step_rule_arguments(realisable):

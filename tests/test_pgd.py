@@ -3,7 +3,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import independent_kyp_ok, index, random_windows
+from helpers import independent_kyp_ok, index, random_windows, through_solves
 
 import dissil_jax as dj
 from dissil_jax._train import pgd
@@ -45,25 +45,29 @@ def _reference_pgd(K, P, windows, qsr, lr, decay, max_steps, tol):
 
 
 def _check_against_loop(res, K0, P0, w, qsr, lr, decay, max_steps, tol):
+    # Projected runs pass through max_steps + 1 Clarabel solves (the initial projection and
+    # one per step): the batched run and the loop agree to the solver's tolerance compounded
+    # over them (helpers.through_solves); the trainers also draw K0 inside `jit`, where XLA
+    # may round N(0,1)*scale differently in the last bit. Unconstrained runs differ by
+    # round-off only.
+    rtol = through_solves(max_steps + 1) if qsr is not None else 1e-9
     for i in range(K0.A.shape[0]):
         Ki, Pi, hist = _reference_pgd(index(K0, i), None if P0 is None else P0[i], w, qsr, lr,
                                       decay, max_steps, tol)
         n = len(hist)
         assert int(res.steps[i]) == n - 1
-        np.testing.assert_allclose(res.loss_history[i, :n], hist, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(res.loss_history[i, :n], hist, rtol=rtol, atol=1e-12)
         assert np.all(np.isnan(res.loss_history[i, n:]))
-        # The trainers draw K0 inside `jit`, where XLA may round N(0,1)*scale differently in
-        # the last bit; the initial projection's solver tolerance (~1e-8) amplifies that.
         for name in "ABCD":
             np.testing.assert_allclose(getattr(index(res.controllers, i), name),
-                                       getattr(Ki, name), rtol=1e-7, atol=1e-10)
+                                       getattr(Ki, name), rtol=rtol, atol=rtol * 1e-3)
         if qsr is not None:
-            # P is pinned only by the projection's tiny proximal term (weight 1e-6), so it
-            # agrees to the solver's tolerance rather than to round-off.
-            np.testing.assert_allclose(res.P[i], Pi, rtol=1e-6, atol=1e-9)
+            # P is pinned only by the projection's proximal term (weight 1e-6), so two solves
+            # agree on it only to ~sqrt(tol / 1e-6); what matters is that it certifies.
             assert independent_kyp_ok(index(res.controllers, i), qsr, res.P[i])
 
 
+@pytest.mark.numerics
 @pytest.mark.parametrize("size", [1, 2], ids=["n1", "n2m2p2"])
 @pytest.mark.parametrize("constrained", [True, False], ids=["pgd", "gd"])
 def test_vmapped_training_equals_python_loop(getkey, constrained, size):

@@ -6,6 +6,8 @@ import pytest
 import dissil_jax as dj
 from dissil_jax.systems import mass_spring_chain
 
+pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+
 OMEGAS = np.linspace(0.0, np.pi, 4001)
 
 

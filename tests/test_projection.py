@@ -10,6 +10,8 @@ from hypothesis import given, settings, strategies as st
 import dissil_jax as dj
 from dissil_jax import _projection, _sdp
 
+pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+
 Outcome = type("Codes", (), {n: _sdp.code(n) for n in _sdp.NAMES})  # integer codes by name
 
 

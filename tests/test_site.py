@@ -11,6 +11,7 @@ from urllib.parse import unquote, urlsplit
 import pytest
 
 pytest.importorskip("mkdocs")
+pytestmark = pytest.mark.xdist_group("site")  # with test_docs.py: the site is built once
 
 REPO = Path(__file__).resolve().parents[1]
 # The math renderer each page with maths loads, relative to the site root.

@@ -3,6 +3,8 @@ import pytest
 
 import dissil_jax as dj
 
+pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+
 
 def test_special_cases_match_their_definitions():
     rng = np.random.default_rng(0)

@@ -10,6 +10,8 @@ import scipy.linalg
 import dissil_jax as dj
 from dissil_jax.systems import chain_matrices, mass_spring_chain, paper_nonlinear_plant
 
+pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+
 
 def freq_response(A, B, C, D, omegas):
     """G(e^{jw}) = C (zI - A)^{-1} B + D on a grid (independent of python-control)."""
