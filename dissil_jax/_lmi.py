@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._indefinite import QPlusTerm, split_q
 from ._sdp import Layout
 from ._supply import QSR
 
@@ -120,11 +121,16 @@ class ConvexifiedLMI:
 
     Variable order: the host layer's `Layout` (`vec` row-major for A, B, C, D, then the
     upper-triangular entries of P row-major, with $P = \\sum_k p_k E_k$).
+
+    For an indefinite $Q = Q_+ - Q_-$, $L$ factors $Q_-$ and the concave $-H^\\top Q_+H$
+    ($H = [C\\ D]$) is replaced by its linearisation around a point $H_0$ (`qplus`, a
+    `QPlusTerm`; `H0` arguments), which adds to the $(x, u)$ block a constant and a part
+    affine in $(C, D)$; then the matrix also depends on $H_0$ and is exact at $H = H_0$.
     """
 
     def __init__(self, n: int, p: int, m: int, qsr: QSR):
         qsr.check_sizes(p, m)
-        L = qsr.neg_q_factor()
+        L, L_plus = split_q(qsr.Q)
         r = L.shape[1]
         self.n, self.p, self.m, self.r = n, p, m, r
         self.N = N = 2 * n + p + r
@@ -188,20 +194,29 @@ class ConvexifiedLMI:
                 k += 1
         self.G = G
         self._svec_idx = svec_indices(N)
+        oC = self.nA + self.nB
+        self.qplus = (QPlusTerm(n, p, m, L_plus, oC, oC + self.nC) if L_plus.shape[1] else None)
 
-    def blocks(self, P_tilde: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Return `(M0, J)` with $\\mathcal M(x) = M_0 + \\sum_k x_k J_k$ at this $\\tilde P$."""
+    def blocks(self, P_tilde: np.ndarray, H0=None) -> tuple[np.ndarray, np.ndarray]:
+        """Return `(M0, J)` with $\\mathcal M(x) = M_0 + \\sum_k x_k J_k$ at this $\\tilde P$
+        (and, for an indefinite $Q$, at the linearisation point `H0 = (C0, D0)`)."""
         P_tilde = np.asarray(P_tilde, np.float64)
         i3 = self.N - self.n
         M0 = self.M0.copy()
         M0[i3:, i3:] = -2 * P_tilde
         J = self.J_fixed.copy()
         J[: self.nA + self.nB] = np.einsum("kcaij,ca->kij", self.G, P_tilde)
+        if self.qplus is not None:
+            if H0 is None:
+                raise ValueError("an indefinite `qsr.Q` needs the linearisation point `H0`.")
+            dM0, dJ = self.qplus.dense(*H0, self.N)
+            M0 += dM0
+            J[self.qplus.var] += dJ
         return M0, J
 
-    def evaluate(self, x: np.ndarray, P_tilde: np.ndarray) -> np.ndarray:
-        """$\\mathcal M(x)$ at a given $\\tilde P$ (dense, for checks)."""
-        M0, J = self.blocks(P_tilde)
+    def evaluate(self, x: np.ndarray, P_tilde: np.ndarray, H0=None) -> np.ndarray:
+        """$\\mathcal M(x)$ at a given $\\tilde P$ (and $H_0$; dense, for checks)."""
+        M0, J = self.blocks(P_tilde, H0)
         return M0 + np.tensordot(x, J, axes=1)
 
     def pack(self, A, B, C, D, P=None) -> np.ndarray:

@@ -21,8 +21,15 @@ import scipy.sparse as sp
 
 from . import _sdp
 from ._controller import LTIController
+from ._indefinite import QPlusData
 from ._lmi import ConvexifiedLMI
-from ._projection_args import check_options as _check_options, check_qsr as _check_qsr
+from ._projection_args import (
+    check_k_ref as _check_k_ref,
+    check_options as _check_options,
+    check_qsr as _check_qsr,
+)
+from ._projection_result import Projection as Projection
+from ._relinearise import project_rows_indefinite
 from ._sdp import Outcome
 from ._supply import QSR
 
@@ -54,10 +61,14 @@ class _ProjectionSolver:
         Gs = Gs.reshape(lmi.nA + lmi.nB, n * n, -1).transpose(2, 0, 1)  # [L, nAB, n*n]
         pattern = fixed != 0
         pattern[:, : lmi.nA + lmi.nB] |= np.any(Gs != 0, axis=2)
+        qplus = QPlusData(lmi) if lmi.qplus is not None else None
+        if qplus is not None:
+            pattern[qplus.rows, qplus.var] = True
         csc = sp.csc_matrix(pattern.astype(np.float64))
         csc.sort_indices()
         rows = csc.indices
         cols = np.repeat(np.arange(csc.shape[1]), np.diff(csc.indptr))
+        self.qplus = None if qplus is None else qplus.locate(rows, cols)
         self.vals0 = fixed[rows, cols]
         in_ab = cols < lmi.nA + lmi.nB
         self.ab_pos = np.nonzero(in_ab)[0]
@@ -77,16 +88,19 @@ class _ProjectionSolver:
         self.solver, self.diag = None, None
         self._clarabel = clarabel
 
-    def data(self, targets, P_tilde, eps, weights):
+    def data(self, targets, P_tilde, eps, weights, H0=None):
         """Clarabel's `(q, A values, b, P values)` for a batch: `targets` and `weights`
         [B, ntheta] (the objective is $\\sum_k w_k(\\theta_k - \\tilde\\theta_k)^2$), `P_tilde`
-        [B, n, n]."""
+        [B, n, n]; `H0` = `(C0, D0)` [B, m, n], [B, m, p], the linearisation points of an
+        indefinite $Q$'s positive part."""
         Pt = np.asarray(P_tilde, np.float64).reshape(len(targets), -1)
         vals = np.broadcast_to(self.vals0, (len(targets),) + self.vals0.shape).copy()
         # einsum (not BLAS) so that a row's numbers do not depend on the batch size
         vals[:, self.ab_pos] = np.einsum("bk,lk->bl", Pt, self.vals_g)
         b = (self.b_fixed + np.einsum("bk,lk->bl", Pt, self.b_g)
              - (np.asarray(eps)[:, None] - self.eps) * self.eps_svec)
+        if self.qplus is not None:
+            self.qplus.add(vals, b, H0)
         p_tilde = np.asarray(P_tilde, np.float64)[:, self.lmi.p_rows, self.lmi.p_cols]
         q = -np.concatenate([weights * targets, self.reg * p_tilde], axis=1)
         diag = np.concatenate([weights, np.broadcast_to(self.reg_diag, p_tilde.shape)], axis=1)
@@ -130,12 +144,14 @@ def _thread_solver(qsr: QSR, n: int, eps: float, reg: float) -> _ProjectionSolve
     return solver
 
 
-def _solve_batch(qsr, targets, P_tilde, eps, weights, *, base_eps, reg, dtype, shards):
+def _solve_batch(qsr, targets, P_tilde, eps, weights, *, base_eps, reg, dtype, shards,
+                 H0=None):
     """Solve Π for every row; returns `(A, B, C, D, P)` rounded to `dtype`, codes, certified."""
     n = P_tilde.shape[-1]
     lmi = _lmi(qsr, n)
     count = len(targets)
-    q, vals, b, diag = _thread_solver(qsr, n, base_eps, reg).data(targets, P_tilde, eps, weights)
+    q, vals, b, diag = _thread_solver(qsr, n, base_eps, reg).data(targets, P_tilde, eps, weights,
+                                                                  H0)
     xs = np.full((count, lmi.nx), np.nan)
     codes = np.empty(count, np.int32)
 
@@ -156,7 +172,7 @@ def _solve_batch(qsr, targets, P_tilde, eps, weights, *, base_eps, reg, dtype, s
     return sol, codes, ok
 
 
-def _certified_solve(qsr, targets, P_tilde, weights, *, eps, reg, dtype, shards):
+def _certified_solve(qsr, targets, P_tilde, weights, *, eps, reg, dtype, shards, H0=None):
     """Solve Π for every row at its $\\tilde P$ and keep only certified solutions.
 
     A solution that fails the exact check after rounding is re-solved with the margin
@@ -168,7 +184,8 @@ def _certified_solve(qsr, targets, P_tilde, weights, *, eps, reg, dtype, shards)
     found, codes, sols = np.zeros(count, bool), np.empty(count, np.int32), None
     for attempt in range(_ATTEMPTS):
         sol, c, ok = _solve_batch(qsr, targets[todo], P_tilde[todo], cur_eps[todo],
-                                  weights[todo], base_eps=eps, reg=reg, dtype=dtype, shards=shards)
+                                  weights[todo], base_eps=eps, reg=reg, dtype=dtype, shards=shards,
+                                  H0=None if H0 is None else tuple(M[todo] for M in H0))
         if sols is None:
             sols = [np.full((count,) + M.shape[1:], np.nan) for M in sol]
         for S, M in zip(sols, sol):
@@ -214,8 +231,8 @@ def _project_rows(qsr, targets, P_tilde, weights, rounds, *, eps, reg, dtype, sh
     return best, codes
 
 
-def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, shard, *, qsr, has_ref, eps, reg,
-                refine, shards):
+def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, shard, C0, D0, *, qsr, has_ref, eps,
+                reg, refine, shards):
     """pure_callback target: arrays carry identical leading batch axes (broadcast_all).
 
     Active targets already certified by `P_ref` come back unchanged; the others are
@@ -223,6 +240,7 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, shard, *, qsr, has_re
     `shard` is the calling device's index (broadcast like the batch) and `shards` the
     number of callbacks running at once on this host (`_sdp.shard`); each uses its share
     of the thread pool. `WA`..`WD` are the metric's weights (scaled per row to at most 1).
+    `C0`, `D0` are the first linearisation points of an indefinite $Q$ (`_relinearise`).
     """
     dtype = np.asarray(A).dtype
     batch, n = A.shape[:-2], A.shape[-1]
@@ -246,8 +264,16 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, shard, *, qsr, has_re
                           for W in (WA, WB, WC, WD)))
         w /= w.max(axis=1, keepdims=True)
         P_tilde = flat[4][todo] if has_ref else np.broadcast_to(np.eye(n), (len(todo), n, n))
-        sol, codes[todo] = _project_rows(qsr, targets, P_tilde, w, 1 if has_ref else max(1, refine),
-                                         eps=eps, reg=reg, dtype=dtype, shards=shards)
+        if _lmi(qsr, n).qplus is not None:
+            H0 = tuple(np.asarray(M, np.float64).reshape((-1,) + M.shape[len(batch):])[todo]
+                       for M in (C0, D0))
+            solve = partial(_indefinite_solve, qsr, eps=eps, reg=reg, dtype=dtype, shards=shards)
+            sol, codes[todo] = project_rows_indefinite(solve, layout, qsr, targets, P_tilde, H0,
+                                                       w, max(1, refine))
+        else:
+            sol, codes[todo] = _project_rows(qsr, targets, P_tilde, w,
+                                             1 if has_ref else max(1, refine), eps=eps, reg=reg,
+                                             dtype=dtype, shards=shards)
         done = todo[codes[todo] == _SOLVED]
         for o, M in zip(out, sol):
             o[done] = M[codes[todo] == _SOLVED]
@@ -255,38 +281,12 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, shard, *, qsr, has_re
             codes.reshape(batch))
 
 
-class Projection(tuple):
-    """What [`project`][dissil_jax.project] returns: the pair `(controller, P)`, plus `result`.
-
-    It unpacks like a pair (`K, P = dj.project(K, qsr)`) and indexes like one
-    (`dj.project(K, qsr)[0]`); `result` is the [`Outcome`][dissil_jax.Outcome] of each
-    projection (batched like `K`). It is a JAX pytree, so it can be returned from `jax.jit`.
-    """
-
-    def __new__(cls, controller, P, result):
-        self = super().__new__(cls, (controller, P))
-        self.result = result
-        return self
-
-    @property
-    def controller(self) -> LTIController:
-        return self[0]
-
-    @property
-    def P(self):
-        return self[1]
-
-    def __repr__(self):
-        return f"Projection(controller={self[0]!r}, P={self[1]!r}, result={self.result!r})"
+def _indefinite_solve(qsr, targets, P_tilde, weights, H0, **kwargs):
+    return _certified_solve(qsr, targets, P_tilde, weights, H0=H0, **kwargs)
 
 
-jax.tree_util.register_pytree_node(
-    Projection, lambda p: ((p[0], p[1], p.result), None),
-    lambda _, children: Projection(*children))
-
-
-def _project_one(K: LTIController, P_ref, W: LTIController, active, *, qsr: QSR, eps, reg,
-                 refine):
+def _project_one(K: LTIController, P_ref, W: LTIController, active, K_ref, *, qsr: QSR, eps,
+                 reg, refine):
     """The unbatched JAX side: one `pure_callback` (vmapped calls batch on the host).
 
     Inside `jax.shard_map` (e.g. [`sweep`][dissil_jax.sweep]) each device calls its own
@@ -307,7 +307,8 @@ def _project_one(K: LTIController, P_ref, W: LTIController, active, *, qsr: QSR,
                        refine=int(refine), shards=shards)
     A, B, C, D, P, codes = jax.pure_callback(
         callback, (*shapes, jax.ShapeDtypeStruct((), jnp.int32)), K.A, K.B, K.C, K.D, P_ref,
-        W.A, W.B, W.C, W.D, jnp.asarray(active, bool), shard, vmap_method="broadcast_all")
+        W.A, W.B, W.C, W.D, jnp.asarray(active, bool), shard, K_ref.C.astype(dtype),
+        K_ref.D.astype(dtype), vmap_method="broadcast_all")
     return LTIController(A, B, C, D), P, codes
 
 
@@ -326,6 +327,7 @@ def _raise_on_failure(P, codes):
 def project(
     K: LTIController, qsr: QSR, P_ref=None, *, throw: bool = True, active=True,
     eps: float = 1e-6, reg: float = 1e-6, refine: int = 3, metric: LTIController | None = None,
+    K_ref: LTIController | None = None,
 ) -> Projection:
     """Project `K` onto the convexified $(Q,S,R)$-dissipative set (paper eq. 13).
 
@@ -382,12 +384,13 @@ def project(
     """
     _check_qsr(K, qsr)
     _check_options(K, P_ref, active, eps, reg, refine, metric)
+    _check_k_ref(K, K_ref)
     fn = partial(_project_one, qsr=qsr, eps=eps, reg=reg, refine=refine)
     in_ref, in_act = None if P_ref is None else 0, 0 if jnp.ndim(active) else None
     W = jax.tree.map(jnp.ones_like, K) if metric is None else metric
     for _ in K.batch_shape:
-        fn = jax.vmap(fn, in_axes=(0, in_ref, 0, in_act))
-    K_out, P, codes = fn(K, P_ref, W, active)
+        fn = jax.vmap(fn, in_axes=(0, in_ref, 0, in_act, 0))
+    K_out, P, codes = fn(K, P_ref, W, active, K if K_ref is None else K_ref)
     if throw:
         P = _raise_on_failure(P, codes)
     return Projection(K_out, P, _sdp.item(codes))
