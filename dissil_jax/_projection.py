@@ -28,9 +28,8 @@ from ._projection_args import (
     check_options as _check_options,
     check_qsr as _check_qsr,
 )
-from ._projection_result import Projection as Projection
+from ._projection_result import Projection as Projection, raise_on_failure as _raise_on_failure
 from ._relinearise import project_rows_indefinite
-from ._sdp import Outcome
 from ._supply import QSR
 
 # Clarabel's own reported solve time and solve count, summed over all threads, and the
@@ -312,18 +311,6 @@ def _project_one(K: LTIController, P_ref, W: LTIController, active, K_ref, *, qs
     return LTIController(A, B, C, D), P, codes
 
 
-def _raise_on_failure(P, codes):
-    """`throw=True`: a ValueError eagerly, an `EquinoxRuntimeError` under `jit`."""
-    if not isinstance(codes, jax.core.Tracer):
-        codes = np.asarray(codes)
-        bad = codes[_sdp.failed(codes)]
-        if bad.size:
-            raise ValueError(f"dj.project: {Outcome[_sdp.item(bad.max())]}")
-        return P
-    worst = _sdp.item(jnp.max(jnp.where(_sdp.failed(codes), codes, -1)))
-    return worst.error_if(P, jnp.any(_sdp.failed(codes)))
-
-
 def project(
     K: LTIController, qsr: QSR, P_ref=None, *, throw: bool = True, active=True,
     eps: float = 1e-6, reg: float = 1e-6, refine: int = 3, metric: LTIController | None = None,
@@ -336,7 +323,15 @@ def project(
     \\mathcal M(A,B,C,D,P;\\tilde P) \\preceq -\\varepsilon I,$$
 
     where $\\mathcal M$ is the convexified KYP LMI (paper Corollary 1 + Remark 1, with
-    $-Q = LL^\\top$; see [`ConvexifiedLMI`](concepts.md)). The set is an inner
+    $-Q = LL^\\top$; see [`ConvexifiedLMI`](concepts.md)). For an indefinite
+    $Q = Q_+ - Q_-$ the concave $-H^\\top Q_+H$ ($H = [C\\ D]$) is replaced by its
+    linearisation around a point $H_0$
+    ([Concepts](concepts.md#indefinite-q-linearising-the-positive-part)): the target's, or
+    `K_ref`'s when given (a certified reference, e.g. the previous iterate); a target whose
+    first set is empty starts again from a static controller that is dissipative for every
+    $P$. Each round re-linearises $H_0$ and $\\tilde P$ at the solution, at most `refine`
+    times (also with `P_ref`), and stops once a round shortens the distance by less than
+    0.1 %. The set is an inner
     approximation: every point in it is truly dissipative, and the exact float64 KYP
     check is run on the returned (dtype-rounded) controller and $P$ before it leaves the
     host. $\\mu$ (`reg`) is a tiny proximal weight that makes $P$ unique. The distance is
@@ -359,7 +354,8 @@ def project(
     **Arguments:**
 
     - `K`: the target controller (may carry leading batch axes).
-    - `qsr`: the supply rate; `qsr.Q` must be negative semidefinite.
+    - `qsr`: the supply rate (any symmetric $Q$; an indefinite one that admits no strictly
+      dissipative controller raises a `ValueError`).
     - `P_ref`: reference storage matrix $\\tilde P\\succ0$ (`[n, n]`, batched like `K`).
     - `throw`: raise when a projection fails (`ValueError` eagerly, an
       `EquinoxRuntimeError` under `jit`). With `throw=False` nothing is raised and
@@ -373,6 +369,9 @@ def project(
     - `metric`: positive weights $W$ as an `LTIController` shaped (and batched) like `K`;
       only their ratios matter. Projected adaptive optimisers need it (see
       [`fit_pgd`][dissil_jax.fit_pgd] and [Concepts](concepts.md#projecting-an-adaptive-step)).
+    - `K_ref`: for an indefinite $Q$, the first linearisation point of $Q_+$'s term (an
+      `LTIController` shaped and batched like `K`, ideally certified with `P_ref`); ignored
+      for $Q\\preceq0$. Default: the target itself.
 
     **Returns:** a [`Projection`][dissil_jax.Projection] `(K_proj, P)` with `.result`.
 

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
+from . import _sdp
 from ._controller import LTIController
+from ._sdp import Outcome
 
 
 class Projection(tuple):
@@ -35,3 +39,15 @@ class Projection(tuple):
 jax.tree_util.register_pytree_node(
     Projection, lambda p: ((p[0], p[1], p.result), None),
     lambda _, children: Projection(*children))
+
+
+def raise_on_failure(P, codes):
+    """`throw=True`: a ValueError eagerly, an `EquinoxRuntimeError` under `jit`."""
+    if not isinstance(codes, jax.core.Tracer):
+        codes = np.asarray(codes)
+        bad = codes[_sdp.failed(codes)]
+        if bad.size:
+            raise ValueError(f"dj.project: {Outcome[_sdp.item(bad.max())]}")
+        return P
+    worst = _sdp.item(jnp.max(jnp.where(_sdp.failed(codes), codes, -1)))
+    return worst.error_if(P, jnp.any(_sdp.failed(codes)))

@@ -52,7 +52,7 @@ def project_rows_indefinite(solve, layout, qsr, targets, P_tilde, H0, weights, r
         budget[live] -= 1
         # a first set that is empty: once more from the static point (not counted)
         retry = ~found & ~np.isfinite(prev) & ~fell_back[live]
-        gain = prev - best_dist[live]
+        gain = np.where(np.isfinite(prev), prev - best_dist[live], np.inf)
         go_on = found & (gain > SETTLE_RTOL * best_dist[live]) & (budget[live] > 0)
         rows_retry, rows_on = live[retry], live[go_on]
         if len(rows_retry):

@@ -262,7 +262,8 @@ def fit_ico(
     - `windows`: demonstration windows with horizon $h = 2$ (ValueError otherwise: the
       overbound is derived for the two-step loss; cut longer demonstrations into 2-step
       windows, or use `dj.fit_pgd`).
-    - `qsr`: the controller's supply rate ($Q\\preceq 0$).
+    - `qsr`: the controller's supply rate (any symmetric $Q$; an indefinite $Q$'s positive
+      part is linearised at the current iterate, so every iterate stays certified).
     - `num_inits`: number of random initialisations.
     - `max_steps`: maximum number of ICO iterations (paper: 150).
     - `tol`: stop when $|\\Delta J| <$ `tol` (paper: 1e-3 linear, 1e-5 nonlinear).
