@@ -149,8 +149,9 @@ def _solve_batch(qsr, targets, P_tilde, eps, weights, *, base_eps, reg, dtype, s
     n = P_tilde.shape[-1]
     lmi = _lmi(qsr, n)
     count = len(targets)
+    extra = () if H0 is None else (H0,)  # the Q <= 0 path calls `data` exactly as before
     q, vals, b, diag = _thread_solver(qsr, n, base_eps, reg).data(targets, P_tilde, eps, weights,
-                                                                  H0)
+                                                                  *extra)
     xs = np.full((count, lmi.nx), np.nan)
     codes = np.empty(count, np.int32)
 

@@ -52,7 +52,9 @@ def project_rows_indefinite(solve, layout, qsr, targets, P_tilde, H0, weights, r
         budget[live] -= 1
         # a first set that is empty: once more from the static point (not counted)
         retry = ~found & ~np.isfinite(prev) & ~fell_back[live]
-        gain = np.where(np.isfinite(prev), prev - best_dist[live], np.inf)
+        gain = np.full(len(live), np.inf)
+        seen = np.isfinite(prev)
+        gain[seen] = prev[seen] - best_dist[live][seen]
         go_on = found & (gain > SETTLE_RTOL * best_dist[live]) & (budget[live] > 0)
         rows_retry, rows_on = live[retry], live[go_on]
         if len(rows_retry):
