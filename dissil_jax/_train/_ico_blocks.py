@@ -73,7 +73,7 @@ class KYPBlock(ConeBlock):
         n = layout.n
         dense = np.ones((n, n)) + np.eye(n)  # generic P~: every possible nonzero present
         _, J, _ = self.blocks(dense)
-        nonzero = (lmi.svec(J) != 0) | (lmi.svec(lmi.J_fixed) != 0)  # [nx_lmi, rows]
+        nonzero = svec(J, self._idx) != 0  # [nx_lmi, rows]
         self._var, self._rows = np.nonzero(nonzero)  # lmi variable, svec row
         lmi_cols = np.concatenate([layout.col_theta, layout.colP])  # lmi variable -> column
         self._cols = lmi_cols[self._var]
