@@ -21,7 +21,6 @@ import scipy.sparse as sp
 
 from . import _sdp
 from ._controller import LTIController
-from ._indefinite import QPlusData
 from ._lmi import ConvexifiedLMI
 from ._projection_args import (
     check_k_ref as _check_k_ref,
@@ -53,37 +52,11 @@ class _ProjectionSolver:
         import clarabel
 
         self.lmi, self.eps, self.reg = lmi, eps, reg
-        n, N = lmi.n, lmi.N
-        # Cone s = b - A x in PSD: s = svec(-M(x) - eps I) => A = svec(J_k) columns.
-        fixed = np.stack([lmi.svec(Jk) for Jk in lmi.J_fixed], axis=1)  # [L, nx]
-        Gs = lmi.svec(lmi.G)  # [nAB, n, n, L]
-        Gs = Gs.reshape(lmi.nA + lmi.nB, n * n, -1).transpose(2, 0, 1)  # [L, nAB, n*n]
-        pattern = fixed != 0
-        pattern[:, : lmi.nA + lmi.nB] |= np.any(Gs != 0, axis=2)
-        qplus = QPlusData(lmi) if lmi.qplus is not None else None
-        if qplus is not None:
-            pattern[qplus.rows, qplus.var] = True
-        csc = sp.csc_matrix(pattern.astype(np.float64))
-        csc.sort_indices()
-        rows = csc.indices
-        cols = np.repeat(np.arange(csc.shape[1]), np.diff(csc.indptr))
-        self.qplus = None if qplus is None else qplus.locate(rows, cols)
-        self.vals0 = fixed[rows, cols]
-        in_ab = cols < lmi.nA + lmi.nB
-        self.ab_pos = np.nonzero(in_ab)[0]
-        self.vals_g = Gs[rows[in_ab], cols[in_ab]]  # [nnz_ab, n*n]
-        self.csc_shape, self.indptr, self.indices = csc.shape, csc.indptr, csc.indices
-        # b = svec(-M0 - eps I), M0's P~-block is -2 P~.
-        self.b_fixed = lmi.svec(-lmi.M0 - eps * np.eye(N))
-        i3 = N - n
-        sel = np.zeros((n * n, N, N))
-        for c in range(n):
-            for a in range(n):
-                sel[c * n + a, i3 + c, i3 + a] = 2.0
-        self.b_g = lmi.svec(sel).T  # [L, n*n]
-        self.eps_svec = lmi.svec(np.eye(N))
+        # Cone s = b - A x in PSD with s = svec(-M(x) - eps I): A = J(P~) (the LMI's sparse
+        # Jacobian, fixed pattern) and b = -m0(P~) - eps svec(I).
+        self.csc_shape, self.indptr, self.indices = (lmi.L, lmi.nx), lmi.indptr, lmi.indices
         self.reg_diag = np.full(lmi.nP, reg)
-        self.cones = [clarabel.PSDTriangleConeT(N)]
+        self.cones = [clarabel.PSDTriangleConeT(lmi.N)]
         self.solver, self.diag = None, None
         self._clarabel = clarabel
 
@@ -92,15 +65,11 @@ class _ProjectionSolver:
         [B, ntheta] (the objective is $\\sum_k w_k(\\theta_k - \\tilde\\theta_k)^2$), `P_tilde`
         [B, n, n]; `H0` = `(C0, D0)` [B, m, n], [B, m, p], the linearisation points of an
         indefinite $Q$'s positive part."""
-        Pt = np.asarray(P_tilde, np.float64).reshape(len(targets), -1)
-        vals = np.broadcast_to(self.vals0, (len(targets),) + self.vals0.shape).copy()
-        # einsum (not BLAS) so that a row's numbers do not depend on the batch size
-        vals[:, self.ab_pos] = np.einsum("bk,lk->bl", Pt, self.vals_g)
-        b = (self.b_fixed + np.einsum("bk,lk->bl", Pt, self.b_g)
-             - (np.asarray(eps)[:, None] - self.eps) * self.eps_svec)
-        if self.qplus is not None:
-            self.qplus.add(vals, b, H0)
-        p_tilde = np.asarray(P_tilde, np.float64)[:, self.lmi.p_rows, self.lmi.p_cols]
+        P_tilde = np.asarray(P_tilde, np.float64)
+        vals = self.lmi.values(P_tilde, H0)
+        b = (-self.lmi.offset(P_tilde, H0)
+             - np.asarray(eps, np.float64)[:, None] * self.lmi.svec_eye)
+        p_tilde = P_tilde[:, self.lmi.p_rows, self.lmi.p_cols]
         q = -np.concatenate([weights * targets, self.reg * p_tilde], axis=1)
         diag = np.concatenate([weights, np.broadcast_to(self.reg_diag, p_tilde.shape)], axis=1)
         return q, vals, b, diag
@@ -264,7 +233,7 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, shard, C0, D0, *, qsr
                           for W in (WA, WB, WC, WD)))
         w /= w.max(axis=1, keepdims=True)
         P_tilde = flat[4][todo] if has_ref else np.broadcast_to(np.eye(n), (len(todo), n, n))
-        if _lmi(qsr, n).qplus is not None:
+        if _lmi(qsr, n).indefinite:
             H0 = tuple(np.asarray(M, np.float64).reshape((-1,) + M.shape[len(batch):])[todo]
                        for M in (C0, D0))
             solve = partial(_indefinite_solve, qsr, eps=eps, reg=reg, dtype=dtype, shards=shards)

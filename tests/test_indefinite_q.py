@@ -54,7 +54,7 @@ def test_linearisation_is_an_inner_approximation_exact_at_h0():
         P = np.eye(n) + 0.1 * np.ones((n, n))
         K = dj.LTIController(A, B, C, D)
         exact = dissipation_matrix(K, qsr, P)  # the KYP matrix, from the definition
-        x = lmi.pack(A, B, C, D, P)
+        x = lmi.layout.pack(A, B, C, D, P)
         T = np.eye(lmi.N)
         T[-n:, -n:] = np.linalg.inv(P)  # undo the congruence by diag(I, I, I, P~) at P~ = P
         k = n + m

@@ -75,7 +75,7 @@ class KYPBlock(ConeBlock):
         rng = np.random.default_rng(0)  # a generic H0 for an indefinite Q, likewise
         H0 = (rng.standard_normal((layout.m, n)), rng.standard_normal((layout.m, layout.p)))
         _, J, _ = self.blocks(dense, H0)
-        nonzero = (lmi.svec(J) != 0) | (lmi.svec(lmi.J_fixed) != 0)  # [nx_lmi, rows]
+        nonzero = svec(J, self._idx) != 0  # [nx_lmi, rows]
         self._var, self._rows = np.nonzero(nonzero)  # lmi variable, svec row
         lmi_cols = np.concatenate([layout.col_theta, layout.colP])  # lmi variable -> column
         self._cols = lmi_cols[self._var]
