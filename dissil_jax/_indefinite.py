@@ -1,4 +1,4 @@
-"""Supply rates with an indefinite $Q$: the split $Q = Q_+ - Q_-$ and the linearised $Q_+$ term.
+"""Supply rates with an indefinite $Q$: the split $Q = Q_+ - Q_-$, feasibility, a feasible point.
 
 The KYP matrix contains $-H^\\top QH$ with $H = [C\\ D]$. Its part $+H^\\top Q_-H$ is convex
 and is Schur-complemented with $Q_- = L_-L_-^\\top$ like a negative semidefinite $Q$. The part
@@ -8,7 +8,8 @@ $$-H^\\top Q_+H \\preceq -H_0^\\top Q_+H - H^\\top Q_+H_0 + H_0^\\top Q_+H_0,$$
 
 with equality at $H = H_0$. Replacing the term by this affine bound gives a convex inner
 approximation of the dissipative set that is exact at the linearisation point $H_0$
-(`docs/concepts.md`, *Indefinite Q*). Plain float64 numpy; no solver code.
+(`docs/concepts.md`, *Indefinite Q*; the term itself is assembled by `ConvexifiedLMI`).
+Plain float64 numpy; no solver code.
 """
 
 from __future__ import annotations

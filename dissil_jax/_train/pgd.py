@@ -99,9 +99,10 @@ def _loop(K0, P0, code0, windows, opt, *, qsr, max_steps, tol, eps):
         P_new, failed = c["P"], jnp.zeros(num_inits, bool)
         code = jnp.full(num_inits, _CONVERGED, jnp.int32)
         if qsr is not None:
-            # K_ref: an indefinite Q's positive part is linearised at the certified iterate
+            # An indefinite Q's positive part is linearised at the certified iterate (K_ref),
+            # once per step (refine=1; the next step re-linearises). No effect for Q <= 0.
             proj = project(K_new, qsr, c["P"], throw=False, active=active, eps=eps,
-                           metric=optimizer_metric(opt_state, K_new), K_ref=c["K"])
+                           metric=optimizer_metric(opt_state, K_new), K_ref=c["K"], refine=1)
             failed = _sdp.failed(proj.result._value)
             code = jnp.where(failed, proj.result._value, code)
             K_new, P_new = proj
