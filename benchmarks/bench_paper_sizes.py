@@ -14,7 +14,11 @@ alternate, `--repeats` times each, and the medians are compared as ratios ref / 
 
 Cases: n̂ = 1 with the nonlinear example's supply rate, n̂ = 6 with m = p = 3 passive.
 
-Usage: python benchmarks/bench_paper_sizes.py --ref /tmp/ref [--repeats 3]
+`--order10` instead runs `dj.fit_pgd` with its defaults (8 initialisations, 30 steps) at
+n̂ = 10, m = p = 2, passive, on 100 random windows of length 10 (the report of issue 23),
+once per library, and prints how each run stopped and its loss.
+
+Usage: python benchmarks/bench_paper_sizes.py --ref /tmp/ref [--repeats 3] [--order10]
 """
 
 import argparse
@@ -65,9 +69,27 @@ print("RESULT " + json.dumps(out))
 """
 
 
-def run(path):
+ORDER10 = r"""
+import json, time
+import jax, numpy as np
+jax.config.update("jax_enable_x64", True)
+import dissil_jax as dj
+n, N = 10, 100
+k1, k2, k3 = jax.random.split(jax.random.PRNGKey(0), 3)
+y = jax.random.normal(k2, (N, 10, 2))
+w = dj.Windows(jax.random.normal(k1, (N, n)), y, -0.5 * y)
+t = time.perf_counter()
+res = dj.fit_pgd(k3, w, dj.QSR.passive(2), max_steps=30, throw=False)
+reasons = [str(r)[:40] for r in res.stop_reasons()]
+out = {"time": time.perf_counter() - t, "loss": np.asarray(res.final_loss).tolist(),
+       "stops": reasons}
+print("RESULT " + json.dumps(out))
+"""
+
+
+def run(path, code=CHILD):
     env = dict(os.environ, PYTHONPATH=path, OPENBLAS_NUM_THREADS="1")
-    proc = subprocess.run([sys.executable, "-c", CHILD], env=env, capture_output=True,
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
                           text=True, cwd="/", check=True)
     line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT ")][-1]
     return json.loads(line[len("RESULT "):])
@@ -77,8 +99,13 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--ref", required=True, help="a checkout of the reference version")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--order10", action="store_true")
     args = ap.parse_args()
     ours_path = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    if args.order10:
+        for who, path in (("ours", ours_path), ("ref", os.path.abspath(args.ref))):
+            print(who, json.dumps(run(path, ORDER10)), flush=True)
+        return
     runs = {"ours": [], "ref": []}
     for _ in range(args.repeats):
         for who, path in (("ours", ours_path), ("ref", os.path.abspath(args.ref))):

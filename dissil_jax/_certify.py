@@ -19,7 +19,9 @@ class Certificate(eqx.Module):
     - `P`: the storage matrix ($V(x) = x^\\top P x$), float64.
     - `margin`: $\\min(-\\lambda_{\\max}(\\mathrm{KYP}(P)), \\lambda_{\\min}(P))$; negative when
       no certificate was found.
-    - `status`: the SDP solver's status string (or `"given"` when `P` was supplied).
+    - `status`: how `P` was found: `"given"` (supplied), `"hint"`, `"cached"` (a recent
+      projection's), `"riccati"`, or the SDP solver's status (`"optimal"`, ...); see
+      [`certify`][dissil_jax.certify].
 
     For one controller these are a `bool`, an $\\hat n\\times\\hat n$ array, a `float` and a
     `str`. For a controller with leading batch axes `batch` they are numpy arrays with
