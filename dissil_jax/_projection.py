@@ -17,9 +17,8 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.sparse as sp
 
-from . import _sdp
+from . import _certify_fast, _sdp
 from ._controller import LTIController
 from ._lmi import ConvexifiedLMI
 from ._projection_args import (
@@ -28,6 +27,7 @@ from ._projection_args import (
     check_qsr as _check_qsr,
 )
 from ._projection_result import Projection as Projection, raise_on_failure as _raise_on_failure
+from ._projection_solver import _ProjectionSolver
 from ._relinearise import project_rows_indefinite
 from ._supply import QSR
 
@@ -43,53 +43,9 @@ _SOLVED, _UNCHANGED, _SKIPPED, _NOT_CERTIFIED = (
 # A solution that fails the exact check after rounding is re-solved with the margin
 # enlarged by this factor, at most `_ATTEMPTS - 1` times.
 _ATTEMPTS, _EPS_GROWTH = 3, 100.0
-
-
-class _ProjectionSolver:
-    """Clarabel problem data for Π with fixed sparsity; numbers updated per call."""
-
-    def __init__(self, lmi: ConvexifiedLMI, eps: float, reg: float):
-        import clarabel
-
-        self.lmi, self.eps, self.reg = lmi, eps, reg
-        # Cone s = b - A x in PSD with s = svec(-M(x) - eps I): A = J(P~) (the LMI's sparse
-        # Jacobian, fixed pattern) and b = -m0(P~) - eps svec(I).
-        self.csc_shape, self.indptr, self.indices = (lmi.L, lmi.nx), lmi.indptr, lmi.indices
-        self.reg_diag = np.full(lmi.nP, reg)
-        self.cones = [clarabel.PSDTriangleConeT(lmi.N)]
-        self.solver, self.diag = None, None
-        self._clarabel = clarabel
-
-    def data(self, targets, P_tilde, eps, weights, H0=None):
-        """Clarabel's `(q, A values, b, P values)` for a batch: `targets` and `weights`
-        [B, ntheta] (the objective is $\\sum_k w_k(\\theta_k - \\tilde\\theta_k)^2$), `P_tilde`
-        [B, n, n]; `H0` = `(C0, D0)` [B, m, n], [B, m, p], the linearisation points of an
-        indefinite $Q$'s positive part."""
-        P_tilde = np.asarray(P_tilde, np.float64)
-        vals = self.lmi.values(P_tilde, H0)
-        b = (-self.lmi.offset(P_tilde, H0)
-             - np.asarray(eps, np.float64)[:, None] * self.lmi.svec_eye)
-        p_tilde = P_tilde[:, self.lmi.p_rows, self.lmi.p_cols]
-        q = -np.concatenate([weights * targets, self.reg * p_tilde], axis=1)
-        diag = np.concatenate([weights, np.broadcast_to(self.reg_diag, p_tilde.shape)], axis=1)
-        return q, vals, b, diag
-
-    def solve(self, q, vals, b, diag):
-        """One solve; returns `(x or None, Outcome code, Clarabel's solve time)`."""
-        if self.solver is None:
-            A = sp.csc_matrix((vals, self.indices, self.indptr), shape=self.csc_shape)
-            k = np.arange(len(diag) + 1)  # diagonal objective, explicit zeros kept (reg = 0)
-            P_obj = sp.csc_matrix((diag, k[:-1], k), shape=(len(diag),) * 2)
-            settings = _sdp.clarabel_settings(**_sdp.PROJECTION_SETTINGS)
-            self.solver = self._clarabel.DefaultSolver(P_obj, q, A, b, self.cones, settings)
-        elif np.array_equal(diag, self.diag):  # the same distance (always, without a metric)
-            self.solver.update(q=q, A=vals, b=b)
-        else:
-            self.solver.update(P=diag, q=q, A=vals, b=b)
-        self.diag = diag
-        sol = self.solver.solve()
-        outcome = _sdp.clarabel_outcome(str(sol.status))
-        return (np.asarray(sol.x) if outcome == _SOLVED else None), outcome, sol.solve_time
+# The conditioning bound of the projection's P: lambda_min(P) >= P_FLOOR * mean eigenvalue
+# (`_projection_solver`; redundant, so left out, for n = 1).
+P_FLOOR = 1e-2
 
 
 def _lmi(qsr: QSR, n: int) -> ConvexifiedLMI:
@@ -108,7 +64,8 @@ def _thread_solver(qsr: QSR, n: int, eps: float, reg: float) -> _ProjectionSolve
     key = (qsr, n, eps, reg)
     solver = cache.get(key)
     if solver is None:
-        solver = cache[key] = _ProjectionSolver(_lmi(qsr, n), eps=eps, reg=reg)
+        solver = cache[key] = _ProjectionSolver(_lmi(qsr, n), eps=eps, reg=reg,
+                                                floor=P_FLOOR if n > 1 else 0.0)
     return solver
 
 
@@ -240,12 +197,27 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, shard, C0, D0, *, qsr
             sol, codes[todo] = project_rows_indefinite(solve, layout, qsr, targets, P_tilde, H0,
                                                        w, max(1, refine))
         else:
-            sol, codes[todo] = _project_rows(qsr, targets, P_tilde, w,
-                                             1 if has_ref else max(1, refine), eps=eps, reg=reg,
-                                             dtype=dtype, shards=shards)
+            kw = dict(eps=eps, reg=reg, dtype=dtype, shards=shards)
+            sol, c = _project_rows(qsr, targets, P_tilde, w, 1 if has_ref else max(1, refine), **kw)
+            retry = np.nonzero(c != _SOLVED)[0] if has_ref else ()
+            if len(retry):
+                # A P_ref that leaves the linearised set (almost) empty, e.g. one whose smallest
+                # eigenvalue sits on the margin eps: start again from a multiple of the identity
+                # and re-linearise, as without P_ref.
+                scale = np.trace(P_tilde[retry], axis1=1, axis2=2) / n
+                scale = np.where(np.isfinite(scale) & (scale > 0), scale, 1.0)
+                sol2, c2 = _project_rows(qsr, targets[retry], scale[:, None, None] * np.eye(n),
+                                         w[retry], max(1, refine), **kw)
+                for S, S2 in zip(sol, sol2):
+                    S[retry[c2 == _SOLVED]] = S2[c2 == _SOLVED]
+                c[retry[c2 == _SOLVED]] = _SOLVED
+            codes[todo] = c
         done = todo[codes[todo] == _SOLVED]
         for o, M in zip(out, sol):
             o[done] = M[codes[todo] == _SOLVED]
+        # `certify` of a returned controller then finds its storage without an SDP
+        _certify_fast.remember(*(M[codes[todo] == _SOLVED] for M in sol[:4]), qsr,
+                               sol[4][codes[todo] == _SOLVED])
     return (*(o.reshape(batch + o.shape[1:]).astype(dtype) for o in out),
             codes.reshape(batch))
 
@@ -304,13 +276,18 @@ def project(
     0.1 %. The set is an inner
     approximation: every point in it is truly dissipative, and the exact float64 KYP
     check is run on the returned (dtype-rounded) controller and $P$ before it leaves the
-    host. $\\mu$ (`reg`) is a tiny proximal weight that makes $P$ unique. The distance is
+    host. $\\mu$ (`reg`) is a tiny proximal weight that makes $P$ unique. For
+    $\\hat n\\ge2$ the set also asks $P\\succeq\\frac{\\rho}{\\hat n}\\operatorname{tr}(P)\\,I$
+    with $\\rho = 10^{-2}$ (`P_FLOOR`): a storage whose smallest eigenvalue fell to the
+    margin $\\varepsilon$ would leave the next projection, linearised there, a feasible set
+    of zero width (a `not_certified` failure), and PGD stalls on such storages. The distance is
     Frobenius ($W = 1$) unless a `metric` gives each entry its own weight,
     $\\lVert X\\rVert_W^2 = \\sum_{ij} W_{ij} X_{ij}^2$ over the four matrices.
 
     - `P_ref` given: $\\tilde P = $ `P_ref`; a target already certified by `P_ref` comes
       back unchanged without a solve (`result` is `Outcome.unchanged`), so a certified
-      controller projects onto itself.
+      controller projects onto itself. A projection that fails at `P_ref` is retried from
+      $\\tilde P = \\frac{\\operatorname{tr}P_{\\text{ref}}}{\\hat n} I$ with `refine` rounds.
     - `P_ref` is None: start at $\\tilde P = I$ and re-linearise at the new $P$ up to
       `refine` times; each round can only move closer to the target.
 

@@ -89,7 +89,7 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, tol, dtype, index, callback
             # random draw, which lands on the boundary) leaves the SDP almost no interior.
             # Re-centre the linearisation point on the maximum-margin P of the exact
             # certificate and try once more.
-            cert = certify(LTIController(*pb.mats(theta)), qsr)
+            cert = certify(LTIController(*pb.mats(theta)), qsr, max_margin=True)
             if cert.holds:
                 P = np.asarray(cert.P, np.float64)
                 dtheta, P_new, w_new, status = _step(pb, solver, theta, P, w_tilde)
