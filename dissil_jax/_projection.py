@@ -287,7 +287,8 @@ def project(
     - `P_ref` given: $\\tilde P = $ `P_ref`; a target already certified by `P_ref` comes
       back unchanged without a solve (`result` is `Outcome.unchanged`), so a certified
       controller projects onto itself. A projection that fails at `P_ref` is retried from
-      $\\tilde P = \\frac{\\operatorname{tr}P_{\\text{ref}}}{\\hat n} I$ with `refine` rounds.
+      $\\tilde P = \\frac{\\operatorname{tr}P_{\\text{ref}}}{\\hat n} I$ with `refine` rounds
+      (for an indefinite $Q$: from the static point, as above).
     - `P_ref` is None: start at $\\tilde P = I$ and re-linearise at the new $P$ up to
       `refine` times; each round can only move closer to the target.
 
