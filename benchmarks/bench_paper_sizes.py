@@ -18,7 +18,13 @@ Cases: n̂ = 1 with the nonlinear example's supply rate, n̂ = 6 with m = p = 3 
 n̂ = 10, m = p = 2, passive, on 100 random windows of length 10 (the report of issue 23),
 once per library, and prints how each run stopped and its loss.
 
+`--step-at N` instead times the host half of one PGD step at order N (m = p = 2, passive):
+8 certified iterates perturbed by N(0, 0.2^2) projected at their own P in one batched
+`jax.jit(jax.vmap(dj.project))` call (compiled and solvers built before timing), and the
+setup (first call), alternating ours and ref `--repeats` times.
+
 Usage: python benchmarks/bench_paper_sizes.py --ref /tmp/ref [--repeats 3] [--order10]
+       [--step-at 24]
 """
 
 import argparse
@@ -87,9 +93,37 @@ print("RESULT " + json.dumps(out))
 """
 
 
-def run(path, code=CHILD):
+STEP = r"""
+import json, resource, sys, time
+import jax, numpy as np
+jax.config.update("jax_enable_x64", True)
+import dissil_jax as dj
+n, qsr = int(sys.argv[1]), dj.QSR.passive(2)
+keys = jax.random.split(jax.random.PRNGKey(n), 8)
+K0 = jax.vmap(lambda k: dj.LTIController.random(n, 2, 2, scale=1.0, key=k))(keys)
+t = time.perf_counter()
+K0, P0 = dj.project(K0, qsr, refine=1)
+setup = time.perf_counter() - t
+noise = jax.vmap(lambda k: dj.LTIController.random(n, 2, 2, scale=0.2, key=k))(
+    jax.random.split(jax.random.PRNGKey(1), 8))
+target = jax.tree.map(lambda a, b: a + b, K0, noise)
+proj = jax.jit(jax.vmap(lambda K, P: dj.project(K, qsr, P, throw=False)))
+jax.block_until_ready(proj(target, P0))
+t = time.perf_counter()
+out = proj(target, P0)
+jax.block_until_ready(out)
+step = time.perf_counter() - t
+ok = bool(np.all(np.asarray(dj.certify(out[0], qsr, P=out[1]).holds)))
+dist = float(sum(np.sum((np.asarray(a) - np.asarray(b)) ** 2) for a, b in zip(
+    jax.tree.leaves(out[0]), jax.tree.leaves(target))))
+print("RESULT " + json.dumps({"step": step, "first call": setup, "certified": ok,
+      "distance": dist, "peak MiB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+"""
+
+
+def run(path, code=CHILD, *argv):
     env = dict(os.environ, PYTHONPATH=path, OPENBLAS_NUM_THREADS="1")
-    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+    proc = subprocess.run([sys.executable, "-c", code, *argv], env=env, capture_output=True,
                           text=True, cwd="/", check=True)
     line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT ")][-1]
     return json.loads(line[len("RESULT "):])
@@ -100,8 +134,14 @@ def main():
     ap.add_argument("--ref", required=True, help="a checkout of the reference version")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--order10", action="store_true")
+    ap.add_argument("--step-at", type=int, default=0)
     args = ap.parse_args()
     ours_path = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    if args.step_at:
+        for _ in range(args.repeats):
+            for who, path in (("ours", ours_path), ("ref", os.path.abspath(args.ref))):
+                print(who, json.dumps(run(path, STEP, str(args.step_at))), flush=True)
+        return
     if args.order10:
         for who, path in (("ours", ours_path), ("ref", os.path.abspath(args.ref))):
             print(who, json.dumps(run(path, ORDER10)), flush=True)

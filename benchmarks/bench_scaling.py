@@ -7,15 +7,17 @@ For each output/input size m = p and each order n̂ it measures, in one process:
   the LMI's own size: dimension N = 2n̂ + p + rank Q and nonzeros;
 - `certify`: `dj.certify` of that projected controller with the projection cache cleared
   (the Riccati storage) and the maximum-margin SDP (`max_margin=True`);
-- one PGD step (8 initialisations): `dj.fit_pgd` with `max_steps=3` minus `max_steps=1`,
-  halved (compilation cancels);
-- one ICO iteration (one initialisation): `dj.fit_ico` with `max_steps=3` minus `1`, halved;
-- one direct step (8 initialisations): `dj.fit_direct` with `max_steps=40` minus `20`,
-  divided by 20.
+- one PGD step (8 initialisations): its host half, the 8 iterates projected at their own
+  `P` in one batched `jax.jit(jax.vmap(dj.project))` call (compiled before timing; the
+  gradients are microseconds beside it);
+- one ICO iteration (one initialisation): the median time between `dj.fit_ico`'s
+  per-iteration callbacks (setup excluded);
+- one direct step (8 initialisations): `dj.fit_direct` with `max_steps=1050` minus `50`
+  (both compiled first), divided by the extra steps taken.
 
-Windows: 100 random two-step windows of a passive supply rate (`QSR.passive(m)`).
-A path whose cell took longer than a quarter of `--budget` seconds skips the larger sizes
-(the next cell would exceed the budget); skipped cells are listed. At the end, power-law
+Windows: 100 two-step windows of a random stable order-n̂ expert; supply rate `QSR.passive(m)`.
+A path whose next cell, extrapolated from its previous two by a power law, would exceed
+`--budget` seconds skips it and the larger sizes; skipped cells are listed. At the end, power-law
 exponents t ~ n̂^k fitted on n̂ >= 8 (least squares in log-log), beside the exponents of N
 and of the nonzeros.
 
@@ -44,9 +46,14 @@ ICO_MAX_N = 24  # ICO's documented range
 
 
 def _windows(n, m, N=100, seed=0):
+    """Two-step windows of a random stable order-n expert (not dissipative in general)."""
     rng = np.random.default_rng(seed)
+    A = 0.5 * rng.normal(size=(n, n)) / np.sqrt(n)
+    B, C, D = rng.normal(size=(n, m)), rng.normal(size=(m, n)), rng.normal(size=(m, m))
     x0, y = rng.normal(size=(N, n)), rng.normal(size=(N, 2, m))
-    return dj.Windows(x0, y, -0.5 * y)
+    t0 = x0 @ C.T + y[:, 0] @ D.T
+    t1 = (x0 @ A.T + y[:, 0] @ B.T) @ C.T + y[:, 1] @ D.T
+    return dj.Windows(x0, y, -np.stack([t0, t1], 1))
 
 
 def _rss_mib():
@@ -60,11 +67,22 @@ def _timed(fn):
     return time.perf_counter() - t, out
 
 
+def _steps(res):
+    """Steps the longest run took (finite entries of its loss history, minus the start)."""
+    hist = np.asarray(res.loss_history)
+    return int(np.max(np.sum(np.isfinite(hist), axis=-1))) - 1
+
+
 def _per_step(fit, lo, hi):
-    """Time per step of a trainer: (t(hi) - t(lo)) / (hi - lo); compilation cancels."""
-    t_lo, _ = _timed(lambda: fit(lo))
-    t_hi, res = _timed(lambda: fit(hi))
-    return max(t_hi - t_lo, 0.0) / (hi - lo), t_hi, res
+    """Time per step of a trainer: (t(hi) - t(lo)) / (steps(hi) - steps(lo)), both compiled
+    beforehand, so that setup cancels; runs that stop early count only the steps taken."""
+    fit(lo), fit(hi)  # compile both
+    t_lo, r_lo = _timed(lambda: fit(lo))
+    t_hi, r_hi = _timed(lambda: fit(hi))
+    d = _steps(r_hi) - _steps(r_lo)
+    if d <= 0:
+        return None, t_hi, r_hi
+    return max(t_hi - t_lo, 0.0) / d, t_hi, r_hi
 
 
 def cell(path, n, m, qsr, state):
@@ -72,11 +90,15 @@ def cell(path, n, m, qsr, state):
     key = jax.random.PRNGKey(n * 10 + m)
     if path == "project":
         K = dj.LTIController.random(n, m, m, scale=1.0, key=key)
-        rss0 = _rss_mib()
+        dj.project(K, qsr, refine=1, throw=False, active=False)  # trace: not timed
+        rss0, stats = _rss_mib(), _projection.SOLVER_STATS
+        s0, c0 = stats["solve_time"], stats["solves"]
         t, proj = _timed(lambda: dj.project(K, qsr, refine=1, throw=False))
+        solve = stats["solve_time"] - s0
         state["K"], state["P"] = proj[0], proj[1]
         ok = bool(dj.certify(proj[0], qsr, P=proj[1]).holds)
-        return t, f"certified={ok} peak RSS +{_rss_mib() - rss0:.0f} MiB"
+        return t, (f"certified={ok} Clarabel {solve:.3f} s in {stats['solves'] - c0} solve(s), "
+                   f"peak RSS +{_rss_mib() - rss0:.0f} MiB")
     if path in ("certify", "certify_sdp"):
         if "K" not in state:
             return None, "no projected controller"
@@ -85,17 +107,45 @@ def cell(path, n, m, qsr, state):
         return t, f"holds={cert.holds} status={cert.status}"
     w = _windows(n, m)
     if path == "pgd":
-        fit = lambda s: dj.fit_pgd(key, w, qsr, max_steps=s, tol=0.0, throw=False)
-        t, total, res = _per_step(fit, 1, 3)
-    elif path == "ico":
+        # the host half of one PGD step: the batch of 8 iterates projected at their own P
+        # (`fit_pgd`'s callback; its gradients are microseconds next to it)
+        keys = jax.random.split(key, 8)
+        K0 = jax.vmap(lambda k: dj.LTIController.random(n, m, m, scale=1.0, key=k))(keys)
+        K0, P0 = dj.project(K0, qsr, refine=1)
+        noise = jax.vmap(lambda k: dj.LTIController.random(n, m, m, scale=0.2, key=k))(
+            jax.random.split(jax.random.PRNGKey(1), 8))
+        target = jax.tree.map(lambda a, b: a + b, K0, noise)
+        proj = jax.jit(jax.vmap(lambda K, P: dj.project(K, qsr, P, throw=False)))
+        jax.block_until_ready(proj(target, P0))  # compile and build the solvers
+        t, out = _timed(lambda: proj(target, P0))
+        ok = bool(np.all(np.asarray(dj.certify(out[0], qsr, P=out[1]).holds)))
+        return t, f"8 projections at P_ref, certified={ok}"
+    if path == "ico":
         if n > ICO_MAX_N:
             return None, f"ICO beyond n̂ = {ICO_MAX_N} not measured"
-        fit = lambda s: dj.fit_ico(key, w, qsr, num_inits=1, max_steps=s, tol=0.0, throw=False)
-        t, total, res = _per_step(fit, 1, 3)
-    else:
-        fit = lambda s: dj.fit_direct(key, w, qsr, max_steps=s, tol=0.0, throw=False)
-        t, total, res = _per_step(fit, 20, 40)
-    return t, f"certified={bool(np.all(np.asarray(res.certified)))} run {total:.1f} s"
+        stamps = []
+        res = dj.fit_ico(key, w, qsr, num_inits=1, max_steps=4, tol=0.0, throw=False,
+                         callback=lambda *a: stamps.append(time.perf_counter()))
+        if len(stamps) < 2:
+            return None, f"no steps taken ({res.stop_reasons()[0]})"
+        t = float(np.median(np.diff(stamps)))  # per SDP iteration, setup excluded
+        return t, (f"certified={bool(np.all(np.asarray(res.certified)))} "
+                   f"{len(stamps) - 1} iterations")
+    fit = lambda s: dj.fit_direct(key, w, qsr, max_steps=s, tol=0.0, throw=False)
+    t, total, res = _per_step(fit, 50, 1050)
+    if t is None:
+        return None, f"no steps taken ({res.stop_reasons()[0]})"
+    return t, (f"certified={bool(np.all(np.asarray(res.certified)))} run {total:.1f} s, "
+               f"{_steps(res)} steps")
+
+
+def _predicted(done, n):
+    """The next cell's time extrapolated from the last two (power law), 0 if unknown."""
+    if len(done) < 2 or done[-1][1] <= 0 or done[-2][1] <= 0:
+        return 0.0
+    (n1, t1), (n2, t2) = done[-2], done[-1]
+    k = max(np.log(t2 / t1) / np.log(n2 / n1), 0.0)
+    return t2 * (n / n2) ** k
 
 
 def fit_exponent(ns, ts):
@@ -129,19 +179,18 @@ def main():
             results[m].setdefault("N", []).append((n, lmi.N))
             state = {}
             for path in args.paths:
-                if path in stopped:
+                if path in stopped or _predicted(results[m].get(path, []), n) > args.budget:
                     skipped.append((path, n, m))
+                    stopped.add(path)
                     continue
                 _projection._LOCAL.__dict__.clear()  # solvers of other sizes: not kept
                 t, note = cell(path, n, m, qsr, state)
                 if t is None:
                     print(f"  {path:12s}   skipped ({note})")
                     continue
-                print(f"  {path:12s} {t:9.3f} s  {note}", flush=True)
+                print(f"  {path:12s} {t * 1e3:10.2f} ms  {note}", flush=True)
                 results[m].setdefault(path, []).append((n, t))
-                if t > args.budget / 4:
-                    stopped.add(path)
-    print("\n## skipped (previous cell > budget / 4):",
+    print("\n## skipped (predicted from the previous two cells to exceed the budget):",
           ", ".join(f"{p} n̂={n} m={m}" for p, n, m in skipped) or "none")
     print("\n## power-law exponents k of t ~ n̂^k (fitted on n̂ >= 8)")
     print("| m = p | " + " | ".join(["N", "nonzeros", *args.paths]) + " |")

@@ -229,6 +229,14 @@ def fit_ico(
     instead of $yI$ (about 1.5x slower per iteration than `"soc"` for $m = 3$ and no better in
     our runs).
 
+    **Controller order.** The KYP LMI is balanced by the congruence with
+    $\\operatorname{diag}(\\tilde P^{-1/2}, I, I, \\tilde P^{-1/2})$, which fills its $A$
+    columns: about $\\hat n^4$ nonzeros, and an iteration's cost grows about like
+    $\\hat n^{3.5}$ (0.2 s at $\\hat n = 8$, 2 s at $\\hat n = 16$ for $m = p = 2$; see
+    [Scaling up](scaling.md#scaling-up)). ICO is meant for $\\hat n \\le 24$; for larger
+    controllers use [`fit_direct`][dissil_jax.fit_direct] (no SDP in the loop) or
+    [`fit_pgd`][dissil_jax.fit_pgd].
+
     **The Young weight.** As in the paper, $w$ is a decision variable and $1/w$ (the
     $W^{-1}$ block) is replaced by its tangent $2/\\tilde w - w/\\tilde w^2 \\le 1/w$, so
     $w\\in(0, 2\\tilde w]$ and the bound is exact for any $\\tilde w$ at $\\delta = 0$. The first
