@@ -157,7 +157,7 @@ def _project_rows(qsr, targets, P_tilde, weights, rounds, *, eps, reg, dtype, sh
     return best, codes
 
 
-def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, shard, C0, D0, *, qsr, has_ref, eps,
+def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, C0, D0, shard, *, qsr, has_ref, eps,
                 reg, refine, shards):
     """pure_callback target: arrays carry identical leading batch axes (broadcast_all).
 
@@ -248,8 +248,8 @@ def _project_one(K: LTIController, P_ref, W: LTIController, active, K_ref, *, qs
                        refine=int(refine), shards=shards)
     A, B, C, D, P, codes = jax.pure_callback(
         callback, (*shapes, jax.ShapeDtypeStruct((), jnp.int32)), K.A, K.B, K.C, K.D, P_ref,
-        W.A, W.B, W.C, W.D, jnp.asarray(active, bool), shard, K_ref.C.astype(dtype),
-        K_ref.D.astype(dtype), vmap_method="broadcast_all")
+        W.A, W.B, W.C, W.D, jnp.asarray(active, bool), K_ref.C.astype(dtype),
+        K_ref.D.astype(dtype), shard, vmap_method="broadcast_all")
     return LTIController(A, B, C, D), P, codes
 
 
