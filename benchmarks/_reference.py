@@ -4,8 +4,11 @@ import cvxpy as cp
 import numpy as np
 
 
-def cvxpy_projection_problem(qsr, n, eps=1e-6, reg=1e-6, weights=None):
+def cvxpy_projection_problem(qsr, n, eps=1e-6, reg=1e-6, weights=None, floor=1e-2):
     """A DPP-parametrised cvxpy problem of paper eq. 13 (target and P~ are Parameters).
+
+    With `dj.project`'s conditioning bound $P \\succeq \\frac{\\rho}{n}\\operatorname{tr}(P) I$
+    ($\\rho$ = `floor`, left out for n = 1 as in `dj.project`; 0 drops it).
 
     `weights`: optional per-entry weights of the distance (`dj.project`'s `metric`), the
     four arrays `(W_A, W_B, W_C, W_D)`, fixed in the problem."""
@@ -37,7 +40,10 @@ def cvxpy_projection_problem(qsr, n, eps=1e-6, reg=1e-6, weights=None):
         diffs = [cp.multiply(np.sqrt(np.asarray(w, np.float64)), d)
                  for w, d in zip(weights, diffs)]
     obj = sum(cp.sum_squares(d) for d in diffs) + reg * cp.sum_squares(P - Pt)
-    prob = cp.Problem(cp.Minimize(obj), [(M + M.T) / 2 << -eps * np.eye(N)])
+    cons = [(M + M.T) / 2 << -eps * np.eye(N)]
+    if floor > 0 and n > 1:
+        cons.append(P - (floor / n) * cp.trace(P) * np.eye(n) >> 0)
+    prob = cp.Problem(cp.Minimize(obj), cons)
     return prob, (tA, tB, tC, tD, Pt), (A, B, C, D, P)
 
 

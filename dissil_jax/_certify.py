@@ -1,15 +1,13 @@
-"""Exact dissipativity certificates (paper Lemma 2) by a float64 SDP on the host."""
+"""Exact dissipativity certificates (paper Lemma 2) on the host: cheap candidates, then an SDP."""
 
 from __future__ import annotations
-
-import warnings
 
 import equinox as eqx
 import numpy as np
 
+from . import _certify_fast, _certify_sdp
 from ._controller import LTIController
 from ._lmi import VERIFY_RTOL, kyp_margin, kyp_matrix, kyp_scale
-from ._sdp import single_threaded_blas
 from ._supply import QSR
 
 
@@ -21,7 +19,9 @@ class Certificate(eqx.Module):
     - `P`: the storage matrix ($V(x) = x^\\top P x$), float64.
     - `margin`: $\\min(-\\lambda_{\\max}(\\mathrm{KYP}(P)), \\lambda_{\\min}(P))$; negative when
       no certificate was found.
-    - `status`: the SDP solver's status string (or `"given"` when `P` was supplied).
+    - `status`: how `P` was found: `"given"` (supplied), `"hint"`, `"cached"` (a recent
+      projection's), `"riccati"`, or the SDP solver's status (`"optimal"`, ...); see
+      [`certify`][dissil_jax.certify].
 
     For one controller these are a `bool`, an $\\hat n\\times\\hat n$ array, a `float` and a
     `str`. For a controller with leading batch axes `batch` they are numpy arrays with
@@ -45,36 +45,63 @@ def _controller_arrays(K: LTIController, qsr: QSR):
     return tuple(np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
 
 
-def certify(K: LTIController, qsr: QSR, *, P=None, tol: float = VERIFY_RTOL) -> Certificate:
+def _storage_arg(name, P, batch, n):
+    P = np.asarray(P, np.float64)
+    if P.shape not in ((n, n), batch + (n, n)):
+        expected = f"{n}x{n}" + (f" or {batch + (n, n)}" if batch else "")
+        raise ValueError(f"`{name}` must be {expected}, got {P.shape}.")
+    if not np.all(np.isfinite(P)):
+        raise ValueError(f"`{name}` contains NaN or inf.")
+    return np.broadcast_to(P, batch + (n, n)) if batch else P
+
+
+def certify(K: LTIController, qsr: QSR, *, P=None, tol: float = VERIFY_RTOL, hint=None,
+            max_margin: bool = False) -> Certificate:
     """Certify $(Q,S,R)$-dissipativity of `K` by the discrete KYP lemma (paper Lemma 2).
 
-    Solves, in float64 with cvxpy + Clarabel (independently of the projection code),
+    A storage $P$ proves the certificate when an eigenvalue computation finds $P\\succ0$ and
+    $\\mathrm{KYP}(P)\\prec0$ beyond round-off: the re-checked margin
+    $\\min(-\\lambda_{\\max}(\\mathrm{KYP}(P)), \\lambda_{\\min}(P))$ must exceed `tol`
+    times a bound on the size of the KYP terms, so nearly lossless systems with margins of
+    order $10^{-7}$ are still decided correctly. The storage is found by, in order, until
+    one proves it:
+
+    1. `hint`, if given (`status` `"hint"`);
+    2. the storage of a recent [`project`][dissil_jax.project] that returned exactly this
+       controller (`"cached"`);
+    3. a Riccati storage: the stabilising solution of the discrete Riccati equation of the
+       KYP inequality tightened by $\\delta$, for a few decreasing $\\delta$ (`"riccati"`;
+       $O(\\hat n^3)$, milliseconds at $\\hat n = 64$);
+    4. the maximum-margin SDP, solved in float64 by Clarabel (independently of the
+       projection code),
 
     $$\\max_{P,\\,t}\\ t \\quad\\text{s.t.}\\quad \\mathrm{KYP}(P) \\preceq -tI,\\quad P\\succeq tI,
-    \\quad t\\le 1,$$
+    \\quad t\\le 1$$
 
-    then re-checks the returned $P$ with an eigenvalue computation. Margins are absolute;
-    $t\\le1$ normalises the certificate (the LMI is not homogeneous in $P$ because of the
-    fixed $Q,S,R$). A system is declared dissipative when the re-checked margin exceeds
-    `tol` times a bound on the size of the KYP terms, so nearly lossless systems with
-    margins of order $10^{-7}$ are still decided correctly.
+    (`status` is the solver's: `"optimal"`, `"optimal_inaccurate"`, `"infeasible"`, ...).
+    Margins are absolute; $t\\le1$ normalises the certificate (the LMI is not homogeneous in
+    $P$ because of the fixed $Q,S,R$). Steps 1-3 skip the SDP but return a storage with a
+    smaller margin; `max_margin=True` always solves the SDP. A controller that is not
+    dissipative goes through all four (the SDP costs seconds from $\\hat n\\approx 24$ on).
 
-    A controller with leading batch axes is certified member by member (one SDP each;
-    with `P` given the eigenvalue check is vectorised over the batch).
+    A controller with leading batch axes is certified member by member; with `P` given the
+    eigenvalue check is vectorised over the batch.
 
     **Arguments:**
 
     - `K`: an `LTIController`, possibly with leading batch axes.
     - `qsr`: the supply rate; `qsr.S` must be `K.n_out x K.n_in`.
-    - `P`: optional storage matrix to check instead of solving the SDP: `[n, n]` (the
-      same for every member) or `[*K.batch_shape, n, n]`.
+    - `P`: optional storage matrix to check instead of searching: `[n, n]` (the
+      same for every member) or `[*K.batch_shape, n, n]`; `status` is `"given"`.
     - `tol`: relative round-off allowance of the final eigenvalue check.
+    - `hint`: optional storage to try first, shaped like `P`.
+    - `max_margin`: skip steps 1-3 and return the maximum-margin storage.
 
     **Returns:** a [`Certificate`][dissil_jax.Certificate]; batched like `K`.
 
     ```python
     cert = dj.certify(Ks, qsr)   # Ks.batch_shape == (8,)
-    cert.holds.shape, cert.P.shape, cert.status[0]   # (8,), (8, n, n), 'optimal'
+    cert.holds.shape, cert.P.shape, cert.status[0]   # (8,), (8, n, n), 'riccati'
     ```
     """
     A, B, C, D = _controller_arrays(K, qsr)
@@ -82,52 +109,50 @@ def certify(K: LTIController, qsr: QSR, *, P=None, tol: float = VERIFY_RTOL) -> 
     if not (np.ndim(tol) == 0 and np.isfinite(tol) and tol >= 0):
         raise ValueError(f"`tol` must be a finite non-negative number, got {tol!r}.")
     if P is not None:
-        P = np.asarray(P, np.float64)
-        if P.shape not in ((n, n), batch + (n, n)):
-            expected = f"{n}x{n}" + (f" or {batch + (n, n)}" if batch else "")
-            raise ValueError(f"`P` must be {expected}, got {P.shape}.")
-        if not np.all(np.isfinite(P)):
-            raise ValueError("`P` contains NaN or inf.")
-        if batch:
-            P = np.broadcast_to(P, batch + (n, n))
-        return _verdict(A, B, C, D, qsr, P, tol, "given")
+        return _verdict(A, B, C, D, qsr, _storage_arg("P", P, batch, n), tol, "given")
+    if hint is not None:
+        hint = _storage_arg("hint", hint, batch, n)
     if not batch:
-        return _solve(A, B, C, D, qsr, tol)
-    certs = [_solve(A[i], B[i], C[i], D[i], qsr, tol) for i in np.ndindex(*batch)]
+        return _search(A, B, C, D, qsr, tol, hint, max_margin)
+    certs = [_search(A[i], B[i], C[i], D[i], qsr, tol, None if hint is None else hint[i],
+                     max_margin) for i in np.ndindex(*batch)]
     stack = lambda name, dtype: np.array([getattr(c, name) for c in certs], dtype).reshape(
         batch + ((n, n) if name == "P" else ()))
     return Certificate(stack("holds", bool), stack("P", np.float64), stack("margin", np.float64),
                        stack("status", str))
 
 
+def _candidates(A, B, C, D, qsr, hint):
+    """Cheap storages to check before the SDP, with their `status` (`_certify_fast`)."""
+    if hint is not None:
+        yield hint, "hint"
+    P = _certify_fast.cached(A, B, C, D, qsr)
+    if P is not None:
+        yield P, "cached"
+    for P in _certify_fast.riccati(A, B, C, D, qsr):
+        yield P, "riccati"
+
+
+def _search(A, B, C, D, qsr: QSR, tol, hint, max_margin) -> Certificate:
+    """One (unbatched) controller: the first candidate that proves it, else the SDP."""
+    if not max_margin:
+        for P, status in _candidates(A, B, C, D, qsr, hint):
+            cert = _verdict(A, B, C, D, qsr, P, tol, status)
+            if cert.holds:
+                return cert
+    return _solve(A, B, C, D, qsr, tol)
+
+
 def _solve(A, B, C, D, qsr: QSR, tol) -> Certificate:
     """The KYP SDP for one (unbatched) controller, then the eigenvalue verdict."""
-    import cvxpy as cp
-
     n = A.shape[0]
-    Pv = cp.Variable((n, n), symmetric=True)
-    t = cp.Variable()
-    Q, S, R = qsr.Q, qsr.S, qsr.R
-    top = cp.hstack([A.T @ Pv @ A - Pv - C.T @ Q @ C, A.T @ Pv @ B - C.T @ S - C.T @ Q @ D])
-    bot = cp.hstack([B.T @ Pv @ A - S.T @ C - D.T @ Q @ C,
-                     B.T @ Pv @ B - D.T @ Q @ D - D.T @ S - S.T @ D - R])
-    M = cp.vstack([top, bot])
-    M = (M + M.T) / 2
-    k = M.shape[0]
-    prob = cp.Problem(cp.Maximize(t), [M << -t * np.eye(k), Pv >> t * np.eye(n), t <= 1])
-    # cvxpy warns "may be inaccurate" on nearly lossless systems; the verdict below does not
-    # trust the solver anyway (it re-checks P by an eigenvalue computation).
-    with single_threaded_blas(), warnings.catch_warnings():
-        warnings.simplefilter("ignore", UserWarning)
-        try:
-            prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-11, tol_gap_rel=1e-11,
-                       tol_feas=1e-11, max_iter=400)
-        except cp.SolverError as e:  # pragma: no cover - depends on solver internals
-            return Certificate(False, np.full((n, n), np.nan), -np.inf, f"solver error: {e}")
-    if Pv.value is None:
-        return Certificate(False, np.full((n, n), np.nan), -np.inf, str(prob.status))
-    P = (Pv.value + Pv.value.T) / 2
-    return _verdict(A, B, C, D, qsr, P, tol, str(prob.status))
+    try:
+        P, status = _certify_sdp.solve(A, B, C, D, qsr)
+    except Exception as e:  # pragma: no cover - depends on solver internals
+        return Certificate(False, np.full((n, n), np.nan), -np.inf, f"solver error: {e}")
+    if P is None:
+        return Certificate(False, np.full((n, n), np.nan), -np.inf, status)
+    return _verdict(A, B, C, D, qsr, P, tol, status)
 
 
 def _verdict(A, B, C, D, qsr, P, tol, status) -> Certificate:

@@ -6,7 +6,9 @@ Everything here is plain numpy; the SDP modules build on it.
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
+from ._indefinite import split_q
 from ._sdp import Layout
 from ._supply import QSR
 
@@ -100,6 +102,12 @@ def smat(v: np.ndarray, N: int) -> np.ndarray:
     return M
 
 
+def svec_pos(i, j):
+    """Position of entry $(i, j)$ in Clarabel's svec (either triangle; arrays broadcast)."""
+    i, j = np.minimum(i, j), np.maximum(i, j)
+    return j * (j + 1) // 2 + i
+
+
 class ConvexifiedLMI:
     """The convexified KYP LMI (paper Corollary 1 + Remark 1, factored form; `docs/concepts.md`).
 
@@ -114,103 +122,172 @@ class ConvexifiedLMI:
     congruence by $\\operatorname{diag}(I,I,I,\\tilde P)$ of the Schur form with
     $-P^{-1}$ overbounded by $-2\\tilde P^{-1} + \\tilde P^{-1}P\\tilde P^{-1}$).
 
-    This class precomputes, for fixed sizes and supply rate, the affine map
-    $x\\mapsto\\operatorname{svec}(\\mathcal M)$ as a constant part plus a part linear in
-    $\\tilde P$, so that $\\tilde P$ can be changed by updating numbers only.
+    The affine map $x\\mapsto\\operatorname{svec}(\\mathcal M) = m_0(\\tilde P) + J(\\tilde P)x$
+    is stored sparsely, straight in Clarabel's format: the sparsity of $J$ is fixed
+    (`indices`, `indptr`, CSC, `nnz` entries, column $k$ = svec of
+    $\\partial\\mathcal M/\\partial x_k$), and its numbers are a constant part plus a part
+    linear in the linearisation point's parameters (today the entries of $\\tilde P$):
+    the column of $A_{ab}$ holds $\\tilde P_{ca}$ at entry $(b, \\tilde P\\text{-block } c)$,
+    so a new $\\tilde P$ only changes numbers ([`values`][], [`offset`][]). Memory and
+    time grow like the LMI's nonzeros ($\\hat n^3$ from $A^\\top\\tilde P$).
 
     Variable order: the host layer's `Layout` (`vec` row-major for A, B, C, D, then the
     upper-triangular entries of P row-major, with $P = \\sum_k p_k E_k$).
+
+    For an indefinite $Q = Q_+ - Q_-$, $L$ factors $Q_-$ and the concave $-H^\\top Q_+H$
+    ($H = [C\\ D]$) is replaced by its linearisation around a point $H_0$
+    (`docs/concepts.md`, *Indefinite Q*): with $W = H_0^\\top Q_+$ the $(x, u)$ block gains
+    $G - WH - H^\\top W^\\top$, $G = WH_0$, i.e. the column of $H_{aj}$ holds $-W_{ia}$ at
+    entry $(i, j)$ ($-2W_{ja}$ on the diagonal) and $m_0$ holds $G$. $W$ and $G$ join $\\tilde P$ as parameters (`indefinite`, the
+    `H0 = (C0, D0)` arguments), so a new $H_0$ also only changes numbers.
     """
 
     def __init__(self, n: int, p: int, m: int, qsr: QSR):
         qsr.check_sizes(p, m)
-        L = qsr.neg_q_factor()
+        L, L_plus = split_q(qsr.Q)
+        self.Q_plus = L_plus @ L_plus.T
+        self.indefinite = L_plus.shape[1] > 0
         r = L.shape[1]
         self.n, self.p, self.m, self.r = n, p, m, r
         self.N = N = 2 * n + p + r
-        i0, i1, i2, i3 = 0, n, n + p, n + p + r  # block offsets: x, u, L-block, P~-block
+        self.L = N * (N + 1) // 2  # svec length
+        i1, i2, i3 = n, n + p, n + p + r  # block offsets: u, L-block, P~-block (x at 0)
         self.layout = lay = Layout(n, p, m)
         self.nA, self.nB, self.nC, self.nD = lay.nA, lay.nB, lay.nC, lay.nD
         self.ntheta, self.nP, self.nx = lay.ntheta, lay.nP, lay.nx
-        iu, ju = self.p_rows, self.p_cols = lay.p_rows, lay.p_cols
-        S, R = qsr.S, qsr.R
+        self.p_rows, self.p_cols = lay.p_rows, lay.p_cols
+        kx = n + p  # the (x, u) block, indexed like the columns of H = [C D]
+        # the linearisation point: P~ row-major, then (indefinite Q only) W = H0' Q+ [kx, m]
+        # and G = H0' Q+ H0 [kx, kx], row-major
+        self.n_params = n * n + (kx * m + kx * kx if self.indefinite else 0)
+        S, R = np.asarray(qsr.S, np.float64), np.asarray(qsr.R, np.float64)
+        oC, oD, oP = lay.nA + lay.nB, lay.nA + lay.nB + lay.nC, lay.ntheta
+        # Every entry is a symmetric pair M[i, j] = M[j, i]: (i, j, variable, constant,
+        # parameter index or -1, parameter weight). Constant zeros are left out.
+        ent = []
 
-        # Constant part of M (without the -2P~ term) and the linear maps.
-        M0 = np.zeros((N, N))
-        M0[i1:i2, i1:i2] = -R
-        M0[i2:i3, i2:i3] = -np.eye(r)
-        self.M0 = M0
-        # Jacobian of the P~-independent part: [nx, N, N]
-        J = np.zeros((self.nx, N, N))
-        k = 0
-        k += self.nA + self.nB  # A and B columns depend on P~ (filled in `jacobian`)
-        for a in range(m):  # C[a, b]
-            for b in range(n):
-                E = np.zeros((N, N))
-                # -C^T S block (x, u): (C^T S)[b, :] = S[a, :]
-                E[i0 + b, i1:i2] -= S[a, :]
-                E[i0 + b, i2:i3] += L[a, :]
-                J[k] = E + E.T
-                k += 1
-        for a in range(m):  # D[a, b]
-            for b in range(p):
-                E = np.zeros((N, N))
-                # -(D^T S + S^T D): d/dD[a,b] of D^T S is e_b S[a,:]
-                E[i1 + b, i1:i2] -= S[a, :]
-                E[i1 + b, i2:i3] += L[a, :]
-                J[k] = E + E.T
-                k += 1
-        for a, b in zip(iu, ju):  # P[a, b] (symmetric basis)
-            E = np.zeros((N, N))
-            E[i0 + a, i0 + b] -= 1.0
-            E[i3 + a, i3 + b] += 1.0
-            if a != b:
-                E[i0 + b, i0 + a] -= 1.0
-                E[i3 + b, i3 + a] += 1.0
-            J[k] = E
-            k += 1
-        self.J_fixed = J
-        # Linear-in-P~ part for the A and B columns: d/dA[a,b] of (P~ A) at rows i3+:, col i0+b
-        # equals P~[:, a]; put it in the (x-block col, P~-block row) position and symmetrise.
-        G = np.zeros((self.nA + self.nB, n, n, N, N))  # [var, P~ row, P~ col, N, N]
-        k = 0
-        for a in range(n):
-            for b in range(n):
-                for c in range(n):  # entry (i3 + c, i0 + b) += P~[c, a]
-                    G[k, c, a, i3 + c, i0 + b] += 1.0
-                    G[k, c, a, i0 + b, i3 + c] += 1.0
-                k += 1
-        for a in range(n):
-            for b in range(p):
-                for c in range(n):
-                    G[k, c, a, i3 + c, i1 + b] += 1.0
-                    G[k, c, a, i1 + b, i3 + c] += 1.0
-                k += 1
-        self.G = G
-        self._svec_idx = svec_indices(N)
+        def add(i, j, var, const=0.0, param=-1, weight=0.0):
+            i, j, var, const, param, weight = np.broadcast_arrays(
+                np.asarray(i), np.asarray(j), np.asarray(var), np.asarray(const, np.float64),
+                np.asarray(param), np.asarray(weight, np.float64))
+            ent.append(tuple(np.ravel(v) for v in (i, j, var, const, param, weight)))
 
-    def blocks(self, P_tilde: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Return `(M0, J)` with $\\mathcal M(x) = M_0 + \\sum_k x_k J_k$ at this $\\tilde P$."""
+        a, b, c = np.meshgrid(np.arange(n), np.arange(n), np.arange(n), indexing="ij")
+        add(b, i3 + c, a * n + b, param=c * n + a, weight=1.0)  # A[a,b]: (A^T P~)[b, c]
+        a, b, c = np.meshgrid(np.arange(n), np.arange(p), np.arange(n), indexing="ij")
+        add(i1 + b, i3 + c, lay.nA + a * p + b, param=c * n + a, weight=1.0)  # B^T P~
+        a, b, j = np.meshgrid(np.arange(m), np.arange(n), np.arange(p), indexing="ij")
+        add(b, i1 + j, oC + a * n + b, const=-S[a, j])  # -C^T S
+        a, b, l_ = np.meshgrid(np.arange(m), np.arange(n), np.arange(r), indexing="ij")
+        add(b, i2 + l_, oC + a * n + b, const=L[a, l_])  # C^T L
+        # -(D^T S + S^T D): d/dD[a,b] is -(e_b S[a,:] + S[a,:]^T e_b^T), twice on the diagonal
+        a, b, j = np.meshgrid(np.arange(m), np.arange(p), np.arange(p), indexing="ij")
+        add(i1 + b, i1 + j, oD + a * p + b, const=-S[a, j] * np.where(j == b, 2.0, 1.0))
+        a, b, l_ = np.meshgrid(np.arange(m), np.arange(p), np.arange(r), indexing="ij")
+        add(i1 + b, i2 + l_, oD + a * p + b, const=L[a, l_])  # D^T L
+        if self.indefinite:  # -(W' H + H' W): the column of H[a, j] holds -W[i, a] at (i, j)
+            a, j, i = np.meshgrid(np.arange(m), np.arange(kx), np.arange(kx), indexing="ij")
+            var = np.where(j < n, oC + a * n + j, oD + a * p + j - n)
+            add(i, j, var, param=n * n + i * m + a, weight=np.where(i == j, -2.0, -1.0))
+        k = oP + np.arange(self.nP)
+        add(self.p_rows, self.p_cols, k, const=-1.0)  # -P
+        add(i3 + self.p_rows, i3 + self.p_cols, k, const=1.0)  # +P in the P~ block
+        i, j, var, const, param, weight = (np.concatenate(v) for v in zip(*ent))
+        keep = (const != 0) | (param >= 0)
+        i, j, var, const, param, weight = (v[keep] for v in (i, j, var, const, param, weight))
+        rows = svec_pos(i, j)
+        w = np.where(i == j, 1.0, np.sqrt(2.0))  # svec weight
+        # The pattern in CSC order; duplicates (i, j, var) are summed.
+        order = np.lexsort((rows, var))
+        rows, var, const, param, weight, w = (v[order] for v in (rows, var, const, param,
+                                                                   weight, w))
+        new = np.ones(len(rows), bool)
+        new[1:] = (rows[1:] != rows[:-1]) | (var[1:] != var[:-1])
+        slot = np.cumsum(new) - 1
+        self.nnz = int(slot[-1] + 1) if len(slot) else 0
+        self.indices = rows[new].astype(np.int64)
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(var[new],
+                                                                minlength=self.nx))])
+        self.vals0 = np.zeros(self.nnz)
+        np.add.at(self.vals0, slot, w * const)
+        dep = param >= 0
+        self.vals_map = sp.csr_matrix((w[dep] * weight[dep], (slot[dep], param[dep])),
+                                      shape=(self.nnz, self.n_params))
+        # m0 = svec(M(0)): -R, -I_r and -2 P~ (the last one linear in the parameters).
+        iu, ju = np.triu_indices(p)
+        wr = np.where(iu == ju, 1.0, np.sqrt(2.0))
+        self.offset0 = np.zeros(self.L)
+        self.offset0[svec_pos(i1 + iu, i1 + ju)] = -R[iu, ju] * wr
+        self.offset0[svec_pos(i2 + np.arange(r), i2 + np.arange(r))] = -1.0
+        cu, du = np.triu_indices(n)
+        wp = np.where(cu == du, 1.0, np.sqrt(2.0))
+        o_rows, o_cols, o_vals = svec_pos(i3 + cu, i3 + du), cu * n + du, -2.0 * wp
+        if self.indefinite:  # + G = H0' Q+ H0 in the (x, u) block
+            gi, gj = np.triu_indices(kx)
+            o_rows = np.concatenate([o_rows, svec_pos(gi, gj)])
+            o_cols = np.concatenate([o_cols, n * n + kx * m + gi * kx + gj])
+            o_vals = np.concatenate([o_vals, np.where(gi == gj, 1.0, np.sqrt(2.0))])
+        self.offset_map = sp.csr_matrix((o_vals, (o_rows, o_cols)),
+                                        shape=(self.L, self.n_params))
+        self.svec_eye = np.zeros(self.L)
+        self.svec_eye[svec_pos(np.arange(N), np.arange(N))] = 1.0
+
+    def params(self, P_tilde, H0=None) -> np.ndarray:
+        """The linearisation point's parameters, `[..., n_params]` (batched like `P_tilde`);
+        `H0 = (C0, D0)` is required for an indefinite $Q$ (ignored otherwise)."""
         P_tilde = np.asarray(P_tilde, np.float64)
-        i3 = self.N - self.n
-        M0 = self.M0.copy()
-        M0[i3:, i3:] = -2 * P_tilde
-        J = self.J_fixed.copy()
-        J[: self.nA + self.nB] = np.einsum("kcaij,ca->kij", self.G, P_tilde)
+        batch = P_tilde.shape[:-2]
+        par = P_tilde.reshape(batch + (self.n * self.n,))
+        if not self.indefinite:
+            return par
+        if H0 is None:
+            raise ValueError("an indefinite `qsr.Q` needs the linearisation point `H0`.")
+        H = np.concatenate([np.broadcast_to(np.asarray(M, np.float64), batch + np.shape(M)[-2:])
+                            for M in H0], -1)  # [..., m, n + p]
+        # einsum (not BLAS) so that a row's numbers do not depend on the batch size
+        W = np.einsum("...ai,ak->...ik", H, self.Q_plus)
+        G = np.einsum("...ia,...aj->...ij", W, H)
+        return np.concatenate([par, W.reshape(batch + (-1,)), G.reshape(batch + (-1,))], -1)
+
+    def values(self, P_tilde, H0=None) -> np.ndarray:
+        """The `nnz` numbers of $J(\\tilde P)$ in CSC order, `[..., nnz]` (batched)."""
+        par = self.params(P_tilde, H0)
+        flat = par.reshape(-1, self.n_params)
+        # a sparse product computes each row on its own: a row's numbers do not depend on
+        # the batch size (BLAS would change them at ~1e-16)
+        out = self.vals0 + (self.vals_map @ flat.T).T
+        return out.reshape(par.shape[:-1] + (self.nnz,))
+
+    def offset(self, P_tilde, H0=None) -> np.ndarray:
+        """$m_0(\\tilde P) = \\operatorname{svec}\\mathcal M(0)$, `[..., L]` (batched)."""
+        par = self.params(P_tilde, H0)
+        flat = par.reshape(-1, self.n_params)
+        out = self.offset0 + (self.offset_map @ flat.T).T
+        return out.reshape(par.shape[:-1] + (self.L,))
+
+    def jacobian(self, P_tilde, H0=None) -> sp.csc_matrix:
+        """$J(\\tilde P)$ as a `[L, nx]` CSC matrix (one $\\tilde P$)."""
+        return sp.csc_matrix((self.values(P_tilde, H0), self.indices, self.indptr),
+                             shape=(self.L, self.nx))
+
+    def evaluate(self, x: np.ndarray, P_tilde: np.ndarray, H0=None) -> np.ndarray:
+        """$\\mathcal M(x)$ at a given $\\tilde P$ (and $H_0$; dense `[N, N]`, for checks)."""
+        return smat(self.offset(P_tilde, H0) + self.jacobian(P_tilde, H0) @ np.asarray(x),
+                    self.N)
+
+    def blocks(self, P_tilde: np.ndarray, H0=None) -> tuple[np.ndarray, np.ndarray]:
+        """Dense `(M0, J)` with $\\mathcal M(x) = M_0 + \\sum_k x_k J_k$ (`J` is `[nx, N, N]`:
+        memory $\\sim\\hat n^4$, for moderate sizes only)."""
+        rows, cols, w = svec_indices(self.N)
+        M0 = np.zeros((self.N, self.N))
+        M0[rows, cols] = self.offset(P_tilde, H0) / w
+        M0[cols, rows] = M0[rows, cols]
+        var = np.repeat(np.arange(self.nx), np.diff(self.indptr))
+        v = self.values(P_tilde, H0) / w[self.indices]
+        J = np.zeros((self.nx, self.N, self.N))
+        J[var, rows[self.indices], cols[self.indices]] = v
+        J[var, cols[self.indices], rows[self.indices]] = v
         return M0, J
 
-    def evaluate(self, x: np.ndarray, P_tilde: np.ndarray) -> np.ndarray:
-        """$\\mathcal M(x)$ at a given $\\tilde P$ (dense, for checks)."""
-        M0, J = self.blocks(P_tilde)
-        return M0 + np.tensordot(x, J, axes=1)
-
-    def pack(self, A, B, C, D, P=None) -> np.ndarray:
-        """Stack a controller (and optionally P) into the variable vector x (`Layout.pack`)."""
-        return self.layout.pack(A, B, C, D, P)
-
-    def unpack(self, x: np.ndarray):
-        """Inverse of `pack`: returns `(A, B, C, D, P)`."""
-        return self.layout.unpack(x)
-
     def svec(self, M: np.ndarray) -> np.ndarray:
-        return svec(M, self._svec_idx)
+        return svec(M, svec_indices(self.N))

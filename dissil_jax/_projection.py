@@ -17,13 +17,18 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.sparse as sp
 
-from . import _sdp
+from . import _certify_fast, _sdp
 from ._controller import LTIController
 from ._lmi import ConvexifiedLMI
-from ._projection_args import check_options as _check_options, check_qsr as _check_qsr
-from ._sdp import Outcome
+from ._projection_args import (
+    check_k_ref as _check_k_ref,
+    check_options as _check_options,
+    check_qsr as _check_qsr,
+)
+from ._projection_result import Projection as Projection, raise_on_failure as _raise_on_failure
+from ._projection_solver import _ProjectionSolver
+from ._relinearise import project_rows_indefinite
 from ._supply import QSR
 
 # Clarabel's own reported solve time and solve count, summed over all threads, and the
@@ -38,76 +43,9 @@ _SOLVED, _UNCHANGED, _SKIPPED, _NOT_CERTIFIED = (
 # A solution that fails the exact check after rounding is re-solved with the margin
 # enlarged by this factor, at most `_ATTEMPTS - 1` times.
 _ATTEMPTS, _EPS_GROWTH = 3, 100.0
-
-
-class _ProjectionSolver:
-    """Clarabel problem data for Π with fixed sparsity; numbers updated per call."""
-
-    def __init__(self, lmi: ConvexifiedLMI, eps: float, reg: float):
-        import clarabel
-
-        self.lmi, self.eps, self.reg = lmi, eps, reg
-        n, N = lmi.n, lmi.N
-        # Cone s = b - A x in PSD: s = svec(-M(x) - eps I) => A = svec(J_k) columns.
-        fixed = np.stack([lmi.svec(Jk) for Jk in lmi.J_fixed], axis=1)  # [L, nx]
-        Gs = lmi.svec(lmi.G)  # [nAB, n, n, L]
-        Gs = Gs.reshape(lmi.nA + lmi.nB, n * n, -1).transpose(2, 0, 1)  # [L, nAB, n*n]
-        pattern = fixed != 0
-        pattern[:, : lmi.nA + lmi.nB] |= np.any(Gs != 0, axis=2)
-        csc = sp.csc_matrix(pattern.astype(np.float64))
-        csc.sort_indices()
-        rows = csc.indices
-        cols = np.repeat(np.arange(csc.shape[1]), np.diff(csc.indptr))
-        self.vals0 = fixed[rows, cols]
-        in_ab = cols < lmi.nA + lmi.nB
-        self.ab_pos = np.nonzero(in_ab)[0]
-        self.vals_g = Gs[rows[in_ab], cols[in_ab]]  # [nnz_ab, n*n]
-        self.csc_shape, self.indptr, self.indices = csc.shape, csc.indptr, csc.indices
-        # b = svec(-M0 - eps I), M0's P~-block is -2 P~.
-        self.b_fixed = lmi.svec(-lmi.M0 - eps * np.eye(N))
-        i3 = N - n
-        sel = np.zeros((n * n, N, N))
-        for c in range(n):
-            for a in range(n):
-                sel[c * n + a, i3 + c, i3 + a] = 2.0
-        self.b_g = lmi.svec(sel).T  # [L, n*n]
-        self.eps_svec = lmi.svec(np.eye(N))
-        self.reg_diag = np.full(lmi.nP, reg)
-        self.cones = [clarabel.PSDTriangleConeT(N)]
-        self.solver, self.diag = None, None
-        self._clarabel = clarabel
-
-    def data(self, targets, P_tilde, eps, weights):
-        """Clarabel's `(q, A values, b, P values)` for a batch: `targets` and `weights`
-        [B, ntheta] (the objective is $\\sum_k w_k(\\theta_k - \\tilde\\theta_k)^2$), `P_tilde`
-        [B, n, n]."""
-        Pt = np.asarray(P_tilde, np.float64).reshape(len(targets), -1)
-        vals = np.broadcast_to(self.vals0, (len(targets),) + self.vals0.shape).copy()
-        # einsum (not BLAS) so that a row's numbers do not depend on the batch size
-        vals[:, self.ab_pos] = np.einsum("bk,lk->bl", Pt, self.vals_g)
-        b = (self.b_fixed + np.einsum("bk,lk->bl", Pt, self.b_g)
-             - (np.asarray(eps)[:, None] - self.eps) * self.eps_svec)
-        p_tilde = np.asarray(P_tilde, np.float64)[:, self.lmi.p_rows, self.lmi.p_cols]
-        q = -np.concatenate([weights * targets, self.reg * p_tilde], axis=1)
-        diag = np.concatenate([weights, np.broadcast_to(self.reg_diag, p_tilde.shape)], axis=1)
-        return q, vals, b, diag
-
-    def solve(self, q, vals, b, diag):
-        """One solve; returns `(x or None, Outcome code, Clarabel's solve time)`."""
-        if self.solver is None:
-            A = sp.csc_matrix((vals, self.indices, self.indptr), shape=self.csc_shape)
-            k = np.arange(len(diag) + 1)  # diagonal objective, explicit zeros kept (reg = 0)
-            P_obj = sp.csc_matrix((diag, k[:-1], k), shape=(len(diag),) * 2)
-            settings = _sdp.clarabel_settings(**_sdp.PROJECTION_SETTINGS)
-            self.solver = self._clarabel.DefaultSolver(P_obj, q, A, b, self.cones, settings)
-        elif np.array_equal(diag, self.diag):  # the same distance (always, without a metric)
-            self.solver.update(q=q, A=vals, b=b)
-        else:
-            self.solver.update(P=diag, q=q, A=vals, b=b)
-        self.diag = diag
-        sol = self.solver.solve()
-        outcome = _sdp.clarabel_outcome(str(sol.status))
-        return (np.asarray(sol.x) if outcome == _SOLVED else None), outcome, sol.solve_time
+# The conditioning bound of the projection's P: lambda_min(P) >= P_FLOOR * mean eigenvalue
+# (`_projection_solver`; redundant, so left out, for n = 1).
+P_FLOOR = 1e-2
 
 
 def _lmi(qsr: QSR, n: int) -> ConvexifiedLMI:
@@ -126,16 +64,20 @@ def _thread_solver(qsr: QSR, n: int, eps: float, reg: float) -> _ProjectionSolve
     key = (qsr, n, eps, reg)
     solver = cache.get(key)
     if solver is None:
-        solver = cache[key] = _ProjectionSolver(_lmi(qsr, n), eps=eps, reg=reg)
+        solver = cache[key] = _ProjectionSolver(_lmi(qsr, n), eps=eps, reg=reg,
+                                                floor=P_FLOOR if n > 1 else 0.0)
     return solver
 
 
-def _solve_batch(qsr, targets, P_tilde, eps, weights, *, base_eps, reg, dtype, shards):
+def _solve_batch(qsr, targets, P_tilde, eps, weights, *, base_eps, reg, dtype, shards,
+                 H0=None):
     """Solve Π for every row; returns `(A, B, C, D, P)` rounded to `dtype`, codes, certified."""
     n = P_tilde.shape[-1]
     lmi = _lmi(qsr, n)
     count = len(targets)
-    q, vals, b, diag = _thread_solver(qsr, n, base_eps, reg).data(targets, P_tilde, eps, weights)
+    extra = () if H0 is None else (H0,)  # the Q <= 0 path calls `data` exactly as before
+    q, vals, b, diag = _thread_solver(qsr, n, base_eps, reg).data(targets, P_tilde, eps, weights,
+                                                                  *extra)
     xs = np.full((count, lmi.nx), np.nan)
     codes = np.empty(count, np.int32)
 
@@ -156,7 +98,7 @@ def _solve_batch(qsr, targets, P_tilde, eps, weights, *, base_eps, reg, dtype, s
     return sol, codes, ok
 
 
-def _certified_solve(qsr, targets, P_tilde, weights, *, eps, reg, dtype, shards):
+def _certified_solve(qsr, targets, P_tilde, weights, *, eps, reg, dtype, shards, H0=None):
     """Solve Π for every row at its $\\tilde P$ and keep only certified solutions.
 
     A solution that fails the exact check after rounding is re-solved with the margin
@@ -168,7 +110,8 @@ def _certified_solve(qsr, targets, P_tilde, weights, *, eps, reg, dtype, shards)
     found, codes, sols = np.zeros(count, bool), np.empty(count, np.int32), None
     for attempt in range(_ATTEMPTS):
         sol, c, ok = _solve_batch(qsr, targets[todo], P_tilde[todo], cur_eps[todo],
-                                  weights[todo], base_eps=eps, reg=reg, dtype=dtype, shards=shards)
+                                  weights[todo], base_eps=eps, reg=reg, dtype=dtype, shards=shards,
+                                  H0=None if H0 is None else tuple(M[todo] for M in H0))
         if sols is None:
             sols = [np.full((count,) + M.shape[1:], np.nan) for M in sol]
         for S, M in zip(sols, sol):
@@ -214,8 +157,8 @@ def _project_rows(qsr, targets, P_tilde, weights, rounds, *, eps, reg, dtype, sh
     return best, codes
 
 
-def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, shard, *, qsr, has_ref, eps, reg,
-                refine, shards):
+def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, C0, D0, shard, *, qsr, has_ref, eps,
+                reg, refine, shards):
     """pure_callback target: arrays carry identical leading batch axes (broadcast_all).
 
     Active targets already certified by `P_ref` come back unchanged; the others are
@@ -223,6 +166,7 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, shard, *, qsr, has_re
     `shard` is the calling device's index (broadcast like the batch) and `shards` the
     number of callbacks running at once on this host (`_sdp.shard`); each uses its share
     of the thread pool. `WA`..`WD` are the metric's weights (scaled per row to at most 1).
+    `C0`, `D0` are the first linearisation points of an indefinite $Q$ (`_relinearise`).
     """
     dtype = np.asarray(A).dtype
     batch, n = A.shape[:-2], A.shape[-1]
@@ -246,47 +190,44 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, shard, *, qsr, has_re
                           for W in (WA, WB, WC, WD)))
         w /= w.max(axis=1, keepdims=True)
         P_tilde = flat[4][todo] if has_ref else np.broadcast_to(np.eye(n), (len(todo), n, n))
-        sol, codes[todo] = _project_rows(qsr, targets, P_tilde, w, 1 if has_ref else max(1, refine),
-                                         eps=eps, reg=reg, dtype=dtype, shards=shards)
+        if _lmi(qsr, n).indefinite:
+            H0 = tuple(np.asarray(M, np.float64).reshape((-1,) + M.shape[len(batch):])[todo]
+                       for M in (C0, D0))
+            solve = partial(_indefinite_solve, qsr, eps=eps, reg=reg, dtype=dtype, shards=shards)
+            sol, codes[todo] = project_rows_indefinite(solve, layout, qsr, targets, P_tilde, H0,
+                                                       w, max(1, refine))
+        else:
+            kw = dict(eps=eps, reg=reg, dtype=dtype, shards=shards)
+            sol, c = _project_rows(qsr, targets, P_tilde, w, 1 if has_ref else max(1, refine), **kw)
+            retry = np.nonzero(c != _SOLVED)[0] if has_ref else ()
+            if len(retry):
+                # A P_ref that leaves the linearised set (almost) empty, e.g. one whose smallest
+                # eigenvalue sits on the margin eps: start again from a multiple of the identity
+                # and re-linearise, as without P_ref.
+                scale = np.trace(P_tilde[retry], axis1=1, axis2=2) / n
+                scale = np.where(np.isfinite(scale) & (scale > 0), scale, 1.0)
+                sol2, c2 = _project_rows(qsr, targets[retry], scale[:, None, None] * np.eye(n),
+                                         w[retry], max(1, refine), **kw)
+                for S, S2 in zip(sol, sol2):
+                    S[retry[c2 == _SOLVED]] = S2[c2 == _SOLVED]
+                c[retry[c2 == _SOLVED]] = _SOLVED
+            codes[todo] = c
         done = todo[codes[todo] == _SOLVED]
         for o, M in zip(out, sol):
             o[done] = M[codes[todo] == _SOLVED]
+        # `certify` of a returned controller then finds its storage without an SDP
+        _certify_fast.remember(*(M[codes[todo] == _SOLVED] for M in sol[:4]), qsr,
+                               sol[4][codes[todo] == _SOLVED])
     return (*(o.reshape(batch + o.shape[1:]).astype(dtype) for o in out),
             codes.reshape(batch))
 
 
-class Projection(tuple):
-    """What [`project`][dissil_jax.project] returns: the pair `(controller, P)`, plus `result`.
-
-    It unpacks like a pair (`K, P = dj.project(K, qsr)`) and indexes like one
-    (`dj.project(K, qsr)[0]`); `result` is the [`Outcome`][dissil_jax.Outcome] of each
-    projection (batched like `K`). It is a JAX pytree, so it can be returned from `jax.jit`.
-    """
-
-    def __new__(cls, controller, P, result):
-        self = super().__new__(cls, (controller, P))
-        self.result = result
-        return self
-
-    @property
-    def controller(self) -> LTIController:
-        return self[0]
-
-    @property
-    def P(self):
-        return self[1]
-
-    def __repr__(self):
-        return f"Projection(controller={self[0]!r}, P={self[1]!r}, result={self.result!r})"
+def _indefinite_solve(qsr, targets, P_tilde, weights, H0, **kwargs):
+    return _certified_solve(qsr, targets, P_tilde, weights, H0=H0, **kwargs)
 
 
-jax.tree_util.register_pytree_node(
-    Projection, lambda p: ((p[0], p[1], p.result), None),
-    lambda _, children: Projection(*children))
-
-
-def _project_one(K: LTIController, P_ref, W: LTIController, active, *, qsr: QSR, eps, reg,
-                 refine):
+def _project_one(K: LTIController, P_ref, W: LTIController, active, K_ref, *, qsr: QSR, eps,
+                 reg, refine):
     """The unbatched JAX side: one `pure_callback` (vmapped calls batch on the host).
 
     Inside `jax.shard_map` (e.g. [`sweep`][dissil_jax.sweep]) each device calls its own
@@ -307,25 +248,15 @@ def _project_one(K: LTIController, P_ref, W: LTIController, active, *, qsr: QSR,
                        refine=int(refine), shards=shards)
     A, B, C, D, P, codes = jax.pure_callback(
         callback, (*shapes, jax.ShapeDtypeStruct((), jnp.int32)), K.A, K.B, K.C, K.D, P_ref,
-        W.A, W.B, W.C, W.D, jnp.asarray(active, bool), shard, vmap_method="broadcast_all")
+        W.A, W.B, W.C, W.D, jnp.asarray(active, bool), K_ref.C.astype(dtype),
+        K_ref.D.astype(dtype), shard, vmap_method="broadcast_all")
     return LTIController(A, B, C, D), P, codes
-
-
-def _raise_on_failure(P, codes):
-    """`throw=True`: a ValueError eagerly, an `EquinoxRuntimeError` under `jit`."""
-    if not isinstance(codes, jax.core.Tracer):
-        codes = np.asarray(codes)
-        bad = codes[_sdp.failed(codes)]
-        if bad.size:
-            raise ValueError(f"dj.project: {Outcome[_sdp.item(bad.max())]}")
-        return P
-    worst = _sdp.item(jnp.max(jnp.where(_sdp.failed(codes), codes, -1)))
-    return worst.error_if(P, jnp.any(_sdp.failed(codes)))
 
 
 def project(
     K: LTIController, qsr: QSR, P_ref=None, *, throw: bool = True, active=True,
     eps: float = 1e-6, reg: float = 1e-6, refine: int = 3, metric: LTIController | None = None,
+    K_ref: LTIController | None = None,
 ) -> Projection:
     """Project `K` onto the convexified $(Q,S,R)$-dissipative set (paper eq. 13).
 
@@ -334,16 +265,30 @@ def project(
     \\mathcal M(A,B,C,D,P;\\tilde P) \\preceq -\\varepsilon I,$$
 
     where $\\mathcal M$ is the convexified KYP LMI (paper Corollary 1 + Remark 1, with
-    $-Q = LL^\\top$; see [`ConvexifiedLMI`](concepts.md)). The set is an inner
+    $-Q = LL^\\top$; see [`ConvexifiedLMI`](concepts.md)). For an indefinite
+    $Q = Q_+ - Q_-$ the concave $-H^\\top Q_+H$ ($H = [C\\ D]$) is replaced by its
+    linearisation around a point $H_0$
+    ([Concepts](concepts.md#indefinite-q-linearising-the-positive-part)): the target's, or
+    `K_ref`'s when given (a certified reference, e.g. the previous iterate); a target whose
+    first set is empty starts again from a static controller that is dissipative for every
+    $P$. Each round re-linearises $H_0$ and $\\tilde P$ at the solution, at most `refine`
+    times (also with `P_ref`), and stops once a round shortens the distance by less than
+    0.1 %. The set is an inner
     approximation: every point in it is truly dissipative, and the exact float64 KYP
     check is run on the returned (dtype-rounded) controller and $P$ before it leaves the
-    host. $\\mu$ (`reg`) is a tiny proximal weight that makes $P$ unique. The distance is
+    host. $\\mu$ (`reg`) is a tiny proximal weight that makes $P$ unique. For
+    $\\hat n\\ge2$ the set also asks $P\\succeq\\frac{\\rho}{\\hat n}\\operatorname{tr}(P)\\,I$
+    with $\\rho = 10^{-2}$ (`P_FLOOR`): a storage whose smallest eigenvalue fell to the
+    margin $\\varepsilon$ would leave the next projection, linearised there, a feasible set
+    of zero width (a `not_certified` failure), and PGD stalls on such storages. The distance is
     Frobenius ($W = 1$) unless a `metric` gives each entry its own weight,
     $\\lVert X\\rVert_W^2 = \\sum_{ij} W_{ij} X_{ij}^2$ over the four matrices.
 
     - `P_ref` given: $\\tilde P = $ `P_ref`; a target already certified by `P_ref` comes
       back unchanged without a solve (`result` is `Outcome.unchanged`), so a certified
-      controller projects onto itself.
+      controller projects onto itself. A projection that fails at `P_ref` is retried from
+      $\\tilde P = \\frac{\\operatorname{tr}P_{\\text{ref}}}{\\hat n} I$ with `refine` rounds
+      (for an indefinite $Q$: from the static point, as above).
     - `P_ref` is None: start at $\\tilde P = I$ and re-linearise at the new $P$ up to
       `refine` times; each round can only move closer to the target.
 
@@ -357,7 +302,8 @@ def project(
     **Arguments:**
 
     - `K`: the target controller (may carry leading batch axes).
-    - `qsr`: the supply rate; `qsr.Q` must be negative semidefinite.
+    - `qsr`: the supply rate (any symmetric $Q$; an indefinite one that admits no strictly
+      dissipative controller raises a `ValueError`).
     - `P_ref`: reference storage matrix $\\tilde P\\succ0$ (`[n, n]`, batched like `K`).
     - `throw`: raise when a projection fails (`ValueError` eagerly, an
       `EquinoxRuntimeError` under `jit`). With `throw=False` nothing is raised and
@@ -371,6 +317,9 @@ def project(
     - `metric`: positive weights $W$ as an `LTIController` shaped (and batched) like `K`;
       only their ratios matter. Projected adaptive optimisers need it (see
       [`fit_pgd`][dissil_jax.fit_pgd] and [Concepts](concepts.md#projecting-an-adaptive-step)).
+    - `K_ref`: for an indefinite $Q$, the first linearisation point of $Q_+$'s term (an
+      `LTIController` shaped and batched like `K`, ideally certified with `P_ref`); ignored
+      for $Q\\preceq0$. Default: the target itself.
 
     **Returns:** a [`Projection`][dissil_jax.Projection] `(K_proj, P)` with `.result`.
 
@@ -382,12 +331,13 @@ def project(
     """
     _check_qsr(K, qsr)
     _check_options(K, P_ref, active, eps, reg, refine, metric)
+    _check_k_ref(K, K_ref)
     fn = partial(_project_one, qsr=qsr, eps=eps, reg=reg, refine=refine)
     in_ref, in_act = None if P_ref is None else 0, 0 if jnp.ndim(active) else None
     W = jax.tree.map(jnp.ones_like, K) if metric is None else metric
     for _ in K.batch_shape:
-        fn = jax.vmap(fn, in_axes=(0, in_ref, 0, in_act))
-    K_out, P, codes = fn(K, P_ref, W, active)
+        fn = jax.vmap(fn, in_axes=(0, in_ref, 0, in_act, 0))
+    K_out, P, codes = fn(K, P_ref, W, active, K if K_ref is None else K_ref)
     if throw:
         P = _raise_on_failure(P, codes)
     return Projection(K_out, P, _sdp.item(codes))

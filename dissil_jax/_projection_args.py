@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._controller import LTIController
+from ._indefinite import check_feasible, is_indefinite
 from ._supply import QSR
 
 
@@ -16,7 +17,19 @@ def check_qsr(K: LTIController, qsr: QSR) -> None:
     if not isinstance(qsr, QSR):
         raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
     qsr.check_sizes(K.n_in, K.n_out)
-    qsr.neg_q_factor()  # raises a ValueError naming `qsr.Q` if Q has a positive eigenvalue
+    if is_indefinite(qsr):  # a Q <= 0 that admits no controller is reported by the solver
+        check_feasible(qsr)
+
+
+def check_k_ref(K: LTIController, K_ref) -> None:
+    if K_ref is None:
+        return
+    if not isinstance(K_ref, LTIController):
+        raise ValueError(f"`K_ref` must be a `dj.LTIController`, got {type(K_ref).__name__}.")
+    for name in "ABCD":
+        if getattr(K_ref, name).shape != getattr(K, name).shape:
+            raise ValueError(f"`K_ref.{name}` must have the shape {getattr(K, name).shape} of "
+                             f"`K.{name}`, got {getattr(K_ref, name).shape}.")
 
 
 def check_metric(K: LTIController, metric) -> None:

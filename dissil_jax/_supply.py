@@ -222,16 +222,16 @@ class QSR(eqx.Module):
     def neg_q_factor(self) -> np.ndarray:
         """Return $L$ ($m\\times r$, $r=\\operatorname{rank} Q$) with $-Q = LL^\\top$.
 
-        Raises `ValueError` when $Q$ has a positive eigenvalue: then the KYP inequality
-        cannot be Schur-complemented into the convex form used for learning.
+        Raises `ValueError` when $Q$ has a positive eigenvalue: then no such factor exists
+        (the learning code splits $Q = Q_+ - Q_-$ and linearises the $Q_+$ part instead).
         """
         w, V = np.linalg.eigh(-self.Q)
         scale = max(1.0, float(np.abs(w).max(initial=0.0)))
         if w.min(initial=0.0) < -1e-10 * scale:
             raise ValueError(
                 "`qsr.Q` has a positive eigenvalue "
-                f"({-w.min():.3g}); learning needs Q negative semidefinite (Q = 0 for "
-                "passivity, Q = -I for gains and cones). Choose a supply rate with Q <= 0."
+                f"({-w.min():.3g}), so -Q has no factor L L'. Only `dj.fit_direct` needs "
+                "Q <= 0; `dj.project`, `dj.fit_pgd` and `dj.fit_ico` accept any symmetric Q."
             )
         keep = w > 1e-10 * scale
         return V[:, keep] * np.sqrt(w[keep])

@@ -123,7 +123,7 @@ def test_certificate_margin_is_min_of_the_two_eigenvalues():
     A, B, C, D = _random_stable(rng, 2, 2)
     D = D - (_min_hermitian_part(A, B, C, D) - 0.2) * np.eye(2)
     K = dj.LTIController(A, B, C, D)
-    cert = dj.certify(K, qsr)
+    cert = dj.certify(K, qsr, max_margin=True)
     assert cert.holds and cert.status == "optimal"
     for P in (cert.P, 3.0 * cert.P, cert.P + 0.5 * np.eye(2), -cert.P):
         given = dj.certify(K, qsr, P=P)
@@ -258,3 +258,68 @@ def test_unbatched_certificate_keeps_scalars():
     cert = dj.certify(_first_order(0.5, 1.0, 1.0, 1.0), dj.QSR.passive(1))
     assert type(cert.holds) is bool and type(cert.margin) is float
     assert type(cert.status) is str and cert.P.shape == (1, 1)
+
+
+# -- the cheap storages tried before the SDP --------------------------------------------------
+
+
+@pytest.mark.parametrize("qsr", [dj.QSR.passive(2), dj.QSR.bounded_gain(1.5, n_in=2, n_out=2),
+                                 dj.QSR.conic(-0.5, 2.0, 2)], ids=["passive", "gain", "conic"])
+def test_fast_path_and_sdp_agree(qsr):
+    """Random controllers of both verdicts: the fast path and the SDP decide alike, and a
+    storage either path returns passes the definition-based check."""
+    rng = np.random.default_rng(11)
+    verdicts, statuses = [], set()
+    for trial in range(10):
+        A, B, C, D = _random_stable(rng, 3, 2)
+        B, C = B[:, :qsr.n_in], C[:qsr.n_out]
+        # D = 0.5 I is inside all three supply rates' cones, D = -3 I outside; |G - D| is
+        # small or of order one (B, C scaled), so some of each verdict and some near the edge
+        D = (0.5 if trial % 2 else -3.0) * np.eye(2) + 0.05 * rng.normal(size=(2, 2))
+        K = dj.LTIController(A, (0.1 + 0.2 * (trial % 3)) * B, C, D[:qsr.n_out, :qsr.n_in])
+        fast, sdp = dj.certify(K, qsr), dj.certify(K, qsr, max_margin=True)
+        assert fast.holds == sdp.holds
+        verdicts.append(fast.holds)
+        statuses.add(str(fast.status))
+        for cert in (fast, sdp):
+            if cert.holds:
+                assert dissipation_ok(K, qsr, cert.P)
+                assert cert.margin <= sdp.margin * (1 + 1e-6) + 1e-12  # the SDP's is the best
+    assert any(verdicts) and not all(verdicts)
+    assert "riccati" in statuses  # the Riccati storage proved some of them
+
+
+def test_projected_controller_is_certified_from_the_cache(getkey):
+    qsr = dj.QSR.passive(2)
+    Kp, P = dj.project(dj.LTIController.random(4, 2, 2, scale=2.0, key=getkey()), qsr)
+    cert = dj.certify(Kp, qsr)
+    assert cert.holds and cert.status == "cached"
+    np.testing.assert_array_equal(cert.P, np.asarray(P, np.float64))
+    assert dissipation_ok(Kp, qsr, cert.P)
+    # another controller's numbers do not hit the cache
+    other = jax.tree.map(lambda a: a * (1 - 1e-3), Kp)
+    assert dj.certify(other, qsr).status != "cached"
+
+
+def test_hint_is_tried_first():
+    K = _first_order(0.5, 1.0, 1.0, 1.0)
+    qsr = dj.QSR.passive(1)
+    best = dj.certify(K, qsr, max_margin=True)
+    cert = dj.certify(K, qsr, hint=best.P)
+    assert cert.holds and cert.status == "hint"
+    np.testing.assert_array_equal(cert.P, best.P)
+    # a hint that proves nothing is passed over
+    assert dj.certify(K, qsr, hint=-best.P).status != "hint"
+    assert dj.certify(K, qsr, hint=-best.P).holds
+    with pytest.raises(ValueError, match="`hint`"):
+        dj.certify(K, qsr, hint=np.eye(2))
+
+
+def test_fast_path_at_order_48():
+    """A Riccati storage at n = 48 (the SDP would take minutes there)."""
+    rng = np.random.default_rng(3)
+    A, B, C, _ = _random_stable(rng, 48, 2)
+    K = dj.LTIController(A, 0.1 * B, 0.1 * C, 5.0 * np.eye(2))
+    cert = dj.certify(K, dj.QSR.passive(2))
+    assert cert.holds and cert.status == "riccati"
+    assert dissipation_ok(K, dj.QSR.passive(2), cert.P, python_control=False)

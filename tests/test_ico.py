@@ -277,8 +277,12 @@ def test_bad_input(getkey):
     windows = expert_windows(0, 1, 1, 1)
     with pytest.raises(ValueError, match="`qsr`"):
         dj.fit_ico(getkey(), windows, dj.QSR.passive(2))
-    with pytest.raises(ValueError, match="`qsr.Q`"):
-        dj.fit_ico(getkey(), windows, dj.QSR(1.0, 0.5, 0.0))
+    # An indefinite Q is accepted (tests/test_indefinite_q.py), but not one that admits no
+    # controller: with p = 2 inputs, Q = 1 and R = -I the supply form has 1 < p positive
+    # eigenvalues.
+    with pytest.raises(ValueError, match="`qsr` is infeasible"):
+        dj.fit_ico(getkey(), dj.Windows(windows.x0, jnp.concatenate([windows.y] * 2, -1),
+                                        windows.u), dj.QSR(1.0, np.zeros((1, 2)), -np.eye(2)))
     with pytest.raises(ValueError, match="fit_ico_nc"):
         dj.fit_ico(getkey(), windows, None)
 

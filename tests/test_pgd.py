@@ -198,8 +198,12 @@ def test_trainer_bad_input(getkey):
     w = random_windows(getkey(), N=4)
     with pytest.raises(ValueError, match="`qsr`"):
         dj.fit_pgd(getkey(), w, dj.QSR.passive(2))
-    with pytest.raises(ValueError, match="`qsr.Q`"):
-        dj.fit_pgd(getkey(), w, dj.QSR(1.0, 0.5, 0.0))
+    # An indefinite Q is accepted (tests/test_indefinite_q.py), but not one that admits no
+    # controller: with p = 2 inputs, Q = 1 and R = -I the supply form has 1 < p positive
+    # eigenvalues.
+    w2 = random_windows(getkey(), N=4, p=2)
+    with pytest.raises(ValueError, match="`qsr` is infeasible"):
+        dj.fit_pgd(getkey(), w2, dj.QSR(1.0, np.zeros((1, 2)), -np.eye(2)))
     with pytest.raises(ValueError, match="`learning_rate`"):
         dj.fit_pgd(getkey(), w, QSR, learning_rate=float("nan"))
     with pytest.raises(ValueError, match="`num_inits`"):

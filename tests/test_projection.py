@@ -86,11 +86,12 @@ def test_projection_in_float32_is_still_certified(getkey):
     assert dissipation_ok(Kp, qsr, P)
 
 
-def test_positive_q_rejected():
+def test_positive_q_accepted():
+    # An indefinite (here positive) Q is linearised, not refused (tests/test_indefinite_q.py).
     qsr = dj.QSR(1.0, 0.5, 1.0)
     K = dj.LTIController.random(1, 1, 1, key=jax.random.PRNGKey(0))
-    with pytest.raises(ValueError, match="`qsr.Q`"):
-        dj.project(K, qsr)
+    Kp, P = dj.project(K, qsr)
+    assert dissipation_ok(Kp, qsr, P)
 
 
 def test_shape_mismatch_rejected():
@@ -339,3 +340,39 @@ def test_projection_option_errors(getkey):
     with pytest.raises(ValueError, match="`A`"):
         dj.project(dj.LTIController(np.eye(2, dtype=int), np.ones((2, 1)), np.ones((1, 2)),
                                     np.ones((1, 1))), qsr)
+
+
+# -- the storage's conditioning and the retry from a scaled identity ---------------------------
+
+
+def test_projected_storage_is_well_conditioned(getkey):
+    """lambda_min(P) >= rho * mean eigenvalue (rho = P_FLOOR), to Clarabel's tolerance."""
+    qsr, n = dj.QSR.passive(2), 5
+    Kp, P = dj.project(_random_targets(getkey(), n, qsr, 6, scale=2.0), qsr)
+    for i in range(6):
+        lam = np.linalg.eigvalsh(np.asarray(P[i]))
+        # feasibility tolerance 1e-8 of Clarabel, relative to the data (entries of order |P|)
+        assert lam[0] >= _projection.P_FLOOR * lam.mean() - 1e-7 * (1 + lam[-1])
+        assert dissipation_ok(index(Kp, i), qsr, P[i])
+
+
+def test_projection_at_a_degenerate_reference_is_retried(getkey):
+    """A P_ref whose smallest eigenvalue is below the margin eps leaves the linearised set
+    empty (eps I <= P <= 2 P_ref - eps I); the projection starts again from a scaled identity."""
+    qsr, n = dj.QSR.passive(2), 4
+    Kc, Pc = dj.project(dj.LTIController.random(n, 2, 2, scale=1.0, key=getkey()), qsr)
+    lam, V = np.linalg.eigh(np.asarray(Pc))
+    lam[0] = 5e-7  # below eps = 1e-6
+    P_bad = (V * lam) @ V.T
+    target = jax.tree.map(lambda a: a + 0.3, Kc)
+    assert not dj.certify(target, qsr, P=P_bad).holds
+    # linearised at P_bad alone, the projection fails
+    layout = _projection._lmi(qsr, n).layout
+    theta = layout.pack(target.A, target.B, target.C, target.D)[None]
+    _, codes = _projection._project_rows(
+        qsr, theta, P_bad[None], np.ones_like(theta), 1, eps=1e-6, reg=1e-6,
+        dtype=np.float64, shards=1)
+    assert int(codes[0]) != Outcome.solved
+    Kp, P, status = _with_status(target, qsr, P_bad)
+    assert int(status) == Outcome.solved
+    assert dissipation_ok(Kp, qsr, P)

@@ -6,6 +6,7 @@ import jax
 import numpy as np
 
 from .._data import Windows
+from .._indefinite import check_feasible, is_indefinite
 from .._supply import QSR
 
 
@@ -20,7 +21,8 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
         if not isinstance(qsr, QSR):
             raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
         qsr.check_sizes(windows.n_in, windows.n_out)
-        qsr.neg_q_factor()  # ValueError naming `qsr.Q` for a Q with a positive eigenvalue
+        if is_indefinite(qsr):  # a Q <= 0 that admits no controller is reported by the solver
+            check_feasible(qsr)
     if int(num_inits) != num_inits or num_inits < 1:
         raise ValueError(f"`num_inits` must be a positive integer, got {num_inits!r}.")
     if int(max_steps) != max_steps or max_steps < 0:

@@ -72,17 +72,20 @@ class KYPBlock(ConeBlock):
         self._idx = svec_indices(lmi.N)
         n = layout.n
         dense = np.ones((n, n)) + np.eye(n)  # generic P~: every possible nonzero present
-        _, J, _ = self.blocks(dense)
-        nonzero = (lmi.svec(J) != 0) | (lmi.svec(lmi.J_fixed) != 0)  # [nx_lmi, rows]
+        rng = np.random.default_rng(0)  # a generic H0 for an indefinite Q, likewise
+        H0 = (rng.standard_normal((layout.m, n)), rng.standard_normal((layout.m, layout.p)))
+        _, J, _ = self.blocks(dense, H0)
+        nonzero = svec(J, self._idx) != 0  # [nx_lmi, rows]
         self._var, self._rows = np.nonzero(nonzero)  # lmi variable, svec row
         lmi_cols = np.concatenate([layout.col_theta, layout.colP])  # lmi variable -> column
         self._cols = lmi_cols[self._var]
 
-    def blocks(self, P_tilde):
-        """`(M0, J, E)` of the balanced LMI $M_0 + \\sum_k x_k J_k \\preceq -\\varepsilon E$."""
+    def blocks(self, P_tilde, H0=None):
+        """`(M0, J, E)` of the balanced LMI $M_0 + \\sum_k x_k J_k \\preceq -\\varepsilon E$
+        (`H0 = (C0, D0)`: the linearisation point of an indefinite $Q$, the iterate)."""
         n = self.layout.n
         P_tilde = np.asarray(P_tilde, np.float64)
-        M0, J = self.lmi.blocks(P_tilde)
+        M0, J = self.lmi.blocks(P_tilde, H0)
         E = np.eye(self.size)
         E[-n:, -n:] = P_tilde @ P_tilde
         lam, V = np.linalg.eigh(P_tilde)
@@ -96,7 +99,7 @@ class KYPBlock(ConeBlock):
 
     def fill(self, it):
         nth = self.layout.ntheta
-        M0, J, E = self.blocks(it.P)
+        M0, J, E = self.blocks(it.P, (it.C, it.D))
         sJ = svec(J, self._idx)  # [nx_lmi, rows]
         sJ[nth:] *= it.ps  # the SDP's P variable is P / ps (see `ICOProblem.p_scale`)
         b = -svec(M0, self._idx) - it.eps * svec(E, self._idx) - it.theta @ sJ[:nth]
@@ -117,7 +120,7 @@ class KYPBlock(ConeBlock):
         x = np.concatenate([theta, P[self.lmi.p_rows, self.lmi.p_cols]])
         T = np.eye(self.size)
         T[-n:, -n:] = np.linalg.inv(P)
-        M = T @ self.lmi.evaluate(x, P) @ T
+        M = T @ self.lmi.evaluate(x, P, tuple(self.layout.mats(theta)[2:])) @ T
         return -float(np.linalg.eigvalsh((M + M.T) / 2)[-1])
 
 

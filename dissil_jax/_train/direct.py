@@ -13,6 +13,7 @@ import optax
 from .. import _sdp
 from .._data import Windows
 from .._direct_map import MARGIN, check_margin, direct_map, init_params
+from .._indefinite import is_indefinite
 from .._projection import project
 from .._rollout import imitation_loss
 from .._supply import QSR
@@ -130,6 +131,12 @@ def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, to
     learning_rate = LEARNING_RATE if learning_rate is None else learning_rate
     check_fit_args(windows, qsr, num_inits, max_steps, learning_rate=learning_rate, tol=tol,
                    init_scale=init_scale)
+    if is_indefinite(qsr):
+        raise ValueError(
+            "`qsr.Q` has a positive eigenvalue: the direct map parameterises the dissipative "
+            "controllers only for Q negative semidefinite. Train under this `qsr` with "
+            "`dj.fit_pgd` or `dj.fit_ico` (they linearise Q's positive part), or pass a "
+            "supply rate with Q <= 0.")
     return optimizer, learning_rate, check_n_state(windows, n_state), check_margin(margin)
 
 
@@ -238,7 +245,8 @@ def fit_direct(
 
     - `key`: PRNG key for the initialisations.
     - `windows`: the demonstrations ([`Windows`][dissil_jax.Windows]).
-    - `qsr`: the controller's supply rate ($Q\\preceq0$).
+    - `qsr`: the controller's supply rate ($Q\\preceq0$; an indefinite $Q$ raises a
+      `ValueError`: use [`fit_pgd`][dissil_jax.fit_pgd] or [`fit_ico`][dissil_jax.fit_ico]).
     - `optimizer`, `learning_rate`: by default `optax.adam(learning_rate)` with
       `learning_rate` 0.3 (parameters and loss are unit-free; chosen on training loss in
       `benchmarks/bench_direct.py`), or any `optax.GradientTransformation` as `optimizer`.

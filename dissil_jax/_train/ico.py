@@ -89,7 +89,7 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, tol, dtype, index, callback
             # random draw, which lands on the boundary) leaves the SDP almost no interior.
             # Re-centre the linearisation point on the maximum-margin P of the exact
             # certificate and try once more.
-            cert = certify(LTIController(*pb.mats(theta)), qsr)
+            cert = certify(LTIController(*pb.mats(theta)), qsr, max_margin=True)
             if cert.holds:
                 P = np.asarray(cert.P, np.float64)
                 dtheta, P_new, w_new, status = _step(pb, solver, theta, P, w_tilde)
@@ -229,6 +229,14 @@ def fit_ico(
     instead of $yI$ (about 1.5x slower per iteration than `"soc"` for $m = 3$ and no better in
     our runs).
 
+    **Controller order.** The KYP LMI is balanced by the congruence with
+    $\\operatorname{diag}(\\tilde P^{-1/2}, I, I, \\tilde P^{-1/2})$, which fills its $A$
+    columns: about $\\hat n^4$ nonzeros, and an iteration's cost grows about like
+    $\\hat n^{3.5}$ (0.2 s at $\\hat n = 8$, 2 s at $\\hat n = 16$ for $m = p = 2$; see
+    [Scaling up](scaling.md#scaling-up)). ICO is meant for $\\hat n \\le 24$; for larger
+    controllers use [`fit_direct`][dissil_jax.fit_direct] (no SDP in the loop) or
+    [`fit_pgd`][dissil_jax.fit_pgd].
+
     **The Young weight.** As in the paper, $w$ is a decision variable and $1/w$ (the
     $W^{-1}$ block) is replaced by its tangent $2/\\tilde w - w/\\tilde w^2 \\le 1/w$, so
     $w\\in(0, 2\\tilde w]$ and the bound is exact for any $\\tilde w$ at $\\delta = 0$. The first
@@ -262,7 +270,8 @@ def fit_ico(
     - `windows`: demonstration windows with horizon $h = 2$ (ValueError otherwise: the
       overbound is derived for the two-step loss; cut longer demonstrations into 2-step
       windows, or use `dj.fit_pgd`).
-    - `qsr`: the controller's supply rate ($Q\\preceq 0$).
+    - `qsr`: the controller's supply rate (any symmetric $Q$; an indefinite $Q$'s positive
+      part is linearised at the current iterate, so every iterate stays certified).
     - `num_inits`: number of random initialisations.
     - `max_steps`: maximum number of ICO iterations (paper: 150).
     - `tol`: stop when $|\\Delta J| <$ `tol` (paper: 1e-3 linear, 1e-5 nonlinear).

@@ -99,8 +99,10 @@ def _loop(K0, P0, code0, windows, opt, *, qsr, max_steps, tol, eps):
         P_new, failed = c["P"], jnp.zeros(num_inits, bool)
         code = jnp.full(num_inits, _CONVERGED, jnp.int32)
         if qsr is not None:
+            # An indefinite Q's positive part is linearised at the certified iterate (K_ref),
+            # once per step (refine=1; the next step re-linearises). No effect for Q <= 0.
             proj = project(K_new, qsr, c["P"], throw=False, active=active, eps=eps,
-                           metric=optimizer_metric(opt_state, K_new))
+                           metric=optimizer_metric(opt_state, K_new), K_ref=c["K"], refine=1)
             failed = _sdp.failed(proj.result._value)
             code = jnp.where(failed, proj.result._value, code)
             K_new, P_new = proj
@@ -271,7 +273,8 @@ def fit_pgd(
 
     - `key`: PRNG key for the initialisations.
     - `windows`: the demonstrations ([`Windows`][dissil_jax.Windows]).
-    - `qsr`: the controller's supply rate ($Q\\preceq0$).
+    - `qsr`: the controller's supply rate (any symmetric $Q$; an indefinite $Q$'s positive
+      part is linearised at the current iterate, see [`project`][dissil_jax.project]).
     - `optimizer`, `learning_rate`, `decay`: the step rule. By default the paper's rule
       with `learning_rate` $\\eta_0 = 1$ (in the normalised units above) and `decay`
       $\\rho = 0.99$, chosen by measurement on four problems against Adam and ICO

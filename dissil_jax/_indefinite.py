@@ -1,0 +1,94 @@
+"""Supply rates with an indefinite $Q$: the split $Q = Q_+ - Q_-$, feasibility, a feasible point.
+
+The KYP matrix contains $-H^\\top QH$ with $H = [C\\ D]$. Its part $+H^\\top Q_-H$ is convex
+and is Schur-complemented with $Q_- = L_-L_-^\\top$ like a negative semidefinite $Q$. The part
+$-H^\\top Q_+H$ is concave; since $(H - H_0)^\\top Q_+(H - H_0) \\succeq 0$,
+
+$$-H^\\top Q_+H \\preceq -H_0^\\top Q_+H - H^\\top Q_+H_0 + H_0^\\top Q_+H_0,$$
+
+with equality at $H = H_0$. Replacing the term by this affine bound gives a convex inner
+approximation of the dissipative set that is exact at the linearisation point $H_0$
+(`docs/concepts.md`, *Indefinite Q*; the term itself is assembled by `ConvexifiedLMI`).
+Plain float64 numpy; no solver code.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._supply import QSR
+
+_TOL = 1e-10
+
+
+def split_q(Q) -> tuple[np.ndarray, np.ndarray]:
+    """`(L_minus, L_plus)` with $Q = L_+L_+^\\top - L_-L_-^\\top$ (columns: the nonzero
+    eigen-directions of each sign, scaled by the square roots of the eigenvalues)."""
+    # eigh of -Q, as `QSR.neg_q_factor`, so that L_minus is that factor for Q <= 0
+    w, V = np.linalg.eigh(-np.asarray(Q, np.float64))
+    scale = max(1.0, float(np.abs(w).max(initial=0.0)))
+    neg, pos = w > _TOL * scale, w < -_TOL * scale
+    return V[:, neg] * np.sqrt(w[neg]), V[:, pos] * np.sqrt(-w[pos])
+
+
+def is_indefinite(qsr: QSR) -> bool:
+    """True when $Q$ has a positive eigenvalue (beyond round-off), i.e. $Q_+ \\neq 0$."""
+    return split_q(qsr.Q)[1].shape[1] > 0
+
+
+def _supply_matrix(qsr: QSR) -> np.ndarray:
+    return np.block([[qsr.Q, qsr.S], [qsr.S.T, qsr.R]])
+
+
+def check_feasible(qsr: QSR) -> None:
+    """Raise a `ValueError` naming `qsr` when no controller is strictly dissipative.
+
+    A strictly dissipative controller has $D^\\top QD + D^\\top S + S^\\top D + R \\succ 0$ (the
+    lower-right block of its KYP matrix is $\\prec 0$ and $B^\\top PB \\succeq 0$), i.e. the
+    supply form $\\Phi = [[Q, S], [S^\\top, R]]$ is positive definite on the $p$-dimensional
+    graph $\\{(Du, u)\\}$; then the static controller $D$ itself is one. Such a $D$ exists iff
+    $\\Phi$ has at least $p$ positive eigenvalues: a positive subspace of dimension $p$ exists
+    then, the positive subspaces are open and the graphs are dense among $p$-subspaces.
+    """
+    p = qsr.n_in
+    w = np.linalg.eigvalsh(_supply_matrix(qsr))
+    scale = max(1.0, float(np.abs(w).max(initial=0.0)))
+    n_pos = int(np.sum(w > _TOL * scale))
+    if n_pos < p:
+        raise ValueError(
+            f"`qsr` is infeasible: its supply form [[Q, S], [S', R]] has {n_pos} positive "
+            f"eigenvalue(s) but the controller has {p} input(s), so no controller of any order "
+            "is strictly dissipative (D'QD + D'S + S'D + R > 0 has no solution D). Check the "
+            "signs of R and S, or derive the rate with `dj.stabilising_qsr` with smaller margins."
+        )
+
+
+def static_point(qsr: QSR) -> np.ndarray:
+    """A real $D$ ($m\\times p$) with $D^\\top QD + D^\\top S + S^\\top D + R \\succ 0$.
+
+    The static controller $(0, 0, 0, D)$ is strictly dissipative for every $P \\succ 0$, so
+    it is a feasible linearisation point. Built from the $p$ leading eigenvectors
+    $V = [V_y; V_u]$ of $\\Phi$ (then $D = V_yV_u^{-1}$), tilted by a fixed perturbation when
+    $V_u$ is singular (the positive cone is open). Call `check_feasible` first.
+    """
+    m, p = qsr.S.shape
+    Phi = _supply_matrix(qsr)
+    w, V = np.linalg.eigh(Phi)
+    V = V[:, ::-1][:, :p]
+    G = np.random.default_rng(0).standard_normal(V.shape)
+    best, best_margin = None, -np.inf
+    for t in (0.0, *(0.5**k for k in range(40))):
+        Vt = V + t * G
+        Vy, Vu = Vt[:m], Vt[m:]
+        if np.linalg.cond(Vu) > 1e8:
+            continue
+        D = np.linalg.solve(Vu.T, Vy.T).T
+        F = D.T @ qsr.Q @ D + D.T @ qsr.S + qsr.S.T @ D + qsr.R
+        margin = np.linalg.eigvalsh((F + F.T) / 2)[0] / (1 + np.abs(D).max() ** 2)
+        if margin > best_margin:
+            best, best_margin = D, margin
+        if margin > 0 and t == 0.0:
+            break
+    if best is None or best_margin <= 0:  # pragma: no cover - excluded by check_feasible
+        raise ValueError("`qsr` admits no strictly dissipative static controller.")
+    return best
