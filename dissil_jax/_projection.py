@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
-from . import _sdp
+from . import _projection_fo, _sdp
 from ._controller import LTIController
 from ._lmi import ConvexifiedLMI
 from ._projection_args import check_options as _check_options, check_qsr as _check_qsr
@@ -326,6 +326,7 @@ def _raise_on_failure(P, codes):
 def project(
     K: LTIController, qsr: QSR, P_ref=None, *, throw: bool = True, active=True,
     eps: float = 1e-6, reg: float = 1e-6, refine: int = 3, metric: LTIController | None = None,
+    method: str = "clarabel",
 ) -> Projection:
     """Project `K` onto the convexified $(Q,S,R)$-dissipative set (paper eq. 13).
 
@@ -371,6 +372,11 @@ def project(
     - `metric`: positive weights $W$ as an `LTIController` shaped (and batched) like `K`;
       only their ratios matter. Projected adaptive optimisers need it (see
       [`fit_pgd`][dissil_jax.fit_pgd] and [Concepts](concepts.md#projecting-an-adaptive-step)).
+    - `method`: `"clarabel"` (the interior-point solver on the host), `"first_order"`
+      (ADMM in JAX, then the same exact float64 check on the host, with Clarabel for any
+      row that fails it; Frobenius distance only; see
+      [Scaling out](scaling.md#a-first-order-projection)) or `"auto"` (first-order from
+      `_projection_fo.AUTO_MIN_ORDER` states on, where it was faster).
 
     **Returns:** a [`Projection`][dissil_jax.Projection] `(K_proj, P)` with `.result`.
 
@@ -382,12 +388,18 @@ def project(
     """
     _check_qsr(K, qsr)
     _check_options(K, P_ref, active, eps, reg, refine, metric)
-    fn = partial(_project_one, qsr=qsr, eps=eps, reg=reg, refine=refine)
     in_ref, in_act = None if P_ref is None else 0, 0 if jnp.ndim(active) else None
-    W = jax.tree.map(jnp.ones_like, K) if metric is None else metric
-    for _ in K.batch_shape:
-        fn = jax.vmap(fn, in_axes=(0, in_ref, 0, in_act))
-    K_out, P, codes = fn(K, P_ref, W, active)
+    if _projection_fo.use_first_order(method, K, metric):
+        fn = partial(_projection_fo.project_one, qsr=qsr, eps=eps, reg=reg, refine=refine)
+        for _ in K.batch_shape:
+            fn = jax.vmap(fn, in_axes=(0, in_ref, in_act))
+        K_out, P, codes = fn(K, P_ref, active)
+    else:
+        fn = partial(_project_one, qsr=qsr, eps=eps, reg=reg, refine=refine)
+        W = jax.tree.map(jnp.ones_like, K) if metric is None else metric
+        for _ in K.batch_shape:
+            fn = jax.vmap(fn, in_axes=(0, in_ref, 0, in_act))
+        K_out, P, codes = fn(K, P_ref, W, active)
     if throw:
         P = _raise_on_failure(P, codes)
     return Projection(K_out, P, _sdp.item(codes))

@@ -46,6 +46,14 @@ def test_direct_run_compiles_without_custom_calls(getkey):
     assert any("potrf" in c for c in _custom_calls(chol, jnp.stack([jnp.eye(3)] * 2)))
 
 
+def test_nmpc_expert_compiles_without_custom_calls():
+    # The same cause hung the NMPC closed loop (its Newton solves run batched over states
+    # inside a while_loop); it uses the same loop-based solves.
+    expert = dj.experts.nmpc_expert()
+    solve = jax.vmap(lambda x: expert.solve(x).u)
+    assert _custom_calls(solve, jnp.linspace(-1.0, 1.0, 4)[:, None]) == []
+
+
 def _spd(key, k):
     X = jr.normal(key, (k, k))
     return X.T @ X + 0.5 * jnp.eye(k)

@@ -251,7 +251,9 @@ def fit_direct(
     ([`imitation_loss`][dissil_jax.imitation_loss]) of the windows in normalised units
     (as [`fit_pgd`][dissil_jax.fit_pgd]: scaling $x_0$, $y$, $u$ by $c>0$ changes nothing;
     losses and `tol` are in the user's units), all in one compiled `lax.while_loop`
-    without leaving the device. The run stops when $|J(K_{i+1}) - J(K_i)| <$ `tol` or after
+    without leaving the device (no LAPACK call in the loop either: its factorisations are
+    loop-based, see [Thread-pool deadlocks](scaling.md#thread-pool-deadlocks)). The run
+    stops when $|J(K_{i+1}) - J(K_i)| <$ `tol` or after
     `max_steps`.
 
     **Certified at the end.** Each returned $(K, P)$ is checked in float64 on the host
@@ -265,16 +267,19 @@ def fit_direct(
     - `key`: PRNG key for the initialisations.
     - `windows`: the demonstrations ([`Windows`][dissil_jax.Windows]).
     - `qsr`: the controller's supply rate ($Q\\preceq0$).
-    - `optimizer`, `learning_rate`: by default `optax.adam(learning_rate)` with
-      `learning_rate` 0.3 (parameters and loss are unit-free; chosen on training loss in
-      `benchmarks/bench_direct.py`), or any `optax.GradientTransformation` as `optimizer`.
+    - `optimizer`, `learning_rate`: by default `optax.adam(learning_rate)`, or any
+      `optax.GradientTransformation` as `optimizer`. The default step depends on the
+      width $w = \\hat n + p$: $0.3\\min(1, 9/w)$ (0.3 at the paper's sizes; parameters
+      and loss are unit-free), see `default_hyperparameters` and
+      [concepts](concepts.md#a-direct-parameterisation).
     - `num_inits`, `n_state`, `max_steps`, `tol`: as in [`fit_pgd`][dissil_jax.fit_pgd].
     - `init_scale` $\\sigma$: the initial $\\theta$ has $X = I$ (so $P\\approx I$, the
       projection's starting point) and i.i.d. $\\mathcal N(0,\\sigma^2)$ entries in $W$
-      and $V$: a random dissipative controller. $\\sigma = 1$ starts at about half the
-      loss of PGD's projected N(0, 1) draw, but with the map's contractions near
-      saturation, where gradients are small; the default $\\sigma = 0.5$ (a quarter to
-      40 % of PGD's initial loss) trained better on both of the paper's examples.
+      and $V$: a random dissipative controller. Default $0.5\\min(1, \\sqrt{9/w})$, so
+      that the initial loss does not grow with the order: $\\sigma = 0.5$ (a quarter to
+      40 % of PGD's initial loss at the paper's sizes) trained better than $\\sigma = 1$,
+      whose contractions start near saturation, where gradients are small; a fixed
+      $\\sigma$ saturates them more the wider the controller.
     - `margin` $\\varepsilon\\in(0,1)$: the map's strictness margin (static).
     - `eps`: the margin of the fallback projection.
     - `throw`: raise a `ValueError` when a run ends in failure (a non-finite loss, or a
