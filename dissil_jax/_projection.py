@@ -326,7 +326,7 @@ def _raise_on_failure(P, codes):
 def project(
     K: LTIController, qsr: QSR, P_ref=None, *, throw: bool = True, active=True,
     eps: float = 1e-6, reg: float = 1e-6, refine: int = 3, metric: LTIController | None = None,
-    method: str = "clarabel",
+    method: str = "auto",
 ) -> Projection:
     """Project `K` onto the convexified $(Q,S,R)$-dissipative set (paper eq. 13).
 
@@ -372,11 +372,9 @@ def project(
     - `metric`: positive weights $W$ as an `LTIController` shaped (and batched) like `K`;
       only their ratios matter. Projected adaptive optimisers need it (see
       [`fit_pgd`][dissil_jax.fit_pgd] and [Concepts](concepts.md#projecting-an-adaptive-step)).
-    - `method`: `"clarabel"` (the interior-point solver on the host), `"first_order"`
-      (ADMM in JAX, then the same exact float64 check on the host, with Clarabel for any
-      row that fails it; Frobenius distance only; see
-      [Scaling out](scaling.md#a-first-order-projection)) or `"auto"` (first-order from
-      `_projection_fo.AUTO_MIN_ORDER` states on, where it was faster).
+    - `method`: `"clarabel"`, `"first_order"` (ADMM in JAX, the same float64 check,
+      Clarabel where it fails; Frobenius only; [Scaling out](scaling.md#a-first-order-projection))
+      or `"auto"` (first-order from `_projection_fo.AUTO_MIN_ORDER` states on).
 
     **Returns:** a [`Projection`][dissil_jax.Projection] `(K_proj, P)` with `.result`.
 
@@ -389,17 +387,13 @@ def project(
     _check_qsr(K, qsr)
     _check_options(K, P_ref, active, eps, reg, refine, metric)
     in_ref, in_act = None if P_ref is None else 0, 0 if jnp.ndim(active) else None
-    if _projection_fo.use_first_order(method, K, metric):
-        fn = partial(_projection_fo.project_one, qsr=qsr, eps=eps, reg=reg, refine=refine)
-        for _ in K.batch_shape:
-            fn = jax.vmap(fn, in_axes=(0, in_ref, in_act))
-        K_out, P, codes = fn(K, P_ref, active)
-    else:
-        fn = partial(_project_one, qsr=qsr, eps=eps, reg=reg, refine=refine)
-        W = jax.tree.map(jnp.ones_like, K) if metric is None else metric
-        for _ in K.batch_shape:
-            fn = jax.vmap(fn, in_axes=(0, in_ref, 0, in_act))
-        K_out, P, codes = fn(K, P_ref, W, active)
+    first_order = _projection_fo.use_first_order(method, K, metric)
+    fn = partial(_projection_fo.project_one if first_order else _project_one, qsr=qsr,
+                 eps=eps, reg=reg, refine=refine)
+    W = jax.tree.map(jnp.ones_like, K) if metric is None else metric
+    for _ in K.batch_shape:
+        fn = jax.vmap(fn, in_axes=(0, in_ref, 0, in_act))
+    K_out, P, codes = fn(K, P_ref, W, active)
     if throw:
         P = _raise_on_failure(P, codes)
     return Projection(K_out, P, _sdp.item(codes))

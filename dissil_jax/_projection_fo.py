@@ -215,11 +215,12 @@ FALLBACKS = {"rows": 0}
 _FALLBACK_LOCK = __import__("threading").Lock()
 
 
-def project_one(K, P_ref, active, *, qsr: QSR, eps, reg, refine, margin=None, tol=None,
+def project_one(K, P_ref, W, active, *, qsr: QSR, eps, reg, refine, margin=None, tol=None,
                 max_iter=None, rho=None):
     """The unbatched first-order projection (vmap for batches): ADMM at $\\tilde P$ =
     `P_ref`, or from $\\tilde P = I$ with `refine` re-linearisations, then one
-    `pure_callback` for the exact check (and the Clarabel fallback)."""
+    `pure_callback` for the exact check (and the Clarabel fallback). `W` (the metric's
+    weights, all ones: `use_first_order` admits no metric) keeps `project`'s signature."""
     from . import _sdp
 
     # module constants read at call time (the tests shrink the budget to force the fallback)
