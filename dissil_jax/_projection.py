@@ -374,7 +374,7 @@ def project(
       [`fit_pgd`][dissil_jax.fit_pgd] and [Concepts](concepts.md#projecting-an-adaptive-step)).
     - `method`: `"clarabel"`, `"first_order"` (ADMM in JAX, the same float64 check,
       Clarabel where it fails; Frobenius only; [Scaling out](scaling.md#a-first-order-projection))
-      or `"auto"` (first-order from `_projection_fo.AUTO_MIN_ORDER` states on).
+      or `"auto"` (first-order from `_projection_fo.AUTO_MIN_ORDER` states on; now never).
 
     **Returns:** a [`Projection`][dissil_jax.Projection] `(K_proj, P)` with `.result`.
 

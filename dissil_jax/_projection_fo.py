@@ -251,9 +251,11 @@ def project_one(K, P_ref, W, active, *, qsr: QSR, eps, reg, refine, margin=None,
     return LTIController(*mats[:4]), mats[4], codes
 
 
-#: `method="auto"` uses the first-order path from this controller order on (measured in
-#: `benchmarks/bench_fo_projection.py`: Clarabel was faster below it).
-AUTO_MIN_ORDER = 16
+#: `method="auto"` uses the first-order path from this controller order on; None: never.
+#: On CPU it was slower than Clarabel at every order measured (13x slower per PGD step at
+#: n = 6, cold-started ADMM, `benchmarks/bench_fo_projection.py`), so "auto" is Clarabel
+#: until a measurement (warm starts, accelerators) shows a size where it wins.
+AUTO_MIN_ORDER = None
 METHODS = ("clarabel", "first_order", "auto")
 
 
@@ -265,5 +267,6 @@ def use_first_order(method, K, metric) -> bool:
         raise ValueError("`method='first_order'` projects in the Frobenius distance only; "
                          "pass `method='clarabel'` (or 'auto') with a `metric`.")
     if method == "auto":
-        return metric is None and K.n_state >= AUTO_MIN_ORDER
+        return (metric is None and AUTO_MIN_ORDER is not None
+                and K.n_state >= AUTO_MIN_ORDER)
     return method == "first_order"

@@ -104,7 +104,8 @@ def test_method_argument(getkey):
     with pytest.raises(ValueError, match="`method='first_order'`"):
         dj.project(K, RATES["passive"], method="first_order",
                    metric=jax.tree.map(jnp.ones_like, K))
-    assert not fo.use_first_order("auto", K, None)  # n = 3: below AUTO_MIN_ORDER
+    assert not fo.use_first_order("auto", K, None)  # "auto" is Clarabel (AUTO_MIN_ORDER None)
+    assert fo.use_first_order("first_order", K, None)
 
 
 def test_pgd_with_the_first_order_projection(getkey):

@@ -293,11 +293,11 @@ def fit_pgd(
       `converged` or `max_steps`: a failed projection, or a non-finite loss). With
       `throw=False` the result is returned and `stop_reason` says what happened; a failed
       run keeps its last certified iterate.
-    - `method`: $\\Pi$'s solver, as `project`'s `method`: `"auto"` (default) takes the
-      first-order projection (ADMM in JAX, every result still checked in float64 on the
-      host, Clarabel where the check fails) for Frobenius projections from
-      `_projection_fo.AUTO_MIN_ORDER` states on, and Clarabel otherwise (and always with
-      an adaptive optimiser's metric); `"clarabel"` and `"first_order"` force one.
+    - `method`: $\\Pi$'s solver, as `project`'s `method`. `"first_order"`: ADMM in JAX
+      (Frobenius projections only, so not with an adaptive optimiser's metric), every
+      result still checked in float64 on the host, Clarabel where the check fails;
+      `"clarabel"`; `"auto"` (default): Clarabel at every size so far, since the
+      first-order path was slower on CPU ([Scaling out](scaling.md#a-first-order-projection)).
 
     **Initialisation.** The paper draws "each matrix element from a normal distribution"
     and projects the draw (paper §4.1); `init_scale=1.0` is that N(0, 1). A small scale
