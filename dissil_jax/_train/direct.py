@@ -40,7 +40,7 @@ def default_hyperparameters(n_state: int, n_in: int) -> tuple[float, float]:
 
     Why: the spectral norms of $V$ and $W$ with i.i.d. $\\mathcal N(0,\\sigma^2)$ entries grow
     like $\\sigma\\sqrt w$, which pushes the contractions $U$, $Z$ towards saturation (and the
-    initial loss up: at $\\sigma = 0.5$ it grew 3x from $\\hat n = 6$ to 48 on the chain
+    initial loss up: at $\\sigma = 0.5$ it grew 3x from $\\hat n = 6$ to 48 on one of the chain
     problems of `benchmarks/bench_high_order.py`); $\\sigma\\propto1/\\sqrt w$ keeps
     $\\lVert V\\rVert_2$ constant. Adam moves every entry by about $\\eta$ per step, so a
     step changes $V$ by about $\\eta\\sqrt w$ in spectral norm, and the loss's curvature
