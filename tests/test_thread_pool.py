@@ -62,7 +62,7 @@ def _spd(key, k):
 def test_loop_solves_match_lapack(getkey):
     # Same algorithms as LAPACK up to the order of the sums: agreement to a few ulps times
     # the condition number (~1e2 here), so 1e-11 leaves room.
-    k = 9
+    k = 5
     M, B, A = _spd(getkey(), k), jr.normal(getkey(), (k, 3)), jr.normal(getkey(), (k, k))
     A = A + 4.0 * jnp.eye(k)  # well conditioned, so the finite differences below are sharp
     L = jnp.linalg.cholesky(M)
@@ -121,13 +121,9 @@ def _reproducer(n, inits, steps, timeout):
     assert "OK True" in out.stdout, out.stdout + out.stderr[-2000:]
 
 
-def test_batched_solves_in_loop_do_not_hang_short():
-    # The batched-solve-in-loop path at the issue's size with fewer steps (always on; the
-    # full reproducer below, 600 steps, hung in 2 of 3 attempts before the fix). The
-    # deterministic guard is the custom-call test above; this one checks the whole call.
-    _reproducer(20, 32, 60, timeout=240)
-
-
-@pytest.mark.slow
 def test_issue_reproducer_does_not_hang():
+    # The issue's call (n̂ = 20, 32 initialisations, 600 steps, learning rate 0.03): it
+    # hung in 2 of 3 attempts before the fix; 15 s with the fix on an idle 2-core machine
+    # (compilation included), so it stays in the normal run. The deterministic guard is
+    # the custom-call test above; this one checks the whole call.
     _reproducer(20, 32, 600, timeout=600)
