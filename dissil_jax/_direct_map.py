@@ -36,6 +36,7 @@ import jax.scipy.linalg as jsl
 import numpy as np
 from jaxtyping import Array, Float
 
+from . import _linalg
 from ._controller import LTIController
 from ._supply import QSR
 
@@ -116,13 +117,16 @@ def check_margin(margin) -> float:
     return float(margin)
 
 
+# The factorisations and solves run inside the training loop, batched over initialisations:
+# they are the loop-based ones of `_linalg.py`, not LAPACK's (which can deadlock there; see
+# docs/scaling.md, "Thread-pool deadlocks").
 def _upper_chol(M):
-    return jnp.linalg.cholesky(M).T  # M = G' G with G upper triangular
+    return _linalg.cholesky(M).T  # M = G' G with G upper triangular
 
 
 def _right_inv(Z, G):
     """$Z G^{-1}$ for upper-triangular $G$."""
-    return jsl.solve_triangular(G, Z.T, trans="T", lower=False).T
+    return _linalg.solve_triangular(G, Z.T, lower=False, trans=True).T
 
 
 def direct_map(theta: DirectParams, qsr: QSR, margin: float = MARGIN):
@@ -152,14 +156,14 @@ def direct_map(theta: DirectParams, qsr: QSR, margin: float = MARGIN):
     Z = _right_inv(W, G_W)
     # Y = [[I, 0], [-T_u'Z_x, I - T_u'Z_u]] is block lower triangular: one p x p solve.
     TZ = T_u.T @ Z
-    lower = jnp.linalg.solve(eye(p) - TZ[:, n:], jnp.concatenate([TZ[:, :n], eye(p)], 1))
+    lower = _linalg.solve(eye(p) - TZ[:, n:], jnp.concatenate([TZ[:, :n], eye(p)], 1))
     Y_inv = jnp.concatenate([jnp.concatenate([eye(n), jnp.zeros((n, p), dtype)], 1), lower])
     CD = (1.0 - margin) * Z @ Y_inv @ G
     C, D = CD[:, :n], D0 + CD[:, n:]
     # (A, B): [A B]' P [A B] = K_F' U'U K_F < K_F' K_F = F(C, D) - eps G'G.
-    K_F = jnp.sqrt(1.0 - margin) * jsl.solve_triangular(G_W, Y_inv @ G, lower=False)
+    K_F = jnp.sqrt(1.0 - margin) * _linalg.solve_triangular(G_W, Y_inv @ G, lower=False)
     U = _right_inv(V, _upper_chol(eye(n + p) + V.T @ V))
-    AB = jsl.solve_triangular(G_P, U @ K_F, lower=False)
+    AB = _linalg.solve_triangular(G_P, U @ K_F, lower=False)
     return LTIController(AB[:, :n], AB[:, n:], C, D), (P + P.T) / 2
 
 

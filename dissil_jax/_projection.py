@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _certify_fast, _sdp
+from . import _certify_fast, _projection_fo, _sdp
 from ._controller import LTIController
 from ._lmi import ConvexifiedLMI
 from ._projection_args import (
@@ -256,7 +256,7 @@ def _project_one(K: LTIController, P_ref, W: LTIController, active, K_ref, *, qs
 def project(
     K: LTIController, qsr: QSR, P_ref=None, *, throw: bool = True, active=True,
     eps: float = 1e-6, reg: float = 1e-6, refine: int = 3, metric: LTIController | None = None,
-    K_ref: LTIController | None = None,
+    K_ref: LTIController | None = None, method: str = "auto",
 ) -> Projection:
     """Project `K` onto the convexified $(Q,S,R)$-dissipative set (paper eq. 13).
 
@@ -320,6 +320,10 @@ def project(
     - `K_ref`: for an indefinite $Q$, the first linearisation point of $Q_+$'s term (an
       `LTIController` shaped and batched like `K`, ideally certified with `P_ref`); ignored
       for $Q\\preceq0$. Default: the target itself.
+    - `method`: `"clarabel"`, `"first_order"` (ADMM in JAX, the same float64 check,
+      Clarabel where it fails; Frobenius only, $Q\\preceq0$ only;
+      [Scaling out](scaling.md#a-first-order-projection)) or `"auto"` (first-order from
+      `_projection_fo.AUTO_MIN_ORDER` states on; now never).
 
     **Returns:** a [`Projection`][dissil_jax.Projection] `(K_proj, P)` with `.result`.
 
@@ -332,8 +336,10 @@ def project(
     _check_qsr(K, qsr)
     _check_options(K, P_ref, active, eps, reg, refine, metric)
     _check_k_ref(K, K_ref)
-    fn = partial(_project_one, qsr=qsr, eps=eps, reg=reg, refine=refine)
     in_ref, in_act = None if P_ref is None else 0, 0 if jnp.ndim(active) else None
+    first_order = _projection_fo.use_first_order(method, K, metric, qsr)
+    fn = partial(_projection_fo.project_one if first_order else _project_one, qsr=qsr,
+                 eps=eps, reg=reg, refine=refine)
     W = jax.tree.map(jnp.ones_like, K) if metric is None else metric
     for _ in K.batch_shape:
         fn = jax.vmap(fn, in_axes=(0, in_ref, 0, in_act, 0))

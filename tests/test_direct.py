@@ -255,6 +255,24 @@ def test_no_retracing_across_calls(getkey, monkeypatch):
         dj.fit_direct(getkey(), w1, qsr, num_inits=3, max_steps=5)
 
 
+def test_defaults_follow_the_order(getkey):
+    # The paper's sizes keep the values chosen there; wider controllers get a smaller step
+    # and a smaller initial scale (rule: docs/concepts.md, "Initialisation and steps").
+    assert direct.default_hyperparameters(6, 3) == (0.3, 0.5)
+    lr, s = direct.default_hyperparameters(48, 2)
+    assert np.isclose(lr, 0.3 * 9 / 50) and np.isclose(s, 0.5 * (9 / 50) ** 0.5)
+    assert direct.default_hyperparameters(1, 1) == (0.3, 0.5)  # capped at the paper's values
+    # The run uses them: identical to passing them explicitly, and not to the old fixed ones.
+    n, p = 10, 2
+    w = dj.Windows(jr.normal(getkey(), (6, n)), jr.normal(getkey(), (6, 3, p)),
+                   jr.normal(getkey(), (6, 3, p)))
+    run = lambda **kw: dj.direct_run(jr.PRNGKey(0), w, dj.QSR.passive(p), num_inits=2,
+                                     max_steps=3, tol=0.0, **kw).loss_history
+    lr, s = direct.default_hyperparameters(n, p)
+    np.testing.assert_array_equal(run(), run(learning_rate=lr, init_scale=s))
+    assert not np.array_equal(run(), run(learning_rate=0.3, init_scale=0.5))
+
+
 def test_windows_at_rest_need_n_state(getkey):
     qsr = SUPPLY_RATES["passive"]
     w = expert_windows(7, 2, 2, 2)

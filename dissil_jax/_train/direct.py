@@ -24,12 +24,33 @@ from .result import FitResult, raise_if_failed
 _CONVERGED, _MAX_STEPS, _NON_FINITE = (
     _sdp.code(r) for r in ("converged", "max_steps", "non_finite"))
 
-#: Defaults chosen on training loss (`benchmarks/bench_direct.py`, the paper's two examples,
-#: three linear plants): Adam's step in the normalised units of `_scale.py` (the parameters
-#: are unit-free) with the smallest worst-case regret (best: 0.1 nonlinear, 0.5 linear), and
-#: the scale of the initial draw of W and V; with 1.0 the contractions start nearly
-#: saturated and the median training loss was up to 3x worse.
-LEARNING_RATE, INIT_SCALE = 0.3, 0.5
+#: Defaults at the reference width n + p = 9 (the paper's linear example, n = 6, p = 3),
+#: chosen on training loss (`benchmarks/bench_direct.py`): Adam's step in the normalised
+#: units of `_scale.py` and the scale of the initial draw of W and V (with 1.0 the
+#: contractions start nearly saturated and the median training loss was up to 3x worse).
+#: `default_hyperparameters` scales both down for wider controllers.
+LEARNING_RATE, INIT_SCALE, _WIDTH = 0.3, 0.5, 9
+
+
+def default_hyperparameters(n_state: int, n_in: int) -> tuple[float, float]:
+    """`(learning_rate, init_scale)` of `fit_direct` for a controller of order $\\hat n$
+    with $p$ inputs: with $w = \\hat n + p$ (the width of $V$ and $W$),
+
+    $$\\sigma = 0.5\\,\\min\\bigl(1, \\sqrt{9/w}\\bigr), \\qquad
+    \\eta = 0.3\\,\\min\\bigl(1, 9/w\\bigr).$$
+
+    Why: the spectral norms of $V$ and $W$ with i.i.d. $\\mathcal N(0,\\sigma^2)$ entries grow
+    like $\\sigma\\sqrt w$, which pushes the contractions $U$, $Z$ towards saturation (and the
+    initial loss up: at $\\sigma = 0.5$ it grew 3x from $\\hat n = 6$ to 48 on one of the chain
+    problems of `benchmarks/bench_high_order.py`); $\\sigma\\propto1/\\sqrt w$ keeps
+    $\\lVert V\\rVert_2$ constant. Adam moves every entry by about $\\eta$ per step, so a
+    step changes $V$ by about $\\eta\\sqrt w$ in spectral norm, and the loss's curvature
+    grows with the order too; the best fixed step fell from 0.3 at $\\hat n\\le12$ to 0.1 at
+    24 and 0.03 at 48 in that benchmark's sweep, which $\\eta\\propto1/w$ follows.
+    """
+    width = n_state + n_in
+    return (LEARNING_RATE * min(1.0, _WIDTH / width),
+            INIT_SCALE * min(1.0, (_WIDTH / width) ** 0.5))
 
 
 def _where(mask, new, old):
@@ -116,7 +137,8 @@ _run_jit = eqx.filter_jit(_run)
 
 def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, tol,
              init_scale, n_state, margin):
-    """Check the arguments; returns `(optimizer, learning_rate, n_state, margin)`."""
+    """Check the arguments; returns `(optimizer, learning_rate, init_scale, n_state, margin)`
+    (`learning_rate` and `init_scale` from `default_hyperparameters` where None)."""
     if qsr is None:
         raise ValueError("`qsr` is required: the direct map parameterises the (Q,S,R)-"
                          "dissipative controllers; use `dj.fit_gd` for unconstrained training.")
@@ -128,21 +150,25 @@ def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, to
             raise ValueError(f"`optimizer` must be an `optax.GradientTransformation`, got "
                              f"{type(optimizer).__name__}.")
         learning_rate = 0.0  # unused
-    learning_rate = LEARNING_RATE if learning_rate is None else learning_rate
-    check_fit_args(windows, qsr, num_inits, max_steps, learning_rate=learning_rate, tol=tol,
-                   init_scale=init_scale)
+    given = dict(learning_rate=learning_rate, init_scale=init_scale)
+    check_fit_args(windows, qsr, num_inits, max_steps, tol=tol,
+                   **{k: v for k, v in given.items() if v is not None})
     if is_indefinite(qsr):
         raise ValueError(
             "`qsr.Q` has a positive eigenvalue: the direct map parameterises the dissipative "
             "controllers only for Q negative semidefinite. Train under this `qsr` with "
             "`dj.fit_pgd` or `dj.fit_ico` (they linearise Q's positive part), or pass a "
             "supply rate with Q <= 0.")
-    return optimizer, learning_rate, check_n_state(windows, n_state), check_margin(margin)
+    n_state = check_n_state(windows, n_state)
+    lr0, scale0 = default_hyperparameters(n_state, windows.n_in)
+    learning_rate = lr0 if learning_rate is None else learning_rate
+    init_scale = scale0 if init_scale is None else init_scale
+    return optimizer, learning_rate, init_scale, n_state, check_margin(margin)
 
 
 def direct_run(
     key, windows: Windows, qsr: QSR, *, optimizer=None, learning_rate=None,
-    init_scale=INIT_SCALE, num_inits: int = 8, n_state: int | None = None,
+    init_scale=None, num_inits: int = 8, n_state: int | None = None,
     max_steps: int = 150, tol: float = 1e-3, margin: float = MARGIN, throw: bool = True,
 ) -> FitResult:
     """The pure, traceable run behind [`fit_direct`][dissil_jax.fit_direct].
@@ -165,7 +191,7 @@ def direct_run(
     res = jax.jit(jax.vmap(run))(lrs)     # every field gains a leading axis of size 3
     ```
     """
-    optimizer, learning_rate, n_state, margin = _options(
+    optimizer, learning_rate, init_scale, n_state, margin = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         tol=tol, init_scale=init_scale, n_state=n_state, margin=margin)
     res = _run(key, windows, qsr, learning_rate, init_scale, optimizer=optimizer,
@@ -215,7 +241,7 @@ def certify_or_project(res: FitResult, qsr: QSR, windows: Windows, *, eps: float
 def fit_direct(
     key, windows: Windows, qsr: QSR, *, optimizer=None, learning_rate: float | None = None,
     num_inits: int = 8, n_state: int | None = None, max_steps: int = 150, tol: float = 1e-3,
-    init_scale: float = INIT_SCALE, margin: float = MARGIN, eps: float = 1e-6,
+    init_scale: float | None = None, margin: float = MARGIN, eps: float = 1e-6,
     throw: bool = True,
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers without projections, through a direct map.
@@ -232,7 +258,9 @@ def fit_direct(
     ([`imitation_loss`][dissil_jax.imitation_loss]) of the windows in normalised units
     (as [`fit_pgd`][dissil_jax.fit_pgd]: scaling $x_0$, $y$, $u$ by $c>0$ changes nothing;
     losses and `tol` are in the user's units), all in one compiled `lax.while_loop`
-    without leaving the device. The run stops when $|J(K_{i+1}) - J(K_i)| <$ `tol` or after
+    without leaving the device (no LAPACK call in the loop either: its factorisations are
+    loop-based, see [Thread-pool deadlocks](scaling.md#thread-pool-deadlocks)). The run
+    stops when $|J(K_{i+1}) - J(K_i)| <$ `tol` or after
     `max_steps`.
 
     **Certified at the end.** Each returned $(K, P)$ is checked in float64 on the host
@@ -247,16 +275,19 @@ def fit_direct(
     - `windows`: the demonstrations ([`Windows`][dissil_jax.Windows]).
     - `qsr`: the controller's supply rate ($Q\\preceq0$; an indefinite $Q$ raises a
       `ValueError`: use [`fit_pgd`][dissil_jax.fit_pgd] or [`fit_ico`][dissil_jax.fit_ico]).
-    - `optimizer`, `learning_rate`: by default `optax.adam(learning_rate)` with
-      `learning_rate` 0.3 (parameters and loss are unit-free; chosen on training loss in
-      `benchmarks/bench_direct.py`), or any `optax.GradientTransformation` as `optimizer`.
+    - `optimizer`, `learning_rate`: by default `optax.adam(learning_rate)`, or any
+      `optax.GradientTransformation` as `optimizer`. The default step depends on the
+      width $w = \\hat n + p$: $0.3\\min(1, 9/w)$ (0.3 at the paper's sizes; parameters
+      and loss are unit-free), see `default_hyperparameters` and
+      [concepts](concepts.md#a-direct-parameterisation).
     - `num_inits`, `n_state`, `max_steps`, `tol`: as in [`fit_pgd`][dissil_jax.fit_pgd].
     - `init_scale` $\\sigma$: the initial $\\theta$ has $X = I$ (so $P\\approx I$, the
       projection's starting point) and i.i.d. $\\mathcal N(0,\\sigma^2)$ entries in $W$
-      and $V$: a random dissipative controller. $\\sigma = 1$ starts at about half the
-      loss of PGD's projected N(0, 1) draw, but with the map's contractions near
-      saturation, where gradients are small; the default $\\sigma = 0.5$ (a quarter to
-      40 % of PGD's initial loss) trained better on both of the paper's examples.
+      and $V$: a random dissipative controller. Default $0.5\\min(1, \\sqrt{9/w})$, so
+      that the initial loss does not grow with the order: $\\sigma = 0.5$ (a quarter to
+      40 % of PGD's initial loss at the paper's sizes) trained better than $\\sigma = 1$,
+      whose contractions start near saturation, where gradients are small; a fixed
+      $\\sigma$ saturates them more the wider the controller.
     - `margin` $\\varepsilon\\in(0,1)$: the map's strictness margin (static).
     - `eps`: the margin of the fallback projection.
     - `throw`: raise a `ValueError` when a run ends in failure (a non-finite loss, or a
@@ -270,7 +301,7 @@ def fit_direct(
     assert bool(res.certified.all())
     ```
     """
-    optimizer, learning_rate, n_state, margin = _options(
+    optimizer, learning_rate, init_scale, n_state, margin = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         tol=tol, init_scale=init_scale, n_state=n_state, margin=margin)
     start = time.perf_counter()

@@ -68,7 +68,7 @@ def optimizer_metric(opt_state, K):
     return jax.tree.map(lambda w: jnp.maximum(w, floor), W)
 
 
-def _loop(K0, P0, code0, windows, opt, *, qsr, max_steps, tol, eps):
+def _loop(K0, P0, code0, windows, opt, *, qsr, max_steps, tol, eps, method="clarabel"):
     """The jit-compatible training loop over a batch of initialisations.
 
     Pure: vmappable over the optimiser's hyperparameters and over the initial controllers.
@@ -102,7 +102,8 @@ def _loop(K0, P0, code0, windows, opt, *, qsr, max_steps, tol, eps):
             # An indefinite Q's positive part is linearised at the certified iterate (K_ref),
             # once per step (refine=1; the next step re-linearises). No effect for Q <= 0.
             proj = project(K_new, qsr, c["P"], throw=False, active=active, eps=eps,
-                           metric=optimizer_metric(opt_state, K_new), K_ref=c["K"], refine=1)
+                           metric=optimizer_metric(opt_state, K_new), K_ref=c["K"], refine=1,
+                           method=method)
             failed = _sdp.failed(proj.result._value)
             code = jnp.where(failed, proj.result._value, code)
             K_new, P_new = proj
@@ -129,7 +130,7 @@ def _loop(K0, P0, code0, windows, opt, *, qsr, max_steps, tol, eps):
 
 
 def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_inits,
-         n_state, max_steps, tol, eps) -> FitResult:
+         n_state, max_steps, tol, eps, method="clarabel") -> FitResult:
     """`pgd_run` without argument checks or `throw` (traceable; `qsr` and `optimizer` static).
 
     Trains on the windows divided by the data scale (`_scale.py`), so that steps do not
@@ -140,12 +141,12 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
     if qsr is None:
         P0, code0 = None, jnp.full(num_inits, _MAX_STEPS, jnp.int32)
     else:
-        K0, P0 = proj = project(K0, qsr, throw=False, eps=eps)
+        K0, P0 = proj = project(K0, qsr, throw=False, eps=eps, method=method)
         code0 = proj.result._value
     opt = paper_rule(learning_rate, decay) if optimizer is None else optimizer
     K, P, hist, loss, steps, reason = _loop(
         K0, P0, code0, scaled(windows, s2), opt, qsr=qsr, max_steps=max_steps, tol=tol / s2,
-        eps=eps)
+        eps=eps, method=method)
     hist, loss = hist * s2, loss * s2
     return FitResult(
         controllers=K, P=P,
@@ -189,6 +190,7 @@ def pgd_run(
     key, windows: Windows, qsr: QSR | None, *, optimizer=None, learning_rate=None, decay=None,
     init_scale=INIT_SCALE, num_inits: int = 8, n_state: int | None = None,
     max_steps: int = 150, tol: float = 1e-3, eps: float = 1e-6, throw: bool = True,
+    method: str = "auto",
 ) -> FitResult:
     """The pure, traceable PGD run behind [`fit_pgd`][dissil_jax.fit_pgd].
 
@@ -197,7 +199,7 @@ def pgd_run(
     hyperparameter sweep); `qsr` is static (hashable). `qsr=None` gives plain gradient
     descent. `wall_time` is NaN and `certified` comes from the projection's own float64
     check (a failed initial projection leaves that initialisation with `certified=False`
-    and zero steps). `throw` as in `fit_pgd`; under `jit` it raises an
+    and zero steps). `throw` and `method` as in `fit_pgd`; under `jit` `throw` raises an
     `EquinoxRuntimeError`.
 
     ```python
@@ -210,12 +212,13 @@ def pgd_run(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         decay=decay, tol=tol, init_scale=init_scale, n_state=n_state)
     res = _run(key, windows, qsr, learning_rate, decay, init_scale, optimizer=optimizer,
-               num_inits=num_inits, n_state=n_state, max_steps=max_steps, tol=tol, eps=eps)
+               num_inits=num_inits, n_state=n_state, max_steps=max_steps, tol=tol, eps=eps,
+               method=method)
     return raise_if_failed(res) if throw else res
 
 
 def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_inits,
-         n_state, max_steps, tol, eps, throw):
+         n_state, max_steps, tol, eps, throw, method="clarabel"):
     """`pgd_run`, compiled once per static configuration, timed and certified as a batch."""
     optimizer, learning_rate, decay, n_state = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
@@ -225,7 +228,7 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
     res = _run_jit(key, windows, qsr, *(jnp.asarray(v, dtype) for v in
                                         (learning_rate, decay, init_scale)),
                    optimizer=optimizer, num_inits=int(num_inits), n_state=n_state,
-                   max_steps=int(max_steps), tol=float(tol), eps=float(eps))
+                   max_steps=int(max_steps), tol=float(tol), eps=float(eps), method=method)
     jax.block_until_ready(res)
     certified = res.certified
     if qsr is not None:
@@ -243,7 +246,7 @@ def fit_pgd(
     key, windows: Windows, qsr: QSR, *, optimizer=None, learning_rate: float | None = None,
     decay: float | None = None, num_inits: int = 8, n_state: int | None = None,
     max_steps: int = 150, tol: float = 1e-3, init_scale: float = INIT_SCALE,
-    eps: float = 1e-6, throw: bool = True,
+    eps: float = 1e-6, throw: bool = True, method: str = "auto",
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers by projected gradient descent (paper Alg. 2).
 
@@ -294,6 +297,11 @@ def fit_pgd(
       `converged` or `max_steps`: a failed projection, or a non-finite loss). With
       `throw=False` the result is returned and `stop_reason` says what happened; a failed
       run keeps its last certified iterate.
+    - `method`: $\\Pi$'s solver, as `project`'s `method`. `"first_order"`: ADMM in JAX
+      (Frobenius projections only, so not with an adaptive optimiser's metric), every
+      result still checked in float64 on the host, Clarabel where the check fails;
+      `"clarabel"`; `"auto"` (default): Clarabel at every size so far, since the
+      first-order path was slower on CPU ([Scaling out](scaling.md#a-first-order-projection)).
 
     **Initialisation.** The paper draws "each matrix element from a normal distribution"
     and projects the draw (paper §4.1); `init_scale=1.0` is that N(0, 1). A small scale
@@ -312,7 +320,7 @@ def fit_pgd(
         raise ValueError("`qsr` is required for PGD; use `dj.fit_gd` for the unconstrained run.")
     return _fit(key, windows, qsr, optimizer=optimizer, learning_rate=learning_rate,
                 decay=decay, init_scale=init_scale, num_inits=num_inits, n_state=n_state,
-                max_steps=max_steps, tol=tol, eps=eps, throw=throw)
+                max_steps=max_steps, tol=tol, eps=eps, throw=throw, method=method)
 
 
 def fit_gd(

@@ -25,7 +25,7 @@ import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._controller import LTIController
-from ..experts._linalg import solve
+from .._linalg import solve
 
 PLANT_NOISE = 0.04
 CONTROL_NOISE = 0.02

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from ._linalg import spd_solve
+from .._linalg import spd_solve
 
 # Step sizes tried in parallel by the backtracking line search (vectorised, so the
 # Newton loop stays one `while_loop` under vmap).

@@ -1,0 +1,181 @@
+"""`fit_direct` at high order: the order-dependent defaults, the deadlock fix, step times.
+
+Problems (`benchmarks/_high_order.py`, m = p = 2, passive): mass-spring chains of
+n̂/2 masses with two collocated actuators and an LQR expert ("chain"), and windows of a
+random order-n̂ passive expert ("real.", length 10, which some controller fits exactly).
+
+1. **Defaults** (`--defaults`): median over 8 initialisations of the initial and the final
+   loss after 300 Adam steps (tol 0), relative to the zero controller's loss J(0), for the
+   old fixed defaults (η = 0.3, σ = 0.5), the order-dependent defaults of
+   `dissil_jax._train.direct.default_hyperparameters`, and the best of a grid
+   η ∈ {0.3, 0.1, 0.03, 0.01} × σ ∈ {0.5, 0.2, 0.05} (one vmapped run); "regret" is
+   new defaults / best.
+2. **Hang** (`--hang R`): the issue's reproducer, `fit_direct` at n̂ = 48 with 32
+   initialisations, 300 steps and defaults otherwise, R times, each in a fresh subprocess
+   with a 600 s timeout; reports finished runs, wall times and whether every controller was
+   certified. Run with `--lapack` to put LAPACK's batched custom calls back (the old map).
+3. **Step time** (`--steps`): seconds per step of `direct_run` (8 initialisations, 150
+   steps, compiled), loop-based solves against the LAPACK custom calls in the same run (the
+   latter in a subprocess with a timeout, since it can hang).
+
+Usage: python benchmarks/bench_high_order.py [--defaults] [--hang R] [--steps]
+"""
+
+import argparse
+import itertools
+import os
+import subprocess
+import sys
+import time
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import jax.random as jr  # noqa: E402
+import numpy as np  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+sys.path.insert(0, os.path.dirname(__file__))
+from _high_order import PASSIVE, chain_windows, realisable  # noqa: E402
+
+import dissil_jax as dj  # noqa: E402
+from dissil_jax._train.direct import default_hyperparameters  # noqa: E402
+
+LRS, SCALES = (0.3, 0.1, 0.03, 0.01), (0.5, 0.2, 0.05)
+
+
+def use_lapack():
+    """Put the LAPACK custom calls back into the direct map (for the reference only)."""
+    import jax.scipy.linalg as jsl
+
+    from dissil_jax import _direct_map
+
+    class Lapack:
+        cholesky = staticmethod(jnp.linalg.cholesky)
+        solve = staticmethod(jnp.linalg.solve)
+
+        @staticmethod
+        def solve_triangular(T, B, lower, trans=False):
+            return jsl.solve_triangular(T, B, lower=lower, trans=1 if trans else 0)
+
+    _direct_map._linalg = Lapack
+
+
+def defaults(steps=300):
+    problems = [("chain", s, n) for s in (0, 1) for n in (6, 12, 24, 48)]
+    problems += [("real.", 0, n) for n in (6, 12, 16)]
+    grid = np.array(list(itertools.product(LRS, SCALES)))
+    print("| problem | n̂ | (η, σ) new | J_0/J(0) old | J_0/J(0) new | final old | final new "
+          "| best (η, σ) | final best | regret |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for kind, seed, n in problems:
+        w = chain_windows(seed, n // 2) if kind == "chain" else realisable(seed, n)
+        J0 = float(jnp.mean(jnp.sum(w.u ** 2, axis=(1, 2))))
+        lr_new, s_new = default_hyperparameters(n, 2)
+        rows = np.concatenate([grid, [[0.3, 0.5], [lr_new, s_new]]])
+        run = jax.jit(jax.vmap(lambda lr, s: dj.direct_run(
+            jr.PRNGKey(1), w, PASSIVE, num_inits=8, max_steps=steps, tol=0.0,
+            learning_rate=lr, init_scale=s, throw=False)))
+        r = run(jnp.asarray(rows[:, 0]), jnp.asarray(rows[:, 1]))
+        fin = np.median(np.asarray(r.final_loss), axis=1) / J0
+        ini = np.median(np.asarray(r.loss_history[:, :, 0]), axis=1) / J0
+        b = int(np.argmin(fin[:len(grid)]))
+        print(f"| {kind} {seed} | {n} | ({lr_new:.3g}, {s_new:.2g}) | {ini[-2]:.3g} | "
+              f"{ini[-1]:.3g} | {fin[-2]:.3g} | {fin[-1]:.3g} | ({grid[b, 0]:g}, "
+              f"{grid[b, 1]:g}) | {fin[b]:.3g} | {fin[-1] / fin[b]:.2f} |", flush=True)
+
+
+_CHILD = """
+import os, sys, time
+sys.path.insert(0, {here!r})
+import jax, jax.numpy as jnp, jax.random as jr
+jax.config.update("jax_enable_x64", True)
+import dissil_jax as dj
+import bench_high_order as b
+if {lapack}:
+    b.use_lapack()
+k = jr.split(jr.PRNGKey({seed}), 3)
+n, p = {n}, 2
+w = dj.Windows(jr.normal(k[0], (25, n)), jr.normal(k[1], (25, 10, p)), jr.normal(k[2], (25, 10, p)))
+t = time.perf_counter()
+r = dj.fit_direct(jr.PRNGKey({seed}), w, dj.QSR.passive(p), num_inits={inits},
+                  max_steps={steps}, {extra} throw=False)
+print("RESULT", time.perf_counter() - t, bool(r.certified.all()), int(r.projected.sum()))
+"""
+
+
+def child(seed, n, inits, steps, lapack=False, timeout=600, extra=""):
+    code = _CHILD.format(here=os.path.dirname(os.path.abspath(__file__)), lapack=lapack,
+                         seed=seed, n=n, inits=inits, steps=steps, extra=extra)
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    try:
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             timeout=timeout, env=env).stdout
+    except subprocess.TimeoutExpired:
+        return None
+    line = [ln for ln in out.splitlines() if ln.startswith("RESULT")]
+    return line[0].split()[1:] if line else ["error"]
+
+
+def hang(repeats, lapack):
+    done = 0
+    for i in range(repeats):
+        t = time.perf_counter()
+        res = child(i, 48, 32, 300, lapack=lapack)
+        done += res is not None
+        print(f"run {i}: {'TIMEOUT (hang)' if res is None else res} "
+              f"({time.perf_counter() - t:.0f} s with start-up)", flush=True)
+    print(f"{done}/{repeats} finished ({'LAPACK' if lapack else 'loop-based'} solves)")
+
+
+def steps():
+    code = """
+import sys, time
+sys.path.insert(0, {here!r})
+import jax, jax.numpy as jnp, jax.random as jr
+jax.config.update("jax_enable_x64", True)
+import dissil_jax as dj
+import bench_high_order as b
+if {lapack}:
+    b.use_lapack()
+n = {n}
+k = jr.split(jr.PRNGKey(0), 3)
+w = dj.Windows(jr.normal(k[0], (25, n)), jr.normal(k[1], (25, 10, 2)), jr.normal(k[2], (25, 10, 2)))
+run = jax.jit(lambda key: dj.direct_run(key, w, dj.QSR.passive(2), num_inits=8, max_steps=150,
+                                        tol=0.0, throw=False))
+jax.block_until_ready(run(jr.PRNGKey(1)))
+t = time.perf_counter(); jax.block_until_ready(run(jr.PRNGKey(2)))
+print("RESULT", (time.perf_counter() - t) / 150)
+"""
+    print("| n̂ | loop (ms/step) | LAPACK (ms/step) | loop / LAPACK |")
+    print("|---|---|---|---|")
+    for n in (6, 24, 48):
+        t = {}
+        for lapack in (False, True):
+            src = code.format(here=os.path.dirname(os.path.abspath(__file__)), lapack=lapack,
+                              n=n)
+            try:
+                out = subprocess.run([sys.executable, "-c", src], capture_output=True,
+                                     text=True, timeout=300).stdout
+                t[lapack] = float(out.split("RESULT")[1])
+            except (subprocess.TimeoutExpired, IndexError):
+                t[lapack] = float("nan")  # hung (or failed)
+        print(f"| {n} | {1e3 * t[False]:.2f} | {1e3 * t[True]:.2f} | "
+              f"{t[False] / t[True]:.2f} |", flush=True)
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--defaults", action="store_true")
+    ap.add_argument("--hang", type=int, default=0)
+    ap.add_argument("--lapack", action="store_true")
+    ap.add_argument("--steps", action="store_true")
+    a = ap.parse_args()
+    if a.defaults:
+        defaults()
+    if a.hang:
+        hang(a.hang, a.lapack)
+    if a.steps:
+        steps()
