@@ -198,10 +198,11 @@ def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, active, shard, *, qsr, has
         bad = todo[~ok]
         if len(bad):
             ones = [np.ones_like(t[bad]) for t in tgt]
+            # C0, D0: the linearisation point of an indefinite Q, which this path refuses
             res = _projection._host_batch(
                 *(t[bad] for t in tgt), ref[bad], *ones, np.ones(len(bad), bool),
-                np.zeros(len(bad), np.int32), qsr=qsr, has_ref=has_ref, eps=eps, reg=reg,
-                refine=refine, shards=shards)
+                tgt[2][bad], tgt[3][bad], np.zeros(len(bad), np.int32), qsr=qsr,
+                has_ref=has_ref, eps=eps, reg=reg, refine=refine, shards=shards)
             for o, M in zip(out, res[:5]):
                 o[bad] = M
             codes[bad] = res[5]

@@ -33,7 +33,7 @@ def test_lmi_matrix_is_the_convexified_lmi(getkey, name):
     X, Y = jr.normal(getkey(), (2, n, n))
     P, Pt = X @ X.T + jnp.eye(n), Y @ Y.T + jnp.eye(n)
     lmi = ConvexifiedLMI(n, 2, 2, qsr)
-    x = lmi.pack(*(np.asarray(M) for M in (K.A, K.B, K.C, K.D)), np.asarray(P))
+    x = lmi.layout.pack(*(np.asarray(M) for M in (K.A, K.B, K.C, K.D)), np.asarray(P))
     np.testing.assert_allclose(fo.lmi_matrix(K.A, K.B, K.C, K.D, P, Pt, qsr),
                                lmi.evaluate(x, np.asarray(Pt)), atol=1e-12)
 
