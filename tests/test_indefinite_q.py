@@ -10,6 +10,8 @@ from helpers import dissipation_matrix, dissipation_ok, index, random_windows
 import dissil_jax as dj
 from dissil_jax._lmi import ConvexifiedLMI
 
+pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+
 
 def _random_rate(rng, m):
     """A feasible rate whose Q has both signs (m >= 2) or is positive (m = 1).

@@ -9,6 +9,8 @@ from helpers import dissipation_ok
 import dissil_jax as dj
 from dissil_jax._lmi import ConvexifiedLMI, smat
 
+pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+
 SUPPLIES = [
     ("passive", dj.QSR.passive(2)),
     ("bounded-gain-rect", dj.QSR.bounded_gain(0.7, n_in=3, n_out=2)),

@@ -11,6 +11,8 @@ import dissil_jax as dj
 from dissil_jax import _projection_fo as fo
 from dissil_jax._lmi import ConvexifiedLMI
 
+pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+
 RATES = {"passive": dj.QSR.passive(2),
          "strict": dj.QSR(-np.eye(2), 0.5 * np.eye(2), 0.5 * np.eye(2))}
 
