@@ -74,13 +74,7 @@ def solve_triangular(T: Float[Array, "k k"], B: Float[Array, "k r"], *, lower: b
     if trans:
         T, lower = T.T, not lower
     fwd, bwd = (_lower_loop, _upper_loop) if lower else (_upper_loop, _lower_loop)
-    vec = B.ndim == 1
-    B = B[:, None] if vec else B
-    X = jax.lax.custom_linear_solve(
-        lambda x: T @ x, B,
-        solve=lambda _, b: fwd(jax.lax.stop_gradient(T), b),
-        transpose_solve=lambda _, b: bwd(jax.lax.stop_gradient(T).T, b))
-    return X[:, 0] if vec else X
+    return _custom_solve(T, B, fwd, bwd)
 
 
 @jax.custom_jvp
@@ -125,12 +119,17 @@ def solve(A: Float[Array, "k k"], B: Float[Array, "k ..."]) -> Float[Array, "k .
     """$A^{-1}B$ for a square $A$ (partial pivoting; NaN/inf if singular); `B` a vector or
     a matrix. Differentiable in $A$ and $B$ (`lax.custom_linear_solve`)."""
     A, B = jnp.asarray(A), jnp.asarray(B)
+    return _custom_solve(A, B, _gauss_jordan, _gauss_jordan)
+
+
+def _custom_solve(M, B, fwd, bwd):
+    """$M^{-1}B$ through `lax.custom_linear_solve`, so differentiable in $M$ and $B$:
+    `fwd(M, b)` solves with $M$, `bwd(M^T, b)` with its transpose; `B` a vector or a matrix."""
     vec = B.ndim == 1
     B = B[:, None] if vec else B
-    X = jax.lax.custom_linear_solve(
-        lambda x: A @ x, B,
-        solve=lambda _, b: _gauss_jordan(jax.lax.stop_gradient(A), b),
-        transpose_solve=lambda _, b: _gauss_jordan(jax.lax.stop_gradient(A).T, b))
+    M0 = jax.lax.stop_gradient(M)
+    X = jax.lax.custom_linear_solve(lambda x: M @ x, B, solve=lambda _, b: fwd(M0, b),
+                                    transpose_solve=lambda _, b: bwd(M0.T, b))
     return X[:, 0] if vec else X
 
 
