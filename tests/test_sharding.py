@@ -24,6 +24,8 @@ import dissil_jax as dj
 from dissil_jax import _sdp
 
 CHECKS = Path(__file__).with_name("sharding_checks.py")
+# One worker runs every test here, so the subprocess behind `found` runs once per test run.
+pytestmark = pytest.mark.xdist_group("sharding")
 SHARDED = ("pgd", "recipe", "gd", "project")  # dj.sweep of PGD, the raw recipe, GD, project
 
 
@@ -36,7 +38,7 @@ def _env(devices: int) -> dict:
             "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # kept while the worker runs other modules in between
 def found():
     proc = subprocess.run([sys.executable, str(CHECKS)], capture_output=True, text=True,
                           timeout=600, env=_env(devices=2))

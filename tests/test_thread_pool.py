@@ -76,11 +76,12 @@ def test_loop_solves_match_lapack(getkey):
     np.testing.assert_allclose(_linalg.solve(A, B), jnp.linalg.solve(A, B), atol=1e-11)
     np.testing.assert_allclose(_linalg.spd_solve(M, B[:, 0]), jnp.linalg.solve(M, B[:, 0]),
                                atol=1e-11)
-    # Derivatives (custom_jvp / custom_linear_solve) against finite differences.
-    check_grads(_linalg.cholesky, (M,), order=2, modes=("fwd", "rev"))
-    check_grads(lambda T, B: _linalg.solve_triangular(T, B, lower=True, trans=True), (L, B),
-                order=2, modes=("fwd", "rev"))
-    check_grads(_linalg.solve, (A, B), order=2, modes=("fwd", "rev"))
+    # Derivatives (custom_jvp / custom_linear_solve) against finite differences. Jitted, so
+    # each derivative compiles once instead of dispatching the solves' loops op by op.
+    check_grads(jax.jit(_linalg.cholesky), (M,), order=2, modes=("fwd", "rev"))
+    check_grads(jax.jit(lambda T, B: _linalg.solve_triangular(T, B, lower=True, trans=True)),
+                (L, B), order=2, modes=("fwd", "rev"))
+    check_grads(jax.jit(_linalg.solve), (A, B), order=2, modes=("fwd", "rev"))
     # ... and against LAPACK's derivatives; vmapped equals a loop.
     f = lambda f_chol: jax.grad(lambda M: jnp.sum(jnp.sin(f_chol(M))))(M)
     np.testing.assert_allclose(f(_linalg.cholesky), f(jnp.linalg.cholesky), atol=1e-10)
