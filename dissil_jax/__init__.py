@@ -12,6 +12,13 @@ from ._rollout import (
     predict as predict,
     rollout as rollout,
 )
+from ._ren_certify import RENCertificate as RENCertificate, certify_ren as certify_ren
+from ._ren_controller import (
+    RENController as RENController,
+    ren_imitation_loss as ren_imitation_loss,
+    ren_predict as ren_predict,
+    ren_rollout as ren_rollout,
+)
 from ._sdp import Outcome as Outcome
 from ._supply import (
     QSR as QSR,
@@ -36,6 +43,7 @@ from ._train.direct import direct_run as direct_run, fit_direct as fit_direct
 from ._train.ico import fit_ico as fit_ico, fit_ico_nc as fit_ico_nc
 from ._train.mlp import MLPController as MLPController, fit_mlp as fit_mlp
 from ._train.pgd import fit_gd as fit_gd, fit_pgd as fit_pgd, pgd_run as pgd_run
+from ._train.ren import RENFitResult as RENFitResult, fit_ren as fit_ren
 from ._train.result import FitResult as FitResult
 from .systems import LinearPlant as LinearPlant, SectorPlant as SectorPlant
 
