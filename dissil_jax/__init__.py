@@ -6,18 +6,18 @@ from ._data import Windows as Windows
 from ._deprecated import project_with_status as project_with_status
 from ._lmi import kyp_matrix as kyp_matrix
 from ._projection import Projection as Projection, project as project
-from ._rollout import (
-    imitation_loss as imitation_loss,
-    observability_toeplitz as observability_toeplitz,
-    predict as predict,
-    rollout as rollout,
-)
 from ._ren_certify import RENCertificate as RENCertificate, certify_ren as certify_ren
 from ._ren_controller import (
     RENController as RENController,
     ren_imitation_loss as ren_imitation_loss,
     ren_predict as ren_predict,
     ren_rollout as ren_rollout,
+)
+from ._rollout import (
+    imitation_loss as imitation_loss,
+    observability_toeplitz as observability_toeplitz,
+    predict as predict,
+    rollout as rollout,
 )
 from ._sdp import Outcome as Outcome
 from ._supply import (

@@ -236,8 +236,8 @@ def test_width_zero_reproduces_the_lti_direct_map():
     qsr = SUPPLY_RATES["rank_deficient"]
     theta = jax.tree.map(lambda a: a[0], init_ren_params(jr.PRNGKey(3), 1, 3, 0, 2, 2, 0.5,
                                                          jnp.float64))
-    K, P, lam = ren_map(theta, qsr, 0)
-    K_lti, P_lti = dm.direct_map(theta, qsr)
+    K, P, lam = ren_map(theta, qsr, 0, input_share=0.0)
+    K_lti, P_lti = dm.direct_map(theta.lti, qsr)
     assert lam.shape == (0,)
     # [A B] = G_P^{-1} (G_P [A B]): one triangular product and solve, round-off only
     for a, b in zip((K.A, K.B2, K.C2, K.D22, P), (K_lti.A, K_lti.B, K_lti.C, K_lti.D, P_lti)):

@@ -16,11 +16,11 @@ import optax
 
 from .. import _sdp
 from .._data import Windows
-from .._direct_map import MARGIN, DirectParams, check_margin
+from .._direct_map import MARGIN, check_margin
 from .._indefinite import is_indefinite
 from .._ren_certify import certified_batch, certify_ren
 from .._ren_controller import check_activation, ren_imitation_loss
-from .._ren_map import init_ren_params, ren_map
+from .._ren_map import RENParams, init_ren_params, ren_map
 from .._supply import QSR
 from ._checks import check_fit_args, check_n_state
 from ._scale import loss_scale, scaled
@@ -45,15 +45,15 @@ def _where(mask, new, old):
         lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
 
 
-def _batched_loss(qsr, width, activation, margin):
+def _batched_loss(qsr, width, activation, margin, input_share=0.5):
     def loss(theta, windows):
-        K, P, lam = ren_map(theta, qsr, width, activation, margin)
+        K, P, lam = ren_map(theta, qsr, width, activation, margin, input_share)
         return ren_imitation_loss(K, windows), (K, P, lam)
 
     return jax.vmap(jax.value_and_grad(loss, has_aux=True), in_axes=(0, None))
 
 
-def init(theta0: DirectParams, windows, opt, loss_fn, max_steps: int) -> dict:
+def init(theta0: RENParams, windows, opt, loss_fn, max_steps: int) -> dict:
     """The loop's state before step 0: the initial loss, gradient and controllers."""
     (loss, aux), grad = loss_fn(theta0, windows)
     num = loss.shape[0]
@@ -92,20 +92,34 @@ def terminate(c: dict, max_steps: int):
     return (c["k"] >= max_steps) | jnp.all(c["done"])
 
 
+def to_user_units(K, lam, s):
+    """The controller trained on windows divided by $s$, in the user's units.
+
+    With $x = s\\,x_s$, $\\hat u = s\\,\\hat u_s$, $\\hat y = s\\,\\hat y_s$ and the neurons
+    kept in normalised units ($v$, $w$ unchanged), the REN is the same map with
+    $C_1/s$, $D_{12}/s$, $sB_1$, $sD_{21}$ (other matrices unchanged) for any activation.
+    Its certificate is $(P, s^2\\Lambda)$: the dissipation inequality in normalised units
+    times $s^2$.
+    """
+    return eqx.tree_at(lambda k: (k.B1, k.C1, k.D12, k.D21), K,
+                       (K.B1 * s, K.C1 / s, K.D12 / s, K.D21 * s)), lam * s**2
+
+
 def _run(key, windows, qsr, learning_rate, init_scale, *, width, activation, optimizer,
-         num_inits, n_state, max_steps, tol, margin):
-    # ReLU is positively homogeneous, so (like an LTI controller) a ReLU REN trained on the
-    # windows divided by s is the same map in the user's units: train in normalised units.
-    s2 = loss_scale(windows) if activation == "relu" else jnp.ones((), windows.y.dtype)
+         num_inits, n_state, max_steps, tol, margin, input_share):
+    # Train in normalised units (`_scale.py`), as the LTI trainers do; the neurons stay in
+    # those units, so the result is mapped back exactly for any activation (`to_user_units`).
+    s2 = loss_scale(windows)
     data = scaled(windows, s2)
     theta0 = init_ren_params(key, num_inits, n_state, width, windows.n_in, windows.n_out,
                              init_scale, windows.y.dtype)
     opt = optax.adam(learning_rate) if optimizer is None else optimizer
-    loss_fn = _batched_loss(qsr, width, activation, margin)
+    loss_fn = _batched_loss(qsr, width, activation, margin, input_share)
     c = init(theta0, data, opt, loss_fn, max_steps)
     c = jax.lax.while_loop(lambda c: ~terminate(c, max_steps),
                            lambda c: step(c, data, opt, loss_fn, tol / s2), c)
     K, P, lam = c["aux"]
+    K, lam = to_user_units(K, lam, s2**0.5)
     return RENFitResult(
         controllers=K, P=P, certified=None, loss_history=c["hist"] * s2,
         final_loss=c["loss"] * s2, converged=c["reason"] == _CONVERGED, steps=c["steps"],
@@ -139,7 +153,7 @@ def fit_ren(
     key, windows: Windows, qsr: QSR, *, width: int = 16, activation="tanh",
     optimizer=None, learning_rate: float | None = None, init_scale: float | None = None,
     num_inits: int = 8, n_state: int | None = None, max_steps: int = 150, tol: float = 0.0,
-    margin: float = MARGIN, throw: bool = True,
+    margin: float = MARGIN, input_share: float = 0.5, throw: bool = True,
 ) -> RENFitResult:
     """Learn $(Q,S,R)$-dissipative REN controllers (nonlinear, dynamic) from demonstrations.
 
@@ -165,10 +179,15 @@ def fit_ren(
       [`fit_direct`][dissil_jax.fit_direct]; the default step and initial scale are
       `fit_direct`'s at order $\\hat n + q$.
     - `width` $q\\ge0$: the number of neurons (0 gives an LTI controller, as a REN).
+    - `input_share` $\\rho\\in[0,1)$: the share of the LTI map's feedthrough slack
+      $\\Phi_0$ given to the neurons' direct input $D_{12}$ (static; 0 gives
+      $D_{12} = 0$, the network then sees the plant output only through the state).
     - `activation`: `"tanh"` (default), `"relu"` or a slope-restricted callable (see
-      [`RENController`][dissil_jax.RENController]). With ReLU the data are normalised as
-      in the LTI trainers (ReLU is positively homogeneous, so this changes nothing but the
-      optimiser's units); other activations train in the data's own units.
+      [`RENController`][dissil_jax.RENController]). Training runs on the windows divided
+      by one data scale $s$ (as in the LTI trainers), so the neurons work in units where
+      the data are of order one (where tanh bends); the returned controller is the same
+      map in the user's units ($C_1/s$, $D_{12}/s$, $sB_1$, $sD_{21}$, multiplier
+      $s^2\\Lambda$).
 
     **Returns:** a [`RENFitResult`][dissil_jax.RENFitResult].
     """
@@ -191,6 +210,10 @@ def fit_ren(
                          "controller with `dj.fit_pgd` / `dj.fit_ico`.")
     n_state = check_n_state(windows, n_state)
     margin = check_margin(margin)
+    if isinstance(input_share, jax.core.Tracer) or not (np.ndim(input_share) == 0
+                                                       and 0.0 <= input_share < 1.0):
+        raise ValueError(f"`input_share` must be a number in [0, 1) (static), got "
+                         f"{input_share!r}.")
     lr0, scale0 = default_hyperparameters(n_state + int(width), windows.n_in)
     learning_rate = lr0 if learning_rate is None else learning_rate
     init_scale = scale0 if init_scale is None else init_scale
@@ -199,7 +222,8 @@ def fit_ren(
     res = _run_jit(key, windows, qsr, jnp.asarray(learning_rate, dtype),
                    jnp.asarray(init_scale, dtype), width=int(width), activation=activation,
                    optimizer=optimizer, num_inits=int(num_inits), n_state=n_state,
-                   max_steps=int(max_steps), tol=float(tol), margin=margin)
+                   max_steps=int(max_steps), tol=float(tol), margin=margin,
+                   input_share=float(input_share))
     jax.block_until_ready(res)
     res = _certify_all(res, qsr)
     res = eqx.tree_at(lambda r: r.wall_time, res, jnp.asarray(time.perf_counter() - start,

@@ -24,13 +24,14 @@ from .data import REGIMES, demonstration_windows
 from .metrics import _quantiles as _q, evaluate
 from .simulate import equilibrium_horizon
 
-METHODS = ("ico", "ico_nc", "pgd", "gd", "mlp", "direct")
-#: The paper's methods: the command line's default. `direct` (`dj.fit_direct`) is
-#: our extension, run with `--methods direct`.
+METHODS = ("ico", "ico_nc", "pgd", "gd", "mlp", "direct", "ren")
+#: The paper's methods: the command line's default. `direct` (`dj.fit_direct`) and `ren`
+#: (`dj.fit_ren`, certified nonlinear REN controllers) are our extensions, run with
+#: `--methods direct ren`.
 PAPER_METHODS = ("ico", "ico_nc", "pgd", "gd", "mlp")
 EXAMPLES = ("linear", "nonlinear")
 METHOD_LABELS = {"ico": "ICO", "ico_nc": "ICO-NC", "pgd": "PGD", "gd": "GD", "mlp": "GD+NN",
-                 "direct": "Direct (ours)"}
+                 "direct": "Direct (ours)", "ren": "REN (ours)"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,6 +60,14 @@ class ExampleSpec:
     direct_learning_rate: float = 0.3
     direct_init_scale: float = 0.5
     direct_tol: float = 0.0
+    # `dj.fit_ren` (ours): width and activation of the network; Adam's step and the initial
+    # scale default (None) to `fit_direct`'s rule at order n + width. All steps run (tol 0),
+    # as for `direct`.
+    ren_width: int = 16
+    ren_activation: str = "tanh"
+    ren_learning_rate: float | None = None
+    ren_init_scale: float | None = None
+    ren_input_share: float = 0.5
 
 
 def example_spec(name: str, quick: bool = False) -> ExampleSpec:
@@ -119,6 +128,12 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
         return dj.fit_direct(key, windows, spec.qsr, learning_rate=spec.direct_learning_rate,
                              init_scale=spec.direct_init_scale,
                              **dict(common, tol=spec.direct_tol))
+    if method == "ren":
+        return dj.fit_ren(key, windows, spec.qsr, width=spec.ren_width,
+                          activation=spec.ren_activation,
+                          learning_rate=spec.ren_learning_rate,
+                          init_scale=spec.ren_init_scale, input_share=spec.ren_input_share,
+                          **dict(common, tol=0.0))
     if method == "mlp":
         return dj.fit_mlp(key, windows, hidden=spec.hidden, num_inits=inits, tol=spec.tol,
                           throw=False)
