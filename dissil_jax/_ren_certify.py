@@ -46,7 +46,7 @@ def augmented_lti(K: RENController) -> LTIController:
 
 def augmented_qsr(qsr: QSR, multiplier) -> QSR:
     """The supply rate of the augmented system that turns the REN certificate into a KYP
-    inequality (paper Lemma 2) of [`augmented_lti`][dissil_jax._ren_certify.augmented_lti]:
+    inequality (paper Lemma 2) of `augmented_lti`:
 
     $$s_\\Lambda\\bigl((w,\\hat u),(v,\\hat y)\\bigr) = s(\\hat u,\\hat y) - 2w^\\top\\Lambda(v - w),
     \\quad Q_\\Lambda = \\begin{bmatrix}0&0\\\\0&Q\\end{bmatrix},\\
@@ -144,7 +144,7 @@ def certify_ren(K: RENController, qsr: QSR, *, P=None, multiplier=None,
     - (\\text{supply}) + (\\text{sector}) \\prec 0,\\quad P\\succ0,\\ \\Lambda\\succ0$$
 
     where $\\xi^\\top M\\xi = V(x^+) - V(x) - s(\\hat u,\\hat y) + 2w^\\top\\Lambda(v-w)$
-    for all $\\xi = (x,w,\\hat u)$ ([`ren_lmi`][dissil_jax._ren_certify.ren_lmi]). Since
+    for all $\\xi = (x,w,\\hat u)$ (`ren_lmi`). Since
     $w_i = \\sigma(v_i)$ with $\\sigma$ slope-restricted in $[0,1]$ and $\\sigma(0)=0$ gives
     $w_i(v_i - w_i)\\ge0$, it implies $V(x_{k+1}) - V(x_k)\\le s(\\hat u_k,\\hat y_k)$ along
     every trajectory: the REN is $(Q,S,R)$-dissipative with storage $V$. $M$ is linear in

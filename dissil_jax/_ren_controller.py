@@ -89,7 +89,7 @@ class RENController(eqx.Module):
     nine matrices; `__call__` handles one controller (vmap for batches).
 
     **Arguments:** the nine matrices, and `activation`: `"relu"`, `"tanh"` or a callable
-    that passes [`check_activation`]'s screen (static).
+    that passes `check_activation`'s screen (static).
 
     **Raises** a `ValueError` for shapes that do not match, a $D_{11}$ with a nonzero entry
     on or above the diagonal, non-finite entries, or an activation that is not

@@ -58,7 +58,7 @@ from ._supply import QSR
 
 
 class RENParams(eqx.Module):
-    """The free parameters of [`ren_map`]: the LTI map's $(X, W, V)$ at order
+    """The free parameters of `ren_map`: the LTI map's $(X, W, V)$ at order
     $\\hat n + q$ (`lti`) and `Y` ($q\\times p$), the neurons' direct input."""
 
     lti: DirectParams
@@ -123,7 +123,7 @@ def ren_map(theta: RENParams, qsr: QSR, width: int, activation="tanh",
 
 def init_ren_params(key, num_inits: int, n: int, width: int, p: int, m: int, scale,
                     dtype) -> RENParams:
-    """`num_inits` parameters of [`ren_map`]: the LTI map's initial draw at order
+    """`num_inits` parameters of `ren_map`: the LTI map's initial draw at order
     $\\hat n + q$ ($X = I$, $W$ and $V$ i.i.d. $\\mathcal N(0,\\text{scale}^2)$) and $Y$
     i.i.d. $\\mathcal N(0,\\text{scale}^2)$."""
     k1, k2 = jr.split(key)

@@ -224,6 +224,7 @@ def test_map_values_are_certified_for_every_q(name):
     K, P, lam = jax.vmap(lambda t: ren_map(t, qsr, 4, "tanh"))(theta)
     cert = dj.certify_ren(K, qsr, P=P, multiplier=lam)
     assert cert.holds.all() and (np.asarray(lam) > 0).all()
+    assert np.abs(np.asarray(K.D12)).min() > 0  # the neurons' direct input is in use
     assert (np.asarray(K.D11)[:, np.triu_indices(4)[0], np.triu_indices(4)[1]] == 0).all()
     # the map's bound M_REN <= -eps diag(M, Phi0) implies at least eps * lambda_min(P)
     for i in range(6):
@@ -299,3 +300,23 @@ def test_failed_end_check_gets_an_sdp_certificate(monkeypatch):
     res = dj.fit_ren(jr.PRNGKey(6), w, qsr, width=2, num_inits=2, max_steps=3)
     assert res.certified.all()
     assert dj.certify_ren(res.controllers, qsr, P=res.P, multiplier=res.multiplier).holds.all()
+
+
+def test_input_share_zero_gives_no_direct_input():
+    theta = init_ren_params(jr.PRNGKey(7), 2, 1, 3, 2, 2, 1.0, jnp.float64)
+    K, P, lam = jax.vmap(lambda t: ren_map(t, SUPPLY_RATES["passive"], 3, input_share=0.0))(
+        theta)
+    assert not np.asarray(K.D12).any()
+    assert dj.certify_ren(K, SUPPLY_RATES["passive"], P=P, multiplier=lam).holds.all()
+
+
+def test_experiments_protocol_records_ren_as_certified():
+    import dataclasses
+
+    from dissil_jax.experiments.protocol import METHOD_LABELS, example_spec, run_config
+
+    spec = dataclasses.replace(example_spec("nonlinear", quick=True), ren_width=2,
+                               max_steps=5, num_test=8)
+    rec = run_config("nonlinear", "initial", "ren", 3, inits=2, spec=spec)
+    assert rec["certified"] is True and rec["controllers"] == 2
+    assert METHOD_LABELS["ren"] == "REN (ours)"
