@@ -48,7 +48,7 @@ def main(quick=False, inits=10, width=16, seed=0):
         t = time.perf_counter()
         res = fit(method, k_fit, windows, spec, inits)
         train = time.perf_counter() - t
-        certified = np.asarray(res.certified, bool)
+        certified = np.array(res.certified, bool)
         if method == "ren":  # an independent certificate: the SDP in (P, Lambda)
             certified &= np.asarray(dj.certify_ren(res.controllers, spec.qsr).holds, bool)
         ev = evaluate(k_noise, plant, expert, res.controllers, x0, steps)
