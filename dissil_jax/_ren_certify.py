@@ -1,0 +1,200 @@
+"""The dissipativity certificate of a REN controller: a storage $P$ and a diagonal sector
+multiplier $\\Lambda$ (S-procedure), found by an SDP and checked by eigenvalues in float64."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import numpy as np
+
+from . import _sdp
+from ._controller import LTIController
+from ._lmi import VERIFY_RTOL, kyp_margin, kyp_matrix, kyp_scale
+from ._ren_controller import RENController
+from ._supply import QSR
+
+
+class RENCertificate(eqx.Module):
+    """The outcome of [`certify_ren`][dissil_jax.certify_ren].
+
+    - `holds`: True iff $P\\succ0$, $\\Lambda\\succ0$ and the REN's dissipation matrix
+      $M(P,\\Lambda)\\prec0$ beyond float64 round-off (an eigenvalue check).
+    - `P`: the storage ($V(x) = x^\\top Px$), float64.
+    - `multiplier`: the diagonal of $\\Lambda$ (`[q]`).
+    - `margin`: $\\min(-\\lambda_{\\max}(M), \\lambda_{\\min}(P), \\min_i\\Lambda_{ii})$.
+    - `status`: `"given"` or the SDP solver's status.
+
+    For a batch of controllers each field gains the batch axes in front (numpy arrays).
+    """
+
+    holds: bool | np.ndarray
+    P: np.ndarray
+    multiplier: np.ndarray
+    margin: float | np.ndarray
+    status: str | np.ndarray = "given"
+
+
+def augmented_lti(K: RENController) -> LTIController:
+    """The REN's linear part as one LTI system from $(w, \\hat u)$ to $(v, \\hat y)$:
+
+    $$\\left[\\begin{array}{c|cc} A & B_1 & B_2\\\\ \\hline C_1 & D_{11} & D_{12}\\\\
+    C_2 & D_{21} & D_{22}\\end{array}\\right]$$ (float64, batch axes kept)."""
+    A, B1, B2, C1, D11, D12, C2, D21, D22 = (np.asarray(M, np.float64) for M in K.matrices)
+    cat = np.concatenate
+    return LTIController(A, cat([B1, B2], -1), cat([C1, C2], -2),
+                         cat([cat([D11, D12], -1), cat([D21, D22], -1)], -2))
+
+
+def augmented_qsr(qsr: QSR, multiplier) -> QSR:
+    """The supply rate of the augmented system that turns the REN certificate into a KYP
+    inequality (paper Lemma 2) of `augmented_lti`:
+
+    $$s_\\Lambda\\bigl((w,\\hat u),(v,\\hat y)\\bigr) = s(\\hat u,\\hat y) - 2w^\\top\\Lambda(v - w),
+    \\quad Q_\\Lambda = \\begin{bmatrix}0&0\\\\0&Q\\end{bmatrix},\\
+    S_\\Lambda = \\begin{bmatrix}-\\Lambda&0\\\\0&S\\end{bmatrix},\\
+    R_\\Lambda = \\begin{bmatrix}2\\Lambda&0\\\\0&R\\end{bmatrix}.$$
+
+    $Q_\\Lambda\\preceq0$ whenever $Q\\preceq0$."""
+    lam = np.asarray(multiplier, np.float64)
+    q, m, p = lam.shape[-1], qsr.n_out, qsr.n_in
+    L = np.diag(lam)
+    Q = np.block([[np.zeros((q, q)), np.zeros((q, m))], [np.zeros((m, q)), qsr.Q]])
+    S = np.block([[-L, np.zeros((q, p))], [np.zeros((m, q)), qsr.S]])
+    R = np.block([[2 * L, np.zeros((q, p))], [np.zeros((p, q)), qsr.R]])
+    return QSR(Q, S, R)
+
+
+def ren_lmi(K: RENController, qsr: QSR, P, multiplier) -> np.ndarray:
+    """The REN's dissipation matrix $M(P,\\Lambda)$ in float64 (one controller).
+
+    $\\xi^\\top M\\xi = V(x^+) - V(x) - s(\\hat u,\\hat y) + 2w^\\top\\Lambda(v - w)$ for
+    $\\xi = (x, w, \\hat u)$, with $v$ and $\\hat y$ the linear part's outputs at $\\xi$ and
+    $V(x) = x^\\top Px$. If $M\\preceq0$, every trajectory of the REN satisfies
+    $V(x_{k+1}) - V(x_k)\\le s(\\hat u_k,\\hat y_k)$, because $w = \\sigma(v)$ makes
+    $w^\\top\\Lambda(v - w)\\ge0$ for a diagonal $\\Lambda\\succeq0$.
+    """
+    G = augmented_lti(K)
+    return kyp_matrix(G.A, G.B, G.C, G.D, augmented_qsr(qsr, multiplier), P)
+
+
+def _check_args(K, qsr):
+    if not isinstance(K, RENController):
+        raise ValueError(f"`K` must be a `dj.RENController`, got {type(K).__name__}.")
+    if not isinstance(qsr, QSR):
+        raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
+    qsr.check_sizes(K.n_in, K.n_out)
+
+
+def _margin_and_holds(G: LTIController, qsr: QSR, P, lam, tol):
+    """Margin and verdict of the eigenvalue check for one (augmented system, P, Λ)."""
+    aug = augmented_qsr(qsr, lam)
+    mats = (G.A, G.B, G.C, G.D)
+    margin = float(min(kyp_margin(*mats, aug, P), lam.min(initial=np.inf)))
+    finite = all(np.all(np.isfinite(M)) for M in (*mats, P, lam))
+    return margin, bool(finite and margin > tol * kyp_scale(*mats, aug, P))
+
+
+def _solve(G: LTIController, qsr: QSR, q: int):
+    """$\\max t$ s.t. $M(P,\\Lambda)\\preceq -tI$, $P\\succeq tI$, $\\Lambda\\succeq tI$,
+    $t\\le1$, with cvxpy and Clarabel (BLAS single-threaded); returns `(P, λ, status)`."""
+    import cvxpy as cp
+
+    A, B, C, D = (np.asarray(M, np.float64) for M in (G.A, G.B, G.C, G.D))
+    n = B.shape[0]
+    k = n + B.shape[1]
+    P = cp.Variable((n, n), symmetric=True)
+    lam = cp.Variable(q)
+    t = cp.Variable()
+    F = np.concatenate([A, B], 1)
+    # The constant supply part and the sector part are linear in Λ: build them from the
+    # augmented supply rate's KYP matrix with unit multipliers, one neuron at a time.
+    K0 = kyp_matrix(np.zeros((n, n)), np.zeros_like(B), C, D, augmented_qsr(qsr, np.zeros(q)),
+                    np.zeros((n, n)))
+    M = F.T @ P @ F + K0
+    E = np.zeros((n, k))
+    E[:, :n] = np.eye(n)
+    M = M - E.T @ P @ E
+    for i in range(q):
+        e = np.zeros(q)
+        e[i] = 1.0
+        Ki = kyp_matrix(np.zeros((n, n)), np.zeros_like(B), C, D, augmented_qsr(qsr, e),
+                        np.zeros((n, n))) - K0
+        M = M + lam[i] * Ki
+    cons = [(M + M.T) / 2 << -t * np.eye(k), P >> t * np.eye(n), t <= 1]
+    if q:
+        cons.append(lam >= t)
+    prob = cp.Problem(cp.Maximize(t), cons)
+    with _sdp.single_threaded_blas():
+        try:
+            prob.solve(solver=cp.CLARABEL)
+        except cp.error.SolverError as err:
+            return None, None, f"solver_error: {err}"
+    if P.value is None:
+        return None, None, str(prob.status)
+    return (np.asarray(P.value), np.asarray(lam.value if q else np.zeros(0)).reshape(q),
+            str(prob.status))
+
+
+def certify_ren(K: RENController, qsr: QSR, *, P=None, multiplier=None,
+                tol: float = VERIFY_RTOL) -> RENCertificate:
+    """Certify $(Q,S,R)$-dissipativity of a REN controller with a storage and a sector
+    multiplier (S-procedure).
+
+    $$M(P,\\Lambda) = \\begin{bmatrix}A&B_1&B_2\\end{bmatrix}^\\top P
+    \\begin{bmatrix}A&B_1&B_2\\end{bmatrix} - \\operatorname{diag}(P,0,0)
+    - (\\text{supply}) + (\\text{sector}) \\prec 0,\\quad P\\succ0,\\ \\Lambda\\succ0$$
+
+    where $\\xi^\\top M\\xi = V(x^+) - V(x) - s(\\hat u,\\hat y) + 2w^\\top\\Lambda(v-w)$
+    for all $\\xi = (x,w,\\hat u)$ (`ren_lmi`). Since
+    $w_i = \\sigma(v_i)$ with $\\sigma$ slope-restricted in $[0,1]$ and $\\sigma(0)=0$ gives
+    $w_i(v_i - w_i)\\ge0$, it implies $V(x_{k+1}) - V(x_k)\\le s(\\hat u_k,\\hat y_k)$ along
+    every trajectory: the REN is $(Q,S,R)$-dissipative with storage $V$. $M$ is linear in
+    $(P,\\Lambda)$.
+
+    Without `P` and `multiplier`, solves $\\max t$ s.t. $M\\preceq-tI$, $P\\succeq tI$,
+    $\\Lambda\\succeq tI$, $t\\le1$ (cvxpy with Clarabel); the verdict is always the float64
+    eigenvalue check of the returned pair, independent of the solver. With both given,
+    only the eigenvalue check runs.
+
+    **Arguments:** the controller `K` (leading batch axes allowed), the supply rate `qsr`,
+    optionally `P` (`[*batch, n, n]`) and `multiplier` (the diagonal of $\\Lambda$,
+    `[*batch, q]`), and the relative round-off allowance `tol`.
+
+    **Returns:** a [`RENCertificate`][dissil_jax.RENCertificate].
+    """
+    _check_args(K, qsr)
+    if (P is None) != (multiplier is None):
+        raise ValueError("pass both `P` and `multiplier` (an eigenvalue check of a given "
+                         "certificate) or neither (solve for one).")
+    batch, n, q = K.batch_shape, K.n_state, K.width
+    G = augmented_lti(K)
+    if P is not None:
+        P = np.broadcast_to(np.asarray(P, np.float64), batch + (n, n)) if np.shape(P) in (
+            (n, n), batch + (n, n)) else None
+        lam = np.asarray(multiplier, np.float64)
+        if P is None or lam.shape not in ((q,), batch + (q,)):
+            raise ValueError(f"`P` must be {batch + (n, n)} and `multiplier` {batch + (q,)} "
+                             f"(the diagonal of Lambda), got {np.shape(lam)} for `multiplier`.")
+        lam = np.broadcast_to(lam, batch + (q,))
+    holds = np.zeros(batch, bool)
+    margin = np.full(batch, -np.inf)
+    Ps, lams = np.full(batch + (n, n), np.nan), np.full(batch + (q,), np.nan)
+    status = np.full(batch, "given", dtype=object)
+    for idx in np.ndindex(*batch):
+        Gi = LTIController(*(M[idx] for M in (G.A, G.B, G.C, G.D)))
+        if P is None:
+            Pi, li, status[idx] = _solve(Gi, qsr, q)
+            if Pi is None:
+                continue
+        else:
+            Pi, li = P[idx], lam[idx]
+        Ps[idx], lams[idx] = Pi, li
+        margin[idx], holds[idx] = _margin_and_holds(Gi, qsr, Pi, li, tol)
+    if not batch:
+        return RENCertificate(bool(holds), Ps, lams, float(margin), str(status[()]))
+    return RENCertificate(holds, Ps, lams, margin, status.astype(str))
+
+
+def certified_batch(K: RENController, qsr: QSR, P, multiplier) -> np.ndarray:
+    """The eigenvalue check of a batch of `(K, P, Λ)` as a bool array (the trainers' end
+    check)."""
+    return np.asarray(certify_ren(K, qsr, P=P, multiplier=multiplier).holds, bool)

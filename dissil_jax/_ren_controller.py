@@ -1,0 +1,262 @@
+"""Recurrent equilibrium network (REN) controllers: an LTI system in feedback with a
+slope-restricted static nonlinearity, with an explicit (strictly lower-triangular) layer."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._controller import LTIController
+from ._data import Windows
+
+#: The activations known to be slope-restricted in $[0, 1]$ with $\sigma(0) = 0$.
+ACTIVATIONS: dict[str, Callable] = {"relu": jax.nn.relu, "tanh": jnp.tanh}
+
+# The screen of a user-supplied activation: difference quotients on this grid (and at 0).
+_GRID = np.concatenate([-np.logspace(-3, 3, 61)[::-1], [0.0], np.logspace(-3, 3, 61)])
+# Round-off allowance of the screen's difference quotients, in units of the evaluation's
+# machine epsilon (neighbouring grid points differ by >= 1e-4 relative, so a quotient of
+# exact-slope-1 values is off by at most ~1e4 eps).
+_SLOPE_TOL = 1e5
+
+
+def check_activation(activation) -> str | Callable:
+    """`activation` if it is a known name or passes the sector screen, else a ValueError.
+
+    A name from `ACTIVATIONS` is accepted as is. A callable is evaluated in float64 on a
+    logarithmic grid of 123 points in $[-10^3, 10^3]$: it must give $\\sigma(0) = 0$ and
+    difference quotients of neighbouring points in $[0, 1]$. The screen can refuse but not
+    prove: the certificate assumes the slope restriction everywhere, so a callable is the
+    caller's promise, checked where it is cheap to check.
+    """
+    if isinstance(activation, str):
+        if activation not in ACTIVATIONS:
+            raise ValueError(f"`activation` must be one of {sorted(ACTIVATIONS)} or a callable "
+                             f"slope-restricted in [0, 1] with sigma(0) = 0, got {activation!r}.")
+        return activation
+    if not callable(activation):
+        raise ValueError(f"`activation` must be a name or a callable, got {activation!r}.")
+    out = jax.vmap(activation)(jnp.asarray(_GRID))
+    vals = np.asarray(out, np.float64)
+    # Round-off allowance of the quotients: the evaluation's precision (float32 without x64).
+    tol = _SLOPE_TOL * float(jnp.finfo(jnp.result_type(out)).eps) if jnp.issubdtype(
+        jnp.result_type(out), jnp.floating) else 0.0
+    if vals.shape != _GRID.shape or not np.all(np.isfinite(vals)):
+        raise ValueError("`activation` must map scalars to finite scalars elementwise.")
+    slopes = np.diff(vals) / np.diff(_GRID)
+    zero = vals[len(_GRID) // 2]
+    if abs(zero) > tol or slopes.min() < -tol or slopes.max() > 1 + tol:
+        raise ValueError(
+            "`activation` is not slope-restricted in [0, 1] with sigma(0) = 0 (found sigma(0) "
+            f"= {zero:.3g}, difference quotients in [{slopes.min():.3g}, {slopes.max():.3g}] "
+            "on a grid in [-1e3, 1e3]); the certificate's sector condition w (v - w) >= 0 "
+            "needs it. Rescale it (e.g. sigma(v)/L for slopes in [0, L]) or use 'relu'/'tanh'.")
+    return activation
+
+
+def _as_array(name, M):
+    try:
+        return jnp.asarray(M)
+    except TypeError:
+        raise ValueError(f"`{name}` must be a floating-point array, got {M!r}.") from None
+
+
+_NAMES = ("A", "B1", "B2", "C1", "D11", "D12", "C2", "D21", "D22")
+
+
+class RENController(eqx.Module):
+    """A recurrent equilibrium network controller with an explicit equilibrium layer.
+
+    $$\\begin{aligned} x_{k+1} &= A x_k + B_1 w_k + B_2\\hat u_k, \\\\
+    v_k &= C_1 x_k + D_{11} w_k + D_{12}\\hat u_k, \\qquad w_k = \\sigma(v_k), \\\\
+    \\hat y_k &= C_2 x_k + D_{21} w_k + D_{22}\\hat u_k, \\end{aligned}$$
+
+    with state $x\\in\\mathbb R^{\\hat n}$, $q$ neurons ($v, w\\in\\mathbb R^q$, the `width`),
+    input $\\hat u = y\\in\\mathbb R^p$ and output $\\hat y\\in\\mathbb R^m$ (the conventions of
+    [`LTIController`][dissil_jax.LTIController]). $\\sigma$ acts elementwise, is
+    slope-restricted in $[0, 1]$ and has $\\sigma(0) = 0$, so $w_i(v_i - w_i)\\ge0$ (the sector
+    condition the certificate uses). $D_{11}$ is strictly lower triangular: neuron $i$ sees
+    only neurons $j < i$, so the layer is solved explicitly in $q$ sweeps.
+
+    Width 0 is the LTI controller $(A, B_2, C_2, D_{22})$: see
+    [`from_lti`][dissil_jax.RENController.from_lti] and
+    [`to_lti`][dissil_jax.RENController.to_lti]. Leading batch axes are allowed on all
+    nine matrices; `__call__` handles one controller (vmap for batches).
+
+    **Arguments:** the nine matrices, and `activation`: `"relu"`, `"tanh"` or a callable
+    that passes `check_activation`'s screen (static).
+
+    **Raises** a `ValueError` for shapes that do not match, a $D_{11}$ with a nonzero entry
+    on or above the diagonal, non-finite entries, or an activation that is not
+    slope-restricted.
+    """
+
+    A: Float[Array, "*batch n n"]
+    B1: Float[Array, "*batch n q"]
+    B2: Float[Array, "*batch n p"]
+    C1: Float[Array, "*batch q n"]
+    D11: Float[Array, "*batch q q"]
+    D12: Float[Array, "*batch q p"]
+    C2: Float[Array, "*batch m n"]
+    D21: Float[Array, "*batch m q"]
+    D22: Float[Array, "*batch m p"]
+    activation: str | Callable = eqx.field(static=True, default="relu")
+
+    def __init__(self, A, B1, B2, C1, D11, D12, C2, D21, D22, activation="relu"):
+        (self.A, self.B1, self.B2, self.C1, self.D11, self.D12, self.C2, self.D21,
+         self.D22) = (_as_array(n, M) for n, M in zip(_NAMES, (A, B1, B2, C1, D11, D12, C2,
+                                                                D21, D22)))
+        self.activation = check_activation(activation)
+
+    def __check_init__(self):
+        mats = dict(zip(_NAMES, self.matrices))
+        for name, M in mats.items():
+            if M.ndim < 2 or not jnp.issubdtype(M.dtype, jnp.floating):
+                raise ValueError(f"`{name}` must be a floating-point matrix, got shape "
+                                 f"{M.shape} and dtype {M.dtype}.")
+        batch = self.A.shape[:-2]
+        n, q, p, m = self.A.shape[-1], self.C1.shape[-2], self.B2.shape[-1], self.C2.shape[-2]
+        expected = dict(A=(n, n), B1=(n, q), B2=(n, p), C1=(q, n), D11=(q, q), D12=(q, p),
+                        C2=(m, n), D21=(m, q), D22=(m, p))
+        for name, M in mats.items():
+            if M.shape != batch + expected[name]:
+                raise ValueError(
+                    f"`{name}` has shape {M.shape}; with {n} states, width {q} (rows of C1), "
+                    f"{p} inputs (columns of B2) and {m} outputs (rows of C2) it must be "
+                    f"{batch + expected[name]}.")
+        for name, M in mats.items():
+            if not isinstance(M, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(M))):
+                raise ValueError(f"`{name}` contains NaN or inf.")
+        D11 = self.D11
+        if not isinstance(D11, jax.core.Tracer) and q and bool(jnp.any(jnp.triu(D11) != 0)):
+            raise ValueError("`D11` must be strictly lower triangular (an explicit layer: "
+                             "neuron i may only see neurons j < i); pass jnp.tril(D11, -1).")
+
+    @property
+    def matrices(self) -> tuple[Array, ...]:
+        """The nine matrices in the order of the constructor."""
+        return (self.A, self.B1, self.B2, self.C1, self.D11, self.D12, self.C2, self.D21,
+                self.D22)
+
+    @property
+    def n_state(self) -> int:
+        """State dimension $\\hat n$."""
+        return self.A.shape[-1]
+
+    @property
+    def width(self) -> int:
+        """Number of neurons $q$."""
+        return self.C1.shape[-2]
+
+    @property
+    def n_in(self) -> int:
+        """Input dimension $p$ (plant outputs)."""
+        return self.B2.shape[-1]
+
+    @property
+    def n_out(self) -> int:
+        """Output dimension $m$ (plant inputs)."""
+        return self.C2.shape[-2]
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        """Leading batch axes shared by the matrices."""
+        return self.A.shape[:-2]
+
+    @property
+    def sigma(self) -> Callable:
+        """The activation as a function."""
+        return ACTIVATIONS.get(self.activation) if isinstance(self.activation, str) \
+            else self.activation
+
+    def layer(self, x: Float[Array, " n"], u: Float[Array, " p"]) -> Float[Array, " q"]:
+        """The equilibrium layer's output $w = \\sigma(C_1x + D_{11}w + D_{12}\\hat u)$.
+
+        Explicit: $q$ sweeps $w \\leftarrow \\sigma(b + D_{11}w)$ from $w = 0$; after sweep
+        $i$ the first $i$ neurons are exact, since $D_{11}$ is strictly lower triangular
+        (its $q$-th power is zero). Each sweep is one matrix-vector product, which
+        vectorises over batches better than a row-by-row loop.
+        """
+        b = self.C1 @ x + self.D12 @ u
+        D11 = jnp.tril(self.D11, -1)  # traced D11 is not checked in __check_init__
+        sigma = self.sigma
+        return jax.lax.fori_loop(0, self.width, lambda _, w: sigma(b + D11 @ w),
+                                 jnp.zeros_like(b))
+
+    def __call__(self, x: Float[Array, " n"], u: Float[Array, " p"]
+                 ) -> tuple[Float[Array, " n"], Float[Array, " m"]]:
+        """One step: returns $(x_{k+1}, \\hat y_k)$. Unbatched; vmap for batches."""
+        w = self.layer(x, u)
+        return (self.A @ x + self.B1 @ w + self.B2 @ u,
+                self.C2 @ x + self.D21 @ w + self.D22 @ u)
+
+    @classmethod
+    def from_lti(cls, K: LTIController, width: int = 0, activation="relu") -> RENController:
+        """The REN with $(A, B_2, C_2, D_{22}) = K$ and `width` idle neurons (all other
+        matrices zero, so it computes exactly what `K` computes)."""
+        if not isinstance(K, LTIController):
+            raise ValueError(f"`K` must be a `dj.LTIController`, got {type(K).__name__}.")
+        if isinstance(width, bool) or np.ndim(width) != 0 or int(width) != width or width < 0:
+            raise ValueError(f"`width` must be a non-negative integer, got {width!r}.")
+        q, batch = int(width), K.batch_shape
+        z = lambda r, c: jnp.zeros(batch + (r, c), K.A.dtype)
+        n, p, m = K.n_state, K.n_in, K.n_out
+        return cls(K.A, z(n, q), K.B, z(q, n), z(q, q), z(q, p), K.C, z(m, q), K.D,
+                   activation=activation)
+
+    def to_lti(self) -> LTIController:
+        """The LTI controller $(A, B_2, C_2, D_{22})$ of a width-0 REN.
+
+        **Raises** a `ValueError` for width $> 0$: the neurons make the controller nonlinear,
+        and the LTI tools (`certify`, `project`, `observability_toeplitz`) assume linearity;
+        use [`certify_ren`][dissil_jax.certify_ren] and [`ren_rollout`][dissil_jax.ren_rollout].
+        """
+        if self.width:
+            raise ValueError(f"`K` has width {self.width}: only a width-0 REN is an LTI "
+                             "controller; certify it with `dj.certify_ren` instead.")
+        return LTIController(self.A, self.B2, self.C2, self.D22)
+
+
+def ren_rollout(K: RENController, x0: Float[Array, " n"] | None, u_in: Float[Array, "h p"]
+                ) -> Float[Array, "h m"]:
+    """Simulate a REN from state `x0` (None: at rest) on inputs `u_in` with `lax.scan`.
+
+    The REN twin of [`rollout`][dissil_jax.rollout]. Unbatched; vmap for batches.
+
+    **Returns:** the outputs $\\hat y_0..\\hat y_{h-1}$ (`[h, m]`).
+    """
+    u_in = jnp.asarray(u_in)
+    if x0 is None:
+        x0 = jnp.zeros((K.n_state,), jnp.result_type(K.A.dtype, u_in.dtype))
+    x0 = jnp.asarray(x0)
+    if x0.shape != (K.n_state,):
+        raise ValueError(f"`x0` must have shape ({K.n_state},) (the controller's state size), "
+                         f"got {x0.shape}.")
+    _, y = jax.lax.scan(lambda x, u: K(x, u), x0, u_in)
+    return y
+
+
+def ren_predict(K: RENController, windows: Windows) -> Float[Array, "N h m"]:
+    """REN outputs on every window (vmapped over windows), from `windows.x0` or at rest."""
+    if K.batch_shape:
+        raise ValueError("`K` must be a single controller; vmap `ren_predict` for batches.")
+    if windows.x0 is not None and windows.n_state != K.n_state:
+        raise ValueError(f"`windows.x0` has width {windows.n_state} but `K` has {K.n_state} "
+                         "states; build the windows with `dj.Windows(None, y, u)` to start "
+                         "at rest.")
+    if windows.x0 is None:
+        return jax.vmap(ren_rollout, in_axes=(None, None, 0))(K, None, windows.y)
+    return jax.vmap(ren_rollout, in_axes=(None, 0, 0))(K, windows.x0, windows.y)
+
+
+def ren_imitation_loss(K: RENController, windows: Windows) -> Float[Array, ""]:
+    """The paper's imitation loss (paper eq. 16) of a REN: the twin of
+    [`imitation_loss`][dissil_jax.imitation_loss],
+    $J = \\frac1N\\sum_i\\sum_k\\lVert\\hat y^{(i)}_k + u^{(i)}_k\\rVert^2$."""
+    err = ren_predict(K, windows) - windows.target
+    return jnp.mean(jnp.sum(err**2, axis=(-2, -1)))

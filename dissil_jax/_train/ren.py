@@ -1,0 +1,239 @@
+"""Training certified REN controllers through their direct parameterisation (`_ren_map.py`).
+
+The loop is one `init`/`step`/`terminate` triple around a `lax.while_loop`, so it can become
+one instance of a shared driver loop.
+"""
+
+from __future__ import annotations
+
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from .. import _sdp
+from .._data import Windows
+from .._direct_map import MARGIN, check_margin
+from .._indefinite import is_indefinite
+from .._ren_certify import certified_batch, certify_ren
+from .._ren_controller import check_activation, ren_imitation_loss
+from .._ren_map import RENParams, init_ren_params, ren_map
+from .._supply import QSR
+from ._checks import check_fit_args, check_n_state
+from ._scale import loss_scale, scaled
+from .direct import default_hyperparameters
+from .result import FitResult, raise_if_failed
+
+_CONVERGED, _MAX_STEPS, _NON_FINITE, _NOT_CERTIFIED = (
+    _sdp.code(r) for r in ("converged", "max_steps", "non_finite", "not_certified"))
+
+
+class RENFitResult(FitResult):
+    """A [`FitResult`][dissil_jax.FitResult] of [`fit_ren`][dissil_jax.fit_ren]:
+    `controllers` is a batched [`RENController`][dissil_jax.RENController], `P` the storages
+    and `multiplier` (`[num_inits, q]`) the diagonals of the sector multipliers $\\Lambda$;
+    `certified` is the float64 check of each `(controller, P, multiplier)`."""
+
+    multiplier: jax.Array | None = None
+
+
+def _where(mask, new, old):
+    return jax.tree.map(
+        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
+
+
+def _batched_loss(qsr, width, activation, margin, input_share=0.0):
+    def loss(theta, windows):
+        K, P, lam = ren_map(theta, qsr, width, activation, margin, input_share)
+        return ren_imitation_loss(K, windows), (K, P, lam)
+
+    return jax.vmap(jax.value_and_grad(loss, has_aux=True), in_axes=(0, None))
+
+
+def init(theta0: RENParams, windows, opt, loss_fn, max_steps: int) -> dict:
+    """The loop's state before step 0: the initial loss, gradient and controllers."""
+    (loss, aux), grad = loss_fn(theta0, windows)
+    num = loss.shape[0]
+    hist = jnp.full((num, max_steps + 1), jnp.nan, loss.dtype).at[:, 0].set(loss)
+    finite = jnp.isfinite(loss)
+    return dict(k=jnp.zeros((), jnp.int32), theta=theta0, grad=grad, aux=aux,
+                opt=opt.init(theta0), loss=loss, hist=hist, done=~finite,
+                steps=jnp.zeros(num, jnp.int32),
+                reason=jnp.where(finite, _MAX_STEPS, _NON_FINITE).astype(jnp.int32))
+
+
+def step(c: dict, windows, opt, loss_fn, tol) -> dict:
+    """One Adam (or `optimizer`) step for every active initialisation; a step whose loss or
+    gradient is not finite is refused and stops that run at its last finite iterate."""
+    active = ~c["done"]
+    updates, opt_state = opt.update(c["grad"], c["opt"], c["theta"])
+    theta = optax.apply_updates(c["theta"], updates)
+    (loss, aux), grad = loss_fn(theta, windows)
+    finite = jnp.isfinite(loss)
+    for g in jax.tree.leaves(grad):
+        finite &= jnp.all(jnp.isfinite(g), axis=tuple(range(1, g.ndim)))
+    take = active & finite
+    theta, grad, aux = _where(take, (theta, grad, aux), (c["theta"], c["grad"], c["aux"]))
+    new_loss = jnp.where(take, loss, c["loss"])
+    stop = active & (~finite | (jnp.abs(new_loss - c["loss"]) < tol))
+    k = c["k"] + 1
+    return dict(k=k, theta=theta, grad=grad, aux=aux, opt=opt_state, loss=new_loss,
+                hist=c["hist"].at[:, k].set(jnp.where(take, loss, jnp.nan)),
+                done=c["done"] | stop, steps=c["steps"] + take.astype(jnp.int32),
+                reason=jnp.where(stop, jnp.where(finite, _CONVERGED, _NON_FINITE),
+                                 c["reason"]).astype(jnp.int32))
+
+
+def terminate(c: dict, max_steps: int):
+    """Stop when every run is done or after `max_steps` steps."""
+    return (c["k"] >= max_steps) | jnp.all(c["done"])
+
+
+def to_user_units(K, lam, s):
+    """The controller trained on windows divided by $s$, in the user's units.
+
+    With $x = s\\,x_s$, $\\hat u = s\\,\\hat u_s$, $\\hat y = s\\,\\hat y_s$ and the neurons
+    kept in normalised units ($v$, $w$ unchanged), the REN is the same map with
+    $C_1/s$, $D_{12}/s$, $sB_1$, $sD_{21}$ (other matrices unchanged) for any activation.
+    Its certificate is $(P, s^2\\Lambda)$: the dissipation inequality in normalised units
+    times $s^2$.
+    """
+    return eqx.tree_at(lambda k: (k.B1, k.C1, k.D12, k.D21), K,
+                       (K.B1 * s, K.C1 / s, K.D12 / s, K.D21 * s)), lam * s**2
+
+
+def _run(key, windows, qsr, learning_rate, init_scale, *, width, activation, optimizer,
+         num_inits, n_state, max_steps, tol, margin, input_share):
+    # Train in normalised units (`_scale.py`), as the LTI trainers do; the neurons stay in
+    # those units, so the result is mapped back exactly for any activation (`to_user_units`).
+    s2 = loss_scale(windows)
+    data = scaled(windows, s2)
+    theta0 = init_ren_params(key, num_inits, n_state, width, windows.n_in, windows.n_out,
+                             init_scale, windows.y.dtype)
+    opt = optax.adam(learning_rate) if optimizer is None else optimizer
+    loss_fn = _batched_loss(qsr, width, activation, margin, input_share)
+    c = init(theta0, data, opt, loss_fn, max_steps)
+    c = jax.lax.while_loop(lambda c: ~terminate(c, max_steps),
+                           lambda c: step(c, data, opt, loss_fn, tol / s2), c)
+    K, P, lam = c["aux"]
+    K, lam = to_user_units(K, lam, s2**0.5)
+    return RENFitResult(
+        controllers=K, P=P, certified=None, loss_history=c["hist"] * s2,
+        final_loss=c["loss"] * s2, converged=c["reason"] == _CONVERGED, steps=c["steps"],
+        wall_time=jnp.asarray(jnp.nan, c["hist"].dtype), stop_reason=_sdp.item(c["reason"]),
+        projected=None, multiplier=lam)
+
+
+_run_jit = eqx.filter_jit(_run)
+
+
+def _certify_all(res: RENFitResult, qsr: QSR) -> RENFitResult:
+    """The float64 end check of every `(K, P, Λ)`; a failing pair gets a fresh certificate
+    from the SDP of [`certify_ren`][dissil_jax.certify_ren], or is marked `not_certified`."""
+    K, P, lam = res.controllers, np.array(res.P, np.float64), np.array(res.multiplier,
+                                                                          np.float64)
+    ok = certified_batch(K, qsr, P, lam)
+    reason = np.asarray(res.stop_reason._value).copy()
+    for i in np.nonzero(~ok)[0]:
+        cert = certify_ren(jax.tree.map(lambda a: a[i], K), qsr)
+        if cert.holds:
+            P[i], lam[i], ok[i] = cert.P, cert.multiplier, True
+        else:
+            reason[i] = _NOT_CERTIFIED
+    dtype = res.P.dtype
+    return eqx.tree_at(lambda r: (r.P, r.multiplier, r.certified, r.stop_reason), res,
+                       (jnp.asarray(P, dtype), jnp.asarray(lam, dtype), jnp.asarray(ok),
+                        _sdp.item(reason)), is_leaf=lambda x: x is None)
+
+
+def fit_ren(
+    key, windows: Windows, qsr: QSR, *, width: int = 16, activation="tanh",
+    optimizer=None, learning_rate: float | None = None, init_scale: float | None = None,
+    num_inits: int = 8, n_state: int | None = None, max_steps: int = 150, tol: float = 0.0,
+    margin: float = MARGIN, input_share: float = 0.0, throw: bool = True,
+) -> RENFitResult:
+    """Learn $(Q,S,R)$-dissipative REN controllers (nonlinear, dynamic) from demonstrations.
+
+    Every controller is the image of free parameters under the REN direct map
+    ([REN controllers](ren.md)), whose values satisfy the REN certificate
+    $M(P,\\Lambda)\\preceq-\\varepsilon\\operatorname{diag}(M,\\Phi_0)$ for every supply rate
+    with $Q\\preceq0$ (passivity included; no step inverts $Q$). Training is unconstrained
+    gradient descent on the imitation loss
+    ([`ren_imitation_loss`][dissil_jax.ren_imitation_loss]) in one compiled
+    `lax.while_loop`, vmapped over `num_inits` initialisations; it stops after `max_steps`
+    or when $|\\Delta J| <$ `tol` (default 0: all steps, as the experiments run
+    [`fit_direct`][dissil_jax.fit_direct]).
+
+    **Certified at the end:** each returned `(K, P, multiplier)` is checked in float64 by
+    eigenvalues ([`certify_ren`][dissil_jax.certify_ren] with the pair given); a pair that
+    fails gets the SDP's certificate instead, and a controller with neither is marked
+    `not_certified` (`throw=True` then raises).
+
+    **Arguments:**
+
+    - `key`, `windows`, `qsr` ($Q\\preceq0$), `num_inits`, `n_state`, `max_steps`, `tol`,
+      `optimizer`, `learning_rate`, `init_scale`, `margin`, `throw`: as in
+      [`fit_direct`][dissil_jax.fit_direct]; the default step and initial scale are
+      `fit_direct`'s at order $\\hat n + q$.
+    - `width` $q\\ge0$: the number of neurons (0 gives an LTI controller, as a REN).
+    - `input_share` $\\rho\\in[0,1)$: the share of the LTI map's feedthrough slack
+      $\\Phi_0$ given to the neurons' direct input $D_{12}$ (static; 0 gives
+      $D_{12} = 0$, the network then sees the plant output only through the state; the
+      default, since the share is taken from the LTI part's feedthrough room: on the
+      linear example's passive controllers 0.5 gave a 25x worse median test MSE than 0,
+      on the nonlinear example the two were within 5 %, see [REN controllers](ren.md)).
+    - `activation`: `"tanh"` (default), `"relu"` or a slope-restricted callable (see
+      [`RENController`][dissil_jax.RENController]). Training runs on the windows divided
+      by one data scale $s$ (as in the LTI trainers), so the neurons work in units where
+      the data are of order one (where tanh bends); the returned controller is the same
+      map in the user's units ($C_1/s$, $D_{12}/s$, $sB_1$, $sD_{21}$, multiplier
+      $s^2\\Lambda$).
+
+    **Returns:** a [`RENFitResult`][dissil_jax.RENFitResult].
+    """
+    if qsr is None:
+        raise ValueError("`qsr` is required: `fit_ren` learns certified controllers.")
+    activation = check_activation(activation)
+    if isinstance(width, bool) or np.ndim(width) != 0 or int(width) != width or width < 0:
+        raise ValueError(f"`width` must be a non-negative integer (neurons), got {width!r}.")
+    if optimizer is not None and learning_rate is not None:
+        raise ValueError("pass either `optimizer` or `learning_rate` (Adam's step), not both.")
+    if optimizer is not None and not isinstance(optimizer, optax.GradientTransformation):
+        raise ValueError(f"`optimizer` must be an `optax.GradientTransformation`, got "
+                         f"{type(optimizer).__name__}.")
+    given = dict(learning_rate=learning_rate, init_scale=init_scale)
+    check_fit_args(windows, qsr, num_inits, max_steps, tol=tol,
+                   **{k: v for k, v in given.items() if v is not None})
+    if is_indefinite(qsr):
+        raise ValueError("`qsr.Q` has a positive eigenvalue: the REN map covers Q negative "
+                         "semidefinite only. Pass a supply rate with Q <= 0, or train an LTI "
+                         "controller with `dj.fit_pgd` / `dj.fit_ico`.")
+    n_state = check_n_state(windows, n_state)
+    margin = check_margin(margin)
+    if isinstance(input_share, jax.core.Tracer) or not (np.ndim(input_share) == 0
+                                                       and 0.0 <= input_share < 1.0):
+        raise ValueError(f"`input_share` must be a number in [0, 1) (static), got "
+                         f"{input_share!r}.")
+    lr0, scale0 = default_hyperparameters(n_state + int(width), windows.n_in)
+    learning_rate = lr0 if learning_rate is None else learning_rate
+    init_scale = scale0 if init_scale is None else init_scale
+    start = time.perf_counter()
+    dtype = windows.y.dtype
+    res = _run_jit(key, windows, qsr, jnp.asarray(learning_rate, dtype),
+                   jnp.asarray(init_scale, dtype), width=int(width), activation=activation,
+                   optimizer=optimizer, num_inits=int(num_inits), n_state=n_state,
+                   max_steps=int(max_steps), tol=float(tol), margin=margin,
+                   input_share=float(input_share))
+    jax.block_until_ready(res)
+    res = _certify_all(res, qsr)
+    res = eqx.tree_at(lambda r: r.wall_time, res, jnp.asarray(time.perf_counter() - start,
+                                                              dtype))
+    if throw and not bool(np.all(res.certified)):
+        raise ValueError(f"{int((~np.asarray(res.certified)).sum())} of {num_inits} REN "
+                         "controllers failed the float64 certificate check and its SDP "
+                         "fallback; pass `throw=False` to inspect them (`certified`, "
+                         "`stop_reason`), or raise `margin`.")
+    return raise_if_failed(res) if throw else res

@@ -1,0 +1,322 @@
+"""REN controllers: the model, its certificate (against the definition), the direct map and
+`dj.fit_ren`."""
+
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import optax
+import pytest
+from helpers import expert_windows, supply_from_definition
+
+import dissil_jax as dj
+from dissil_jax import _direct_map as dm
+from dissil_jax._ren_certify import ren_lmi
+from dissil_jax._ren_map import init_ren_params, ren_map
+from dissil_jax._train import ren as ren_train
+
+I2 = np.eye(2)
+#: Supply rates with Q <= 0 of every kind (m = p = 2).
+SUPPLY_RATES = {
+    "strict": dj.QSR(-I2, 0.3 * I2, 2.0 * I2),
+    "passive": dj.QSR.passive(2),  # Q = 0
+    "rank_deficient": dj.QSR(np.diag([-1.0, 0.0]), I2 / 2, 0 * I2),
+    "gain": dj.QSR.bounded_gain(1.5, n_in=2, n_out=2),
+}
+ACT = {"relu": lambda v: np.maximum(v, 0.0), "tanh": np.tanh}
+
+
+def _random_ren(rng, n=2, q=3, p=2, m=2, scale=0.4, activation="tanh"):
+    shapes = [(n, n), (n, q), (n, p), (q, n), (q, q), (q, p), (m, n), (m, q), (m, p)]
+    mats = [scale * rng.standard_normal(s) for s in shapes]
+    mats[4] = np.tril(mats[4], -1)
+    return dj.RENController(*mats, activation=activation)
+
+
+# -- the model, from its definition (plain numpy, neuron by neuron) -----------------------
+
+def _np_step(K, x, u):
+    """One REN step with the layer solved row by row: v_i sees w_j for j < i only."""
+    A, B1, B2, C1, D11, D12, C2, D21, D22 = (np.asarray(M, np.float64) for M in K.matrices)
+    sigma = ACT[K.activation]
+    w = np.zeros(D11.shape[0])
+    v = np.zeros_like(w)
+    for i in range(len(w)):
+        v[i] = C1[i] @ x + D11[i, :i] @ w[:i] + D12[i] @ u
+        w[i] = sigma(v[i])
+    return A @ x + B1 @ w + B2 @ u, C2 @ x + D21 @ w + D22 @ u, v, w
+
+
+@pytest.mark.parametrize("activation", ["relu", "tanh"])
+def test_step_and_rollout_match_the_definition(activation):
+    rng = np.random.default_rng(0)
+    K = _random_ren(rng, activation=activation, scale=0.8)
+    x0, u = rng.standard_normal(2), rng.standard_normal((5, 2))
+    ys, x = [], x0
+    for k in range(5):
+        x, y, _, _ = _np_step(K, x, u[k])
+        ys.append(y)
+    # float64 evaluations of the same sums in another order: round-off only
+    np.testing.assert_allclose(dj.ren_rollout(K, x0, u), np.array(ys), rtol=1e-12, atol=1e-12)
+
+
+def test_predict_and_loss_vmapped_equal_python_loops():
+    rng = np.random.default_rng(1)
+    Ks = [_random_ren(rng) for _ in range(3)]
+    batch = jax.tree.map(lambda *a: jnp.stack(a), *Ks)
+    w = expert_windows(0, 2, 2, 2, N=7)
+    loss = jax.jit(jax.vmap(dj.ren_imitation_loss, in_axes=(0, None)))(batch, w)
+    for i, K in enumerate(Ks):
+        err = [np.concatenate([_rollout_np(K, w.x0[j], w.y[j]) - w.target[j]]) for j in range(7)]
+        ref = np.mean([np.sum(e**2) for e in err])
+        np.testing.assert_allclose(loss[i], ref, rtol=1e-12)
+
+
+def _rollout_np(K, x, u):
+    out = []
+    for k in range(u.shape[0]):
+        x, y, _, _ = _np_step(K, np.asarray(x), np.asarray(u[k]))
+        out.append(y)
+    return np.array(out)
+
+
+def test_width_zero_and_idle_neurons_are_the_lti_controller(getkey):
+    K = dj.LTIController.random(2, 1, 1, scale=0.5, key=getkey())
+    u = jr.normal(getkey(), (6, 1))
+    x0 = jnp.array([0.3, -1.0])
+    for q in (0, 4):
+        R = dj.RENController.from_lti(K, width=q)
+        np.testing.assert_allclose(dj.ren_rollout(R, x0, u), dj.rollout(K, x0, u), rtol=1e-13)
+    back = dj.RENController.from_lti(K).to_lti()
+    assert all(np.array_equal(a, b) for a, b in zip((back.A, back.B, back.C, back.D),
+                                                    (K.A, K.B, K.C, K.D)))
+    with pytest.raises(ValueError, match="width 4"):
+        dj.RENController.from_lti(K, width=4).to_lti()
+    # certify_ren at width 0 is the KYP certificate of the LTI controller
+    qsr = dj.QSR(-1.0, 0.0, 4.0)
+    assert dj.certify_ren(dj.RENController.from_lti(K), qsr).holds == dj.certify(K, qsr).holds
+
+
+def test_bad_input_names_the_argument():
+    rng = np.random.default_rng(2)
+    K = _random_ren(rng)
+    mats = list(K.matrices)
+    bad = list(mats)
+    bad[4] = np.ones((3, 3))
+    with pytest.raises(ValueError, match="`D11` must be strictly lower"):
+        dj.RENController(*bad)
+    bad = list(mats)
+    bad[1] = np.ones((2, 4))
+    with pytest.raises(ValueError, match="`B1` has shape"):
+        dj.RENController(*bad)
+    for act in ("sigmoid", lambda v: 2 * v, lambda v: v + 1.0, lambda v: -jnp.tanh(v)):
+        with pytest.raises(ValueError, match="`activation`"):
+            dj.RENController(*mats, activation=act)
+    # a callable that passes the screen is kept (leaky ReLU: slopes 0.1 and 1)
+    dj.RENController(*mats, activation=lambda v: jnp.where(v > 0, v, 0.1 * v))
+    w = expert_windows(0, 2, 2, 2, N=4)
+    with pytest.raises(ValueError, match="`qsr.Q` has a positive eigenvalue"):
+        dj.fit_ren(jr.PRNGKey(0), w, dj.QSR(I2, I2, I2), max_steps=1)
+    with pytest.raises(ValueError, match="`width`"):
+        dj.fit_ren(jr.PRNGKey(0), w, SUPPLY_RATES["passive"], width=-1)
+    with pytest.raises(ValueError, match="`S`|`qsr`"):
+        dj.fit_ren(jr.PRNGKey(0), w, dj.QSR.passive(3), max_steps=1)
+    with pytest.raises(ValueError, match="`multiplier`"):
+        dj.certify_ren(K, SUPPLY_RATES["gain"], P=np.eye(2), multiplier=np.ones(2))
+
+
+# -- the certificate against the definition -------------------------------------------------
+
+def test_lmi_is_the_s_procedure_form_of_the_definition():
+    """xi' M xi = V(x+) - V(x) - s(u, y) + 2 w'L(v - w) for free (x, w, u), evaluated by
+    running the linear part one step (no library code in the reference)."""
+    rng = np.random.default_rng(3)
+    K = _random_ren(rng)
+    qsr = SUPPLY_RATES["strict"]
+    P, lam = np.array([[2.0, 0.3], [0.3, 1.0]]), np.array([0.5, 1.5, 2.0])
+    M = ren_lmi(K, qsr, P, lam)
+    A, B1, B2, C1, D11, D12, C2, D21, D22 = (np.asarray(X) for X in K.matrices)
+    for _ in range(20):
+        x, w, u = rng.standard_normal(2), rng.standard_normal(3), rng.standard_normal(2)
+        xn, v, y = A @ x + B1 @ w + B2 @ u, C1 @ x + D11 @ w + D12 @ u, C2 @ x + D21 @ w + D22 @ u
+        ref = (xn @ P @ xn - x @ P @ x - supply_from_definition(qsr.Q, qsr.S, qsr.R, u[None],
+                                                                y[None])[0]
+               + 2 * w @ (lam * (v - w)))
+        xi = np.concatenate([x, w, u])
+        np.testing.assert_allclose(xi @ M @ xi, ref, rtol=1e-11, atol=1e-11)
+
+
+def _worst_dissipation(K, qsr, P, horizon=6, steps=300, seed=0):
+    """max over unit-norm (x0, u_0..u_{T-1}) of V(x_T) - V(x_0) - sum_k s(u_k, y_k), run on
+    the nonlinear REN itself, by Adam ascent from 16 random starts (pure JAX simulation; the
+    ReLU network is positively homogeneous, so the unit sphere loses nothing)."""
+    Q, S, R = (jnp.asarray(M) for M in (qsr.Q, qsr.S, qsr.R))
+    P = jnp.asarray(P)
+    n, p = K.n_state, K.n_in
+
+    def gap(z):
+        z = z / jnp.linalg.norm(z)
+        x0, u = z[:n], z[n:].reshape(horizon, p)
+
+        def f(x, uk):
+            xn, y = K(x, uk)
+            return xn, y @ Q @ y + 2 * y @ S @ uk + uk @ R @ uk
+
+        xT, s = jax.lax.scan(f, x0, u)
+        return xT @ P @ xT - x0 @ P @ x0 - jnp.sum(s)
+
+    opt = optax.adam(0.05)
+    z = jr.normal(jr.PRNGKey(seed), (16, n + horizon * p))
+    state = opt.init(z)
+    grad = jax.jit(jax.vmap(jax.value_and_grad(lambda z: -gap(z))))
+    best = -np.inf
+    for _ in range(steps):
+        val, g = grad(z)
+        best = max(best, float(-val.min()))
+        upd, state = opt.update(g, state)
+        z = optax.apply_updates(z, upd)
+    return best
+
+
+@pytest.mark.parametrize("name", ["strict", "passive", "gain"])
+def test_certificate_holds_along_random_and_worst_case_inputs(name):
+    qsr = SUPPLY_RATES[name]
+    theta = jax.tree.map(lambda a: a[0], init_ren_params(jr.PRNGKey(1), 1, 2, 3, 2, 2, 0.7,
+                                                         jnp.float64))
+    K, _, _ = ren_map(theta, qsr, 3, "relu")
+    cert = dj.certify_ren(K, qsr)
+    assert cert.holds and cert.status == "optimal"
+    # random sequences: the storage decrease at every step of the nonlinear system
+    rng = np.random.default_rng(4)
+    P = cert.P
+    for _ in range(50):
+        x = 3 * rng.standard_normal(2)
+        for _ in range(8):
+            u = 3 * rng.standard_normal(2)
+            xn, y, _, _ = _np_step(K, x, u)
+            s = supply_from_definition(qsr.Q, qsr.S, qsr.R, u[None], y[None])[0]
+            # round-off of float64 sums of terms of size ~|P| |x|^2
+            assert xn @ P @ xn - x @ P @ x - s <= 1e-9 * (1 + x @ P @ x + u @ u)
+            x = xn
+    # worst case found by optimisation: still no storage increase beyond round-off
+    assert _worst_dissipation(K, qsr, P) <= 1e-9
+
+
+def test_a_non_dissipative_ren_is_rejected():
+    """A REN with a large feedthrough and an active network violates a small gain bound; the
+    SDP finds no certificate, and optimised inputs show the violation on the system."""
+    rng = np.random.default_rng(5)
+    K = _random_ren(rng, scale=1.0, activation="relu")
+    qsr = dj.QSR.bounded_gain(0.1, n_in=2, n_out=2)
+    cert = dj.certify_ren(K, qsr)
+    assert not cert.holds and cert.margin < 0
+    assert _worst_dissipation(K, qsr, np.eye(2)) > 0.1
+    # a given (P, Lambda) that does not certify is refused by the eigenvalue check
+    assert not dj.certify_ren(K, qsr, P=np.eye(2), multiplier=np.ones(3)).holds
+
+
+# -- the direct map ------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", list(SUPPLY_RATES))
+def test_map_values_are_certified_for_every_q(name):
+    qsr = SUPPLY_RATES[name]
+    theta = init_ren_params(jr.PRNGKey(2), 6, 2, 4, 2, 2, 1.0, jnp.float64)
+    K, P, lam = jax.vmap(lambda t: ren_map(t, qsr, 4, "tanh", input_share=0.5))(theta)
+    cert = dj.certify_ren(K, qsr, P=P, multiplier=lam)
+    assert cert.holds.all() and (np.asarray(lam) > 0).all()
+    assert np.abs(np.asarray(K.D12)).min() > 0  # the neurons' direct input is in use
+    assert (np.asarray(K.D11)[:, np.triu_indices(4)[0], np.triu_indices(4)[1]] == 0).all()
+    # the map's bound M_REN <= -eps diag(M, Phi0) implies at least eps * lambda_min(P)
+    for i in range(6):
+        M = ren_lmi(jax.tree.map(lambda a: a[i], K), qsr, P[i], lam[i])
+        assert np.linalg.eigvalsh(M)[-1] < -0.5 * dm.MARGIN * min(
+            1.0, np.linalg.eigvalsh(np.asarray(P[i]))[0])
+
+
+def test_width_zero_reproduces_the_lti_direct_map():
+    qsr = SUPPLY_RATES["rank_deficient"]
+    theta = jax.tree.map(lambda a: a[0], init_ren_params(jr.PRNGKey(3), 1, 3, 0, 2, 2, 0.5,
+                                                         jnp.float64))
+    K, P, lam = ren_map(theta, qsr, 0, input_share=0.0)
+    K_lti, P_lti = dm.direct_map(theta.lti, qsr)
+    assert lam.shape == (0,)
+    # [A B] = G_P^{-1} (G_P [A B]): one triangular product and solve, round-off only
+    for a, b in zip((K.A, K.B2, K.C2, K.D22, P), (K_lti.A, K_lti.B, K_lti.C, K_lti.D, P_lti)):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-13)
+
+
+# -- training --------------------------------------------------------------------------------
+
+#: Single-input single-output rates for the training tests (small sizes compile faster).
+SISO = {"strict": dj.QSR(-29.867, 3.556, 0.601), "passive": dj.QSR.passive(1)}
+
+
+@pytest.mark.parametrize("name", list(SISO))
+def test_fit_ren_is_certified_independently(name):
+    qsr = SISO[name]
+    w = expert_windows(1, 2, 1, 1, N=10)
+    res = dj.fit_ren(jr.PRNGKey(4), w, qsr, width=3, num_inits=3, max_steps=25)
+    assert res.certified.all()
+    assert (res.final_loss < res.initial_loss).all()
+    # independent: the SDP's own certificate, and the storage decrease on the system
+    for i in range(3):
+        K = jax.tree.map(lambda a: a[i], res.controllers)
+        assert dj.certify_ren(K, qsr).holds
+        P = np.asarray(res.P[i])
+        rng = np.random.default_rng(i)
+        for _ in range(200):
+            x, u = 3 * rng.standard_normal(2), 3 * rng.standard_normal(1)
+            xn, y, _, _ = _np_step(K, x, u)
+            s = supply_from_definition(qsr.Q, qsr.S, qsr.R, u[None], y[None])[0]
+            assert xn @ P @ xn - x @ P @ x - s <= 1e-9 * (1 + x @ P @ x + u @ u)
+
+
+def test_batched_training_equals_python_loop():
+    qsr = SISO["strict"]
+    w = expert_windows(2, 1, 1, 1, N=8)
+    theta0 = init_ren_params(jr.PRNGKey(5), 3, 1, 3, 1, 1, 0.5, jnp.float64)
+    opt = optax.adam(0.05)
+    loss_fn = ren_train._batched_loss(qsr, 3, "tanh", dm.MARGIN)
+
+    def run(theta):
+        c = ren_train.init(theta, w, opt, loss_fn, 15)
+        c = jax.lax.while_loop(lambda c: ~ren_train.terminate(c, 15),
+                               lambda c: ren_train.step(c, w, opt, loss_fn, 0.0), c)
+        return c["hist"], c["aux"][1]
+
+    hist, P = jax.jit(run)(theta0)
+    for i in range(3):
+        h_i, P_i = jax.jit(run)(jax.tree.map(lambda a: a[i:i + 1], theta0))
+        # the same float64 operations per initialisation, batched or not: round-off only
+        np.testing.assert_allclose(hist[i], h_i[0], rtol=1e-9)
+        np.testing.assert_allclose(P[i], P_i[0], rtol=1e-9, atol=1e-12)
+
+
+def test_failed_end_check_gets_an_sdp_certificate(monkeypatch):
+    """Force the eigenvalue check to fail: the SDP fallback certifies the controller."""
+    qsr = SISO["passive"]
+    w = expert_windows(3, 1, 1, 1, N=6)
+    monkeypatch.setattr(ren_train, "certified_batch", lambda K, q, P, lam: np.zeros(2, bool))
+    res = dj.fit_ren(jr.PRNGKey(6), w, qsr, width=2, num_inits=2, max_steps=3)
+    assert res.certified.all()
+    assert dj.certify_ren(res.controllers, qsr, P=res.P, multiplier=res.multiplier).holds.all()
+
+
+def test_input_share_zero_gives_no_direct_input():
+    theta = init_ren_params(jr.PRNGKey(7), 2, 1, 3, 2, 2, 1.0, jnp.float64)
+    K, P, lam = jax.vmap(lambda t: ren_map(t, SUPPLY_RATES["passive"], 3, input_share=0.0))(
+        theta)
+    assert not np.asarray(K.D12).any()
+    assert dj.certify_ren(K, SUPPLY_RATES["passive"], P=P, multiplier=lam).holds.all()
+
+
+def test_experiments_protocol_records_ren_as_certified():
+    import dataclasses
+
+    from dissil_jax.experiments.protocol import METHOD_LABELS, example_spec, run_config
+
+    spec = dataclasses.replace(example_spec("nonlinear", quick=True), ren_width=2,
+                               max_steps=5, num_test=8)
+    rec = run_config("nonlinear", "initial", "ren", 3, inits=2, spec=spec)
+    assert rec["certified"] is True and rec["controllers"] == 2
+    assert METHOD_LABELS["ren"] == "REN (ours)"
