@@ -16,18 +16,24 @@ $(STAMP): pyproject.toml constraints.txt
 install: $(STAMP)
 
 # Two pytest workers (the tests are mostly single-threaded compilation); the docs tests share
-# one worker so that the site is built once.
-PYTEST := OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadgroup
+# one worker so that the site is built once. Compilation is about two thirds of the tests' CPU
+# time, so the workers and the subprocesses they start (examples, CLI runs) share one JAX
+# compilation cache, fresh for every run and removed after it: an executable one process
+# compiled is loaded, not recompiled, by the others.
+PYTEST := OPENBLAS_NUM_THREADS=1 JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0 \
+	$(BIN)/python -m pytest -q -n 2 --dist loadgroup
+WITH_CACHE = cache=$$(mktemp -d) && trap 'rm -rf "$$cache"' EXIT && \
+	export JAX_COMPILATION_CACHE_DIR="$$cache" &&
 
 test: $(STAMP)
-	$(PYTEST) -m "not slow" tests
+	$(WITH_CACHE) $(PYTEST) -m "not slow" tests
 
 # The numerically tight tests again under other CPUs' BLAS kernels (numpy's and scipy's
 # OpenBLAS pick them by OPENBLAS_CORETYPE): with the native run they cover the Haswell-,
 # SkylakeX- and Zen-class kernels. CI runs this after `make test`.
 KERNELS ?= Haswell SkylakeX Zen
 test-kernels: $(STAMP)
-	for k in $(KERNELS); do \
+	$(WITH_CACHE) for k in $(KERNELS); do \
 		echo "== OPENBLAS_CORETYPE=$$k"; \
 		OPENBLAS_CORETYPE=$$k $(PYTEST) -p no:cacheprovider -m "numerics and not slow" tests \
 			|| exit 1; \
