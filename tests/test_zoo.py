@@ -233,3 +233,20 @@ def _zero_like(t, i):
 def test_unknown_problem_names_the_argument():
     with pytest.raises(ValueError, match="`name`"):
         zoo.problem("no_such_problem")
+
+
+def test_fit_gd_defaults_stay_finite_on_the_held_out_half(problems):
+    """`fit_gd`'s default step (Adam) never diverges on problems nobody tuned it on; the
+    paper's rule at PGD's default rate, run the same way, does (so the check has teeth)."""
+    paper_diverged = 0
+    for name in zoo.HELD_OUT:
+        p = problems[name]
+        kw = dict(num_inits=4, n_state=p.n_state, max_steps=40, tol=0.0, throw=False)
+        res = dj.fit_gd(jr.PRNGKey(0), p.train, **kw)
+        assert res.stop_reasons() == ["max_steps"] * 4, name
+        hist = np.asarray(res.loss_history)
+        assert np.all(np.isfinite(hist)), name
+        assert np.all(hist[:, -1] < hist[:, 0]), name
+        paper = dj.fit_gd(jr.PRNGKey(0), p.train, learning_rate=1.0, decay=0.99, **kw)
+        paper_diverged += "non_finite" in paper.stop_reasons()
+    assert paper_diverged >= len(zoo.HELD_OUT) // 2

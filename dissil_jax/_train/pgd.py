@@ -163,6 +163,10 @@ _run_jit = eqx.filter_jit(_run)
 #: confirmed by the reproduction's own step-size sweeps (`docs/results/lr_sweep_*`).
 LEARNING_RATE, DECAY = 1.0, 0.99
 
+#: `fit_gd`'s default step: Adam's rate in the same normalised units, chosen on the tuning
+#: half of `dissil_jax.experiments.zoo` (`benchmarks/bench_defaults.py`).
+GD_LEARNING_RATE = 0.1
+
 
 def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, decay, tol,
              init_scale, n_state):
@@ -332,9 +336,17 @@ def fit_gd(
     """Plain gradient descent on the imitation loss: [`fit_pgd`][dissil_jax.fit_pgd] without $\\Pi$.
 
     The paper's unconstrained baseline; no stability guarantee (`P` and `certified` are
-    None). Same arguments and defaults as `fit_pgd`; with `throw=True` a diverging run
-    (`non_finite`) raises.
+    None). Same arguments and defaults as `fit_pgd`, except the step rule: with none of
+    `optimizer`, `learning_rate` and `decay` given it is `optax.adam(GD_LEARNING_RATE)`
+    ($\\eta = 0.1$ in the normalised units). Adam moves each entry by about $\\eta$ per step
+    whatever the gradient's size, so a run cannot blow up within its step budget: with the
+    paper's rule at its PGD default ($\\eta_0 = 1$) GD diverged on every problem of the zoo
+    (`dissil_jax.experiments.zoo`, `benchmarks/bench_defaults.py`), where PGD's projection
+    keeps the iterates bounded. Pass `learning_rate` (and `decay`) for the paper's rule. With
+    `throw=True` a diverging run (`non_finite`) raises.
     """
+    if optimizer is None and learning_rate is None and decay is None:
+        optimizer = optax.adam(GD_LEARNING_RATE)
     return _fit(key, windows, None, optimizer=optimizer, learning_rate=learning_rate,
                 decay=decay, init_scale=init_scale, num_inits=num_inits, n_state=n_state,
                 max_steps=max_steps, tol=tol, eps=0.0, throw=throw)
