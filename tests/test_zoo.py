@@ -250,3 +250,10 @@ def test_fit_gd_defaults_stay_finite_on_the_held_out_half(problems):
         paper = dj.fit_gd(jr.PRNGKey(0), p.train, learning_rate=1.0, decay=0.99, **kw)
         paper_diverged += "non_finite" in paper.stop_reasons()
     assert paper_diverged >= len(zoo.HELD_OUT) // 2
+    # The failure message is true for GD (nothing certified) and names the fix.
+    with pytest.raises(ValueError) as err:
+        dj.fit_gd(jr.PRNGKey(0), p.train, learning_rate=1e3, decay=0.99, num_inits=2,
+                  n_state=p.n_state, max_steps=40, tol=0.0)
+    msg = str(err.value)
+    assert "non_finite" in msg and "`learning_rate`" in msg and "last finite iterate" in msg
+    assert "certified" not in msg and ".." not in msg

@@ -1,0 +1,129 @@
+"""Defaults measured on the problem zoo (`dissil_jax.experiments.zoo`).
+
+Parts (`--part`):
+
+- `stop`: every trainer with its defaults on the zoo's TUNING half, without early stop
+  (`tol=0`) for its default step budget. From the loss histories, offline, the step at which
+  the relative rule $|J_k - J_{k-1}| \\le \\text{rtol}\\,|J_0|$ would stop each run, for
+  candidate `rtol`s, and the loss there against the full budget's. Writes
+  `benchmarks/results/defaults_stop.json` and prints a markdown table.
+- `gd`: `fit_gd`'s step rules (the paper's at PGD's default and Adam at three rates) on both
+  halves: diverged runs and the median final/initial loss.
+
+Run: `OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/bench_defaults.py --part stop`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.random as jr  # noqa: E402
+import numpy as np  # noqa: E402
+import optax  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).parent))
+from _zoo_runs import TRAINERS, applies, run_full, stop_steps  # noqa: E402
+
+import dissil_jax as dj  # noqa: E402
+from dissil_jax.experiments import zoo  # noqa: E402
+
+RESULTS = Path(__file__).parent / "results"
+RTOLS = (1e-2, 3e-3, 1e-3, 3e-4, 1e-4, 3e-5, 1e-5, 1e-6)
+BUDGET = {"pgd": 150, "gd": 150, "direct": 150, "ico": 150, "mlp": 2000}
+NUM_INITS = 4
+
+
+def part_stop(trainers, names):
+    out = {}
+    path = RESULTS / "defaults_stop.json"
+    if path.exists():
+        out = json.loads(path.read_text())
+    for trainer in trainers:
+        for name in names:
+            p = zoo.problem(name)
+            if not applies(trainer, p) or f"{trainer}/{name}" in out:
+                continue
+            t = time.perf_counter()
+            res, rep = run_full(trainer, p, num_inits=NUM_INITS, max_steps=BUDGET[trainer])
+            hist = np.asarray(res.loss_history, np.float64)
+            out[f"{trainer}/{name}"] = dict(
+                hist=[[float(v) for v in h] for h in hist],
+                test_error=[float(v) for v in rep.imitation_error],
+                certified=None if res.certified is None else [bool(v) for v in rep.certified],
+                stable=[bool(v) for v in rep.stable],
+                reasons=res.stop_reasons(), wall=time.perf_counter() - t)
+            print(f"{trainer:7s} {name:18s} {time.perf_counter() - t:7.1f} s", flush=True)
+            path.write_text(json.dumps(out))
+    return out
+
+
+def stop_table(out) -> str:
+    """Per trainer and rtol: worst and median (over problems) of the median (over runs) loss
+    at the stop relative to the full budget's, and the median fraction of steps used."""
+    lines = ["| trainer | rtol | median J_stop / J_budget | worst problem | steps used |",
+             "| --- | ---: | ---: | ---: | ---: |"]
+    for trainer in TRAINERS:
+        keys = [k for k in out if k.startswith(trainer + "/")]
+        if not keys:
+            continue
+        for rtol in RTOLS:
+            ratios, used = [], []
+            for k in keys:
+                hist = np.asarray(out[k]["hist"], np.float64)
+                s = stop_steps(hist, rtol)
+                fin = np.array([h[np.isfinite(h)][-1] for h in hist])
+                at = hist[np.arange(len(s)), s]
+                ratios.append(float(np.median(at / fin)))
+                used.append(float(np.median(s / (hist.shape[1] - 1))))
+            lines.append(f"| {trainer} | {rtol:g} | {np.median(ratios):.3f} | "
+                         f"{np.max(ratios):.3f} | {np.median(used):.0%} |")
+    return "\n".join(lines)
+
+
+def part_gd(names):
+    rules = {"paper (1, 0.99)": dict(learning_rate=1.0, decay=0.99),
+             "adam 0.01": dict(optimizer=optax.adam(0.01)),
+             "adam 0.03": dict(optimizer=optax.adam(0.03)),
+             "adam 0.1 (default)": {}, "adam 0.3": dict(optimizer=optax.adam(0.3))}
+    lines = ["| problem | split | " + " | ".join(rules) + " |",
+             "| --- | --- |" + " ---: |" * len(rules)]
+    for name in names:
+        p = zoo.problem(name)
+        cells = []
+        for kw in rules.values():
+            res = dj.fit_gd(jr.PRNGKey(0), p.train, n_state=p.n_state, num_inits=8,
+                            max_steps=150, tol=0.0, throw=False, **kw)
+            bad = int(sum(r == "non_finite" for r in res.stop_reasons()))
+            ratio = np.asarray(res.final_loss) / np.asarray(res.initial_loss)
+            cells.append(f"{bad}/8 diverged" if bad else f"{np.median(ratio):.2e}")
+        lines.append(f"| {name} | {p.split} | " + " | ".join(cells) + " |")
+        print(lines[-1], flush=True)
+    return "\n".join(lines)
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--part", choices=("stop", "gd"), required=True)
+    ap.add_argument("--trainers", default=",".join(TRAINERS))
+    args = ap.parse_args()
+    RESULTS.mkdir(exist_ok=True)
+    if args.part == "stop":
+        out = part_stop(args.trainers.split(","), zoo.TUNING)
+        table = stop_table(out)
+        (RESULTS / "defaults_stop.md").write_text(table + "\n")
+    else:
+        table = part_gd(list(zoo.TUNING) + list(zoo.HELD_OUT))
+        (RESULTS / "defaults_gd.md").write_text(table + "\n")
+    print(table)
+
+
+if __name__ == "__main__":
+    main()
