@@ -7,6 +7,10 @@ Parts (`--part`):
   the relative rule $|J_k - J_{k-1}| \\le \\text{rtol}\\,|J_0|$ would stop each run, for
   candidate `rtol`s, and the loss there against the full budget's. Writes
   `benchmarks/results/defaults_stop.json` and prints a markdown table.
+- `regret`: per trainer a small grid of step rules and initial scales (`GRID`, the first
+  entry the defaults) on both halves, without early stop; the defaults' median final loss
+  and held-out imitation error against the best of the grid, per problem (the regret).
+  Writes `benchmarks/results/defaults_regret.json` and `.md`.
 - `gd`: `fit_gd`'s step rules (the paper's at PGD's default and Adam at three rates) on both
   halves: diverged runs and the median final/initial loss.
 
@@ -88,6 +92,85 @@ def stop_table(out) -> str:
     return "\n".join(lines)
 
 
+def _grid():
+    from dissil_jax._train.direct import default_hyperparameters
+
+    def direct(factor):
+        # fit_direct's default step scales with the width n + p; a factor on it
+        def kw(p):
+            lr, _ = default_hyperparameters(p.n_state, p.facts.n_out)
+            return dict(learning_rate=factor * lr)
+        return kw
+
+    const = lambda **k: (lambda p: k)
+    return {
+        "gd": {"adam 0.1 (default)": const(), "adam 0.03": const(optimizer=optax.adam(0.03)),
+               "adam 0.3": const(optimizer=optax.adam(0.3)),
+               "adam 0.1, init 0.3": const(init_scale=0.3)},
+        "direct": {"default": const(), "lr x0.3": direct(0.3), "lr x3": direct(3.0)},
+        "mlp": {"default (1e-3)": const(), "lr 1e-2": const(learning_rate=1e-2),
+                "lr 3e-3": const(learning_rate=3e-3)},
+        "pgd": {"default": const(), "init 0.3": const(init_scale=0.3),
+                "adam 0.1": const(optimizer=optax.adam(0.1))},
+        "ico": {"default": const(), "init 0.3": const(init_scale=0.3)},
+    }
+
+
+def part_regret(trainers, names):
+    path = RESULTS / "defaults_regret.json"
+    out = json.loads(path.read_text()) if path.exists() else {}
+    grid = _grid()
+    for trainer in trainers:
+        for name in names:
+            p = zoo.problem(name)
+            if not applies(trainer, p):
+                continue
+            for label, kw in grid[trainer].items():
+                key = f"{trainer}/{name}/{label}"
+                if key in out:
+                    continue
+                t = time.perf_counter()
+                res, rep = run_full(trainer, p, num_inits=NUM_INITS,
+                                    max_steps=BUDGET[trainer], **kw(p))
+                out[key] = dict(
+                    final=[float(v) for v in np.asarray(res.final_loss)],
+                    test_error=[float(v) for v in rep.imitation_error],
+                    certified=None if res.certified is None else
+                    [bool(v) for v in rep.certified],
+                    stable=[bool(v) for v in rep.stable], reasons=res.stop_reasons(),
+                    wall=time.perf_counter() - t)
+                print(f"{key:50s} {time.perf_counter() - t:7.1f} s", flush=True)
+                path.write_text(json.dumps(out))
+    return out
+
+
+def regret_table(out, names) -> str:
+    """Per trainer and problem: the defaults' median final loss and median held-out error
+    over the best grid entry's (by median final loss), with the defaults' failure counts."""
+    lines = ["| trainer | problem | half | loss regret | test-error regret | best of grid | "
+             "diverged | certified | stable |", "| --- | --- | --- | ---: | ---: | --- | ---: "
+             "| ---: | ---: |"]
+    grid = _grid()
+    for trainer in TRAINERS:
+        for name in names:
+            labels = [lab for lab in grid[trainer] if f"{trainer}/{name}/{lab}" in out]
+            if not labels:
+                continue
+            rows = {lab: out[f"{trainer}/{name}/{lab}"] for lab in labels}
+            med = {lab: np.median(r["final"]) for lab, r in rows.items()}
+            err = {lab: np.median(r["test_error"]) for lab, r in rows.items()}
+            best = min(labels, key=lambda lab: med[lab] if np.isfinite(med[lab]) else np.inf)
+            d = rows[labels[0]]
+            div = sum(r == "non_finite" for r in d["reasons"])
+            cert = "-" if d["certified"] is None else f"{np.mean(d['certified']):.0%}"
+            half = "tuning" if name in zoo.TUNING else "held-out"
+            lines.append(
+                f"| {trainer} | {name} | {half} | {med[labels[0]] / med[best]:.2f} | "
+                f"{err[labels[0]] / err[best]:.2f} | {best} | {div}/{len(d['reasons'])} | "
+                f"{cert} | {np.mean(d['stable']):.0%} |")
+    return "\n".join(lines)
+
+
 def part_gd(names):
     rules = {"paper (1, 0.99)": dict(learning_rate=1.0, decay=0.99),
              "adam 0.01": dict(optimizer=optax.adam(0.01)),
@@ -111,7 +194,8 @@ def part_gd(names):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--part", choices=("stop", "gd"), required=True)
+    ap.add_argument("--part", choices=("stop", "gd", "regret"), required=True)
+    ap.add_argument("--half", choices=("tuning", "held_out", "both"), default="both")
     ap.add_argument("--trainers", default=",".join(TRAINERS))
     args = ap.parse_args()
     RESULTS.mkdir(exist_ok=True)
@@ -119,6 +203,12 @@ def main():
         out = part_stop(args.trainers.split(","), zoo.TUNING)
         table = stop_table(out)
         (RESULTS / "defaults_stop.md").write_text(table + "\n")
+    elif args.part == "regret":
+        names = {"tuning": zoo.TUNING, "held_out": zoo.HELD_OUT,
+                 "both": zoo.TUNING + zoo.HELD_OUT}[args.half]
+        out = part_regret(args.trainers.split(","), names)
+        table = regret_table(out, zoo.TUNING + zoo.HELD_OUT)
+        (RESULTS / "defaults_regret.md").write_text(table + "\n")
     else:
         table = part_gd(list(zoo.TUNING) + list(zoo.HELD_OUT))
         (RESULTS / "defaults_gd.md").write_text(table + "\n")
