@@ -40,7 +40,7 @@ import dissil_jax as dj  # noqa: E402
 from dissil_jax.experiments import zoo  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
-RTOLS = (1e-2, 3e-3, 1e-3, 3e-4, 1e-4, 3e-5, 1e-5, 1e-6)
+RTOLS = (1e-2, 1e-3, 1e-4, 1e-5, 3e-6, 1e-6, 1e-7)
 BUDGET = {"pgd": 150, "gd": 150, "direct": 150, "ico": 150, "mlp": 2000}
 NUM_INITS = 4
 
@@ -116,8 +116,21 @@ def _grid():
     }
 
 
-def part_regret(trainers, names):
-    path = RESULTS / "defaults_regret.json"
+def _regret_path(half: str) -> Path:
+    return RESULTS / ("defaults_regret.json" if half == "held_out"
+                      else f"defaults_regret_{half}.json")
+
+
+def load_regret() -> dict:
+    out = {}
+    for half in ("tuning", "held_out"):
+        if _regret_path(half).exists():
+            out.update(json.loads(_regret_path(half).read_text()))
+    return out
+
+
+def part_regret(trainers, names, half):
+    path = _regret_path(half)
     out = json.loads(path.read_text()) if path.exists() else {}
     grid = _grid()
     for trainer in trainers:
@@ -206,8 +219,8 @@ def main():
     elif args.part == "regret":
         names = {"tuning": zoo.TUNING, "held_out": zoo.HELD_OUT,
                  "both": zoo.TUNING + zoo.HELD_OUT}[args.half]
-        out = part_regret(args.trainers.split(","), names)
-        table = regret_table(out, zoo.TUNING + zoo.HELD_OUT)
+        part_regret(args.trainers.split(","), names, args.half)
+        table = regret_table(load_regret(), zoo.TUNING + zoo.HELD_OUT)
         (RESULTS / "defaults_regret.md").write_text(table + "\n")
     else:
         table = part_gd(list(zoo.TUNING) + list(zoo.HELD_OUT))
