@@ -104,9 +104,11 @@ def _grid():
 
     const = lambda **k: (lambda p: k)
     return {
-        "gd": {"adam 0.1 (default)": const(), "adam 0.03": const(optimizer=optax.adam(0.03)),
-               "adam 0.3": const(optimizer=optax.adam(0.3)),
-               "adam 0.1, init 0.3": const(init_scale=0.3)},
+        # first entry: the defaults (fit_gd's init_scale 0.3 was chosen on the tuning half)
+        "gd": {"adam 0.1, init 0.3": const(init_scale=0.3),
+               "adam 0.1, init 1": const(init_scale=1.0),
+               "adam 0.03": const(optimizer=optax.adam(0.03), init_scale=1.0),
+               "adam 0.3": const(optimizer=optax.adam(0.3), init_scale=1.0)},
         "direct": {"default": const(), "lr x0.3": direct(0.3), "lr x3": direct(3.0)},
         "mlp": {"default (1e-3)": const(), "lr 1e-2": const(learning_rate=1e-2),
                 "lr 3e-3": const(learning_rate=3e-3)},
