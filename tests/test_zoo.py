@@ -247,7 +247,8 @@ def test_fit_gd_defaults_stay_finite_on_the_held_out_half(problems):
         hist = np.asarray(res.loss_history)
         assert np.all(np.isfinite(hist)), name
         assert np.all(hist[:, -1] < hist[:, 0]), name
-        paper = dj.fit_gd(jr.PRNGKey(0), p.train, learning_rate=1.0, decay=0.99, **kw)
+        paper = dj.fit_gd(jr.PRNGKey(0), p.train, learning_rate=1.0, decay=0.99,
+                          init_scale=1.0, **kw)  # the paper's rule at PGD's defaults
         paper_diverged += "non_finite" in paper.stop_reasons()
     assert paper_diverged >= len(zoo.HELD_OUT) // 2
     # The failure message is true for GD (nothing certified) and names the fix.
