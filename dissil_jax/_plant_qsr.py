@@ -61,7 +61,16 @@ def _solve(prob, what: str) -> None:
             raise ValueError(f"the {what} SDP failed in Clarabel: {err}") from err
     if prob.status not in ("optimal", "optimal_inaccurate"):
         raise ValueError(f"the {what} SDP is {prob.status} (Clarabel); the plant admits no "
-                         "such supply rate.")
+                         f"such supply rate. {_FIXES.get(what, _FIXES[None])}")
+
+
+_FIXES = {
+    "Lemma 8": ("Lemma 8 needs a storage with 2(A'PA + alpha^2 tau I) < P, so the linear part "
+                "must contract strongly (||A||^2 + alpha^2 < 1/2 suffices): check `A` and "
+                "`alpha`, or describe the plant by another supply rate."),
+    None: ("Check that the plant `A` is stable (spectral radius < 1) and discrete-time; for "
+           "an unstable plant no storage exists, stabilise it first."),
+}
 
 
 def _sym(M):

@@ -46,15 +46,20 @@ class Outcome(eqx.Enumeration):
 
     converged = "converged: |ΔJ| < tol"
     max_steps = "stopped at max_steps"
-    non_finite = "the loss became NaN or infinite"
+    non_finite = (
+        "the loss became NaN or infinite: the steps were too large for this problem; pass "
+        "a smaller `learning_rate` (or an `optimizer` with a bounded step, such as "
+        "`optax.adam`) or a smaller `init_scale`"
+    )
     solver_failed = (
-        "Clarabel failed to solve the SDP (max iterations or numerical trouble); the data "
-        "may be badly scaled."
+        "Clarabel failed to solve the SDP (max iterations or numerical trouble), usually for "
+        "a target far outside the dissipative set; pass a smaller `init_scale` or step, or a "
+        "larger `eps`"
     )
     loss_increased = "ICO's float64 re-evaluation found the loss increased; the step was refused"
     not_certified = (
-        "the solver's point failed the exact float64 KYP check even with an enlarged margin; "
-        "no controller is returned without a certificate."
+        "the solver's point failed the exact float64 KYP check even with an enlarged margin "
+        "(no controller is returned without a certificate); pass a larger `eps`"
     )
     solved = "projected and verified by the exact float64 KYP check"
     unchanged = "the target was already certified by P_ref and is returned as is"

@@ -34,8 +34,8 @@ def _check_args(windows, qsr, num_inits, max_steps, tol, init_scale):
         raise ValueError(
             "`windows.x0` is None, but ICO needs the controller state at every window start: "
             "its convex overbound (paper eq. 17) is built around the windows' x̂0. For "
-            "input-output logs without plant state use `dj.fit_pgd(..., n_state=...)`, which "
-            "starts the controller at rest.")
+            "input-output logs without plant state use `dj.fit_direct(..., n_state=...)` or "
+            "`dj.fit_pgd(..., n_state=...)`, which start the controller at rest.")
     if windows.horizon != 2:
         raise ValueError(
             f"`windows` has horizon h = {windows.horizon}, but ICO overbounds the paper's "

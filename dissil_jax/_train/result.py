@@ -105,9 +105,14 @@ def raise_if_failed(res: FitResult) -> FitResult:
     if bad.any():
         names = np.asarray(res.stop_reasons(), dtype=object)[bad]
         counts = {n: int((names == n).sum()) for n in sorted(set(names))}
-        first = getattr(_sdp.Outcome, names.ravel()[0])
+        # One explanation (and its fix) per kind of failure, and what the failed runs kept:
+        # only the constrained trainers have certified iterates to fall back on.
+        why = "; ".join(f"{n}: {_sdp.Outcome[getattr(_sdp.Outcome, n)].rstrip('.')}"
+                        for n in counts)
+        kept = ("its last certified, finite iterate" if res.certified is not None
+                else "its last finite iterate")
         raise ValueError(
-            f"{int(bad.sum())} of {bad.size} runs ended in failure {counts}: "
-            f"{_sdp.Outcome[first]}. Each kept its last certified iterate; pass `throw=False` "
-            "to get the result and inspect `stop_reason`.")
+            f"{int(bad.sum())} of {bad.size} runs ended in failure {counts}. {why}. Each "
+            f"failed run kept {kept}; pass `throw=False` to get the result and inspect "
+            "`stop_reason`.")
     return res

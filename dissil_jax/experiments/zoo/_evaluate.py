@@ -1,0 +1,135 @@
+"""Run a method on a zoo problem: certificate, closed-loop stability, held-out error, time."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+
+from ..._certify import certify
+from ..._controller import LTIController
+from ..._train.result import FitResult
+from ...systems import LinearPlant
+from ..metrics import lti_spectral_radius, rule_stable
+from ..simulate import Noise, simulate_controllers
+from ._record import Problem, Report, Task, as_batch, predict_any
+
+#: Closed-loop simulation of nonlinear loops: steps, and the end-state bound of
+#: `rule_stable` per unit of the problem's data (the loop must at least halve a large
+#: initial state and settle near the origin; the simulation is noise free).
+SIM_STEPS, SIM_ABS = 200, 1e-2
+
+
+def task(problem: Problem, key=None) -> Task:
+    """The [`Task`][dissil_jax.experiments.zoo.Task] a method gets for `problem` (key 0 by default)."""
+    return Task(jr.PRNGKey(0) if key is None else key, problem.train, problem.qsr,
+                problem.n_state)
+
+
+def _finite(controllers) -> np.ndarray:
+    leaves = [np.asarray(l) for l in jax.tree.leaves(eqx.filter(controllers, eqx.is_array))]
+    k = leaves[0].shape[0]
+    return np.all([np.isfinite(l.reshape(k, -1)).all(axis=1) for l in leaves], axis=0)
+
+
+def _take(tree, idx):
+    return jax.tree.map(lambda l: l[idx] if eqx.is_array(l) else l, tree)
+
+
+def certified(problem: Problem, controllers, P=None) -> np.ndarray:
+    """`[K]` exact float64 certificates of `dj.certify` (with the storages `P` if given)."""
+    ok = _finite(controllers)
+    out = np.zeros(ok.shape, bool)
+    if not isinstance(controllers, LTIController) or not ok.any():
+        return out
+    idx = np.nonzero(ok)[0]
+    K = _take(controllers, idx)
+    if P is not None and bool(np.all(np.isfinite(np.asarray(P)[idx]))):
+        out[idx] = np.asarray(certify(K, problem.qsr, P=np.asarray(P)[idx]).holds)
+    else:
+        out[idx] = np.asarray(certify(K, problem.qsr).holds)
+    return out
+
+
+def stable(problem: Problem, controllers) -> np.ndarray:
+    """`[K]` closed-loop stability with the plant (negative feedback, controller at rest or
+    at the plant state as in the training windows).
+
+    Exact for an `LTIController` on a `LinearPlant` (spectral radius of the loop below 1);
+    otherwise a noise-free simulation of `SIM_STEPS` steps from `problem.x0_test`, judged by
+    [`rule_stable`][dissil_jax.experiments.rule_stable] with the end bound scaled to the
+    problem's units."""
+    ok = _finite(controllers)
+    out = np.zeros(ok.shape, bool)
+    if not ok.any():
+        return out
+    idx = np.nonzero(ok)[0]
+    K = _take(controllers, idx)
+    if isinstance(problem.plant, LinearPlant) and isinstance(K, LTIController):
+        out[idx] = lti_spectral_radius(problem.plant, K) < 1.0
+        return out
+    x0 = problem.x0_test
+    dtype = x0.dtype
+    N, n, m = x0.shape[0], problem.plant.n_state, problem.plant.n_in
+    noise = Noise(jnp.zeros((N, SIM_STEPS, n), dtype), jnp.zeros((N, SIM_STEPS, m), dtype))
+    xhat0 = None if problem.facts.has_state else "rest"
+    if xhat0 == "rest" and not isinstance(K, LTIController):
+        xhat0 = jnp.zeros((N, problem.n_state), dtype)
+    traj = simulate_controllers(problem.plant, K, x0, noise, xhat0)
+    out[idx] = rule_stable(traj, abs_tol=SIM_ABS * problem.facts.units)
+    return out
+
+
+def imitation_error(problem: Problem, controllers) -> np.ndarray:
+    """`[K]` held-out loss relative to the zero controller's, $J(K)/J(0)$ ($\\infty$ if not finite)."""
+    ok = _finite(controllers)
+    out = np.full(ok.shape, np.inf)
+    if not ok.any():
+        return out
+    idx = np.nonzero(ok)[0]
+    K = _take(controllers, idx)
+    W = problem.test
+    n_state = K.n_state if isinstance(K, LTIController) else problem.n_state
+    pred = np.asarray(predict_any(K, W, n_state), np.float64)
+    target = np.asarray(W.target, np.float64)
+    J = np.mean(np.sum((pred - target[None]) ** 2, axis=(-2, -1)), axis=-1)
+    J0 = np.mean(np.sum(target**2, axis=(-2, -1)))
+    out[idx] = np.where(np.isfinite(J), J / J0, np.inf)
+    return out
+
+
+def evaluate(problem: Problem, method: Callable, *, key=None) -> Report:
+    """Run `method` on `problem` and report what it learned (see [`Report`][dissil_jax.experiments.zoo.Report]).
+
+    **Arguments:**
+
+    - `problem`: a zoo [`Problem`][dissil_jax.experiments.zoo.Problem].
+    - `method`: a callable taking a [`Task`][dissil_jax.experiments.zoo.Task] (training
+      windows, controller supply rate, controller order, key) and returning a
+      `dj.FitResult`, a batch of controllers (leading axis) or one `LTIController`.
+    - `key`: the PRNG key handed to the method (default `PRNGKey(0)`).
+
+    **Returns:** a `Report` with one entry per returned controller.
+
+    ```python
+    from dissil_jax.experiments import zoo
+    p = zoo.problem("chain3_paper")
+    rep = zoo.evaluate(p, lambda t: dj.fit_pgd(t.key, t.windows, t.qsr, n_state=t.n_state))
+    ```
+    """
+    start = time.perf_counter()
+    out = method(task(problem, key))
+    out = jax.block_until_ready(out)
+    wall = time.perf_counter() - start
+    P = train_loss = None
+    if isinstance(out, FitResult):
+        P, train_loss = out.P, np.asarray(out.final_loss, np.float64)
+        out = out.controllers
+    K = as_batch(out)
+    return Report(certified(problem, K, P), stable(problem, K), imitation_error(problem, K),
+                  train_loss, float(wall))
