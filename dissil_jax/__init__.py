@@ -3,8 +3,8 @@
 from ._certify import Certificate as Certificate, certify as certify
 from ._controller import LTIController as LTIController
 from ._data import Windows as Windows
-from ._deprecated import project_with_status as project_with_status
 from ._lmi import kyp_matrix as kyp_matrix
+from ._outcome import Outcome as Outcome
 from ._projection import Projection as Projection, project as project
 from ._rollout import (
     imitation_loss as imitation_loss,
@@ -12,7 +12,6 @@ from ._rollout import (
     predict as predict,
     rollout as rollout,
 )
-from ._sdp import Outcome as Outcome
 from ._supply import (
     QSR as QSR,
     ClosedLoopCertificate as ClosedLoopCertificate,
@@ -39,8 +38,3 @@ from ._train.pgd import fit_gd as fit_gd, fit_pgd as fit_pgd, pgd_run as pgd_run
 from ._train.result import FitResult as FitResult
 from .systems import LinearPlant as LinearPlant, SectorPlant as SectorPlant
 
-
-def __getattr__(name: str):  # deprecated names (dj.Status) warn on access
-    from ._deprecated import module_getattr
-
-    return module_getattr(name)

@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import functools
-import inspect
-import warnings
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -16,43 +12,6 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
-
-
-def _is_prng_key(x) -> bool:
-    """True for a raw `jr.PRNGKey` (uint32 array) or a typed `jr.key`, traced or not."""
-    if not isinstance(x, (jax.Array, np.ndarray)):
-        return False
-    return jnp.issubdtype(x.dtype, jax.dtypes.prng_key) or np.ndim(x) >= 1
-
-
-def _old_random(key, n, n_in, n_out, scale=0.1, dtype=None):
-    """The 0.1 signature of `LTIController.random` (for binding deprecated calls)."""
-
-
-_OLD_RANDOM_SIGNATURE = inspect.signature(_old_random)
-
-
-def _legacy_random(fn):
-    """Accept the deprecated `LTIController.random(key, n, n_in, n_out, scale, dtype)`."""
-
-    @functools.wraps(fn)
-    def wrapper(cls, *args, **kwargs):
-        if (args and _is_prng_key(args[0])) or "n" in kwargs:
-            try:
-                old = _OLD_RANDOM_SIGNATURE.bind(*args, **kwargs).arguments
-            except TypeError as err:
-                raise TypeError(f"LTIController.random(): {err}") from None
-            warnings.warn(
-                "`LTIController.random(key, n, n_in, n_out, scale)` is deprecated; call "
-                "`LTIController.random(n_state, n_in, n_out, scale=..., key=key)` (sizes "
-                "first, `key` keyword-only and last, as in equinox). The old form will be "
-                "removed in 0.3.0.",
-                DeprecationWarning, stacklevel=2)
-            args = (old.pop("n"), old.pop("n_in"), old.pop("n_out"))
-            kwargs = old
-        return fn(cls, *args, **kwargs)
-
-    return wrapper
 
 
 def _collect_systems(sys) -> tuple[tuple[int, ...], list]:
@@ -166,7 +125,6 @@ class LTIController(eqx.Module):
         return self.A @ x + self.B @ u, self.C @ x + self.D @ u
 
     @classmethod
-    @_legacy_random
     def random(
         cls,
         n_state: int,
@@ -194,9 +152,6 @@ class LTIController(eqx.Module):
         K = dj.LTIController.random(2, 1, 1, scale=0.5, key=jax.random.PRNGKey(0))
         Ks = jax.vmap(lambda k: dj.LTIController.random(2, 1, 1, key=k))(keys)
         ```
-
-        *Deprecated:* the 0.1 form `random(key, n, n_in, n_out, scale, dtype)` (key first)
-        still works with a `DeprecationWarning`; it will be removed in 0.3.0.
         """
         for name, d in (("n_state", n_state), ("n_in", n_in), ("n_out", n_out)):
             if isinstance(d, bool) or np.ndim(d) != 0 or int(d) != d or d < 1:

@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _linalg
+from . import _linalg, _lmi, _sdp
 from ._indefinite import is_indefinite
 from ._supply import QSR
 
@@ -172,7 +172,7 @@ def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, active, shard, *, qsr, has
                 reg, refine, shards):
     """pure_callback target: the exact float64 check of the ADMM results, Clarabel for the
     rows that fail it (`_projection._host_batch`), codes as `project`'s."""
-    from . import _projection, _sdp
+    from . import _projection  # `_projection` dispatches to this module
 
     dtype = np.asarray(A).dtype
     batch = A.shape[:-2]
@@ -185,13 +185,13 @@ def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, active, shard, *, qsr, has
     codes = np.full(act.shape[0], _projection._SKIPPED, np.int32)
     todo = np.nonzero(act)[0]
     if has_ref and len(todo):  # as Clarabel's path: a certified target stays unchanged
-        keep = _sdp.certified(*(t[todo] for t in tgt), qsr, ref[todo])
+        keep = _lmi.certified(*(t[todo] for t in tgt), qsr, ref[todo])
         codes[todo[keep]] = _projection._UNCHANGED
         todo = todo[~keep]
     if len(todo):
-        rounded = [_sdp.cast(M[todo], dtype) for M in sol]
+        rounded = [_lmi.cast(M[todo], dtype) for M in sol]
         finite = np.all([np.all(np.isfinite(M), axis=(-2, -1)) for M in rounded], axis=0)
-        ok = finite & _sdp.certified(*rounded[:4], qsr, rounded[4])
+        ok = finite & _lmi.certified(*rounded[:4], qsr, rounded[4])
         for o, M in zip(out, rounded):
             o[todo[ok]] = M[ok]
         codes[todo[ok]] = _projection._SOLVED
@@ -224,8 +224,6 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, margi
     `pure_callback` for the exact check (and the Clarabel fallback). `W` (the metric's
     weights, all ones: `use_first_order` admits no metric) and `K_ref` (the linearisation
     point of an indefinite $Q$, which `use_first_order` refuses) keep `project`'s signature."""
-    from . import _sdp
-
     # module constants read at call time (the tests shrink the budget to force the fallback)
     margin = MARGIN_FO if margin is None else margin
     tol = TOL_FO if tol is None else tol

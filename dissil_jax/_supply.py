@@ -18,8 +18,6 @@ import equinox as eqx
 import numpy as np
 import scipy.optimize
 
-from ._deprecated import positional_options
-
 _SYM_TOL = 1e-9
 
 
@@ -157,8 +155,6 @@ class QSR(eqx.Module):
         return cls(np.zeros((dim, dim)), 0.5 * np.eye(dim), np.zeros((dim, dim)))
 
     @classmethod
-    @positional_options("QSR.bounded_gain", ("n_out", "n_in"),
-                        "QSR.bounded_gain(gamma, n_in=..., n_out=...)", leading=2)
     def bounded_gain(cls, gamma: float, *, n_in: int, n_out: int) -> QSR:
         """$\\gamma$-bounded $\\ell_2$ gain: $Q=-I$, $S=0$, $R=\\gamma^2 I$.
 
@@ -172,9 +168,6 @@ class QSR(eqx.Module):
         - `n_out`: output dimension $m$ (keyword only).
 
         **Returns:** the `QSR` with $S$ of shape `(n_out, n_in)`.
-
-        *Deprecated:* the positional form `bounded_gain(gamma, n_out, n_in)` (output size
-        first) still works with a `DeprecationWarning`; it will be removed in 0.3.0.
         """
         n_out, n_in = _check_dim("n_out", n_out), _check_dim("n_in", n_in)
         if not np.isfinite(gamma) or gamma <= 0:
@@ -312,8 +305,6 @@ def closed_loop_certificate(plant_qsr: QSR, controller_qsr: QSR) -> ClosedLoopCe
     return ClosedLoopCertificate(holds=bool(best < -1e-12 * scale), alpha=float(10**best_la))
 
 
-@positional_options("stabilising_qsr", ("alpha", "margins"),
-                    "stabilising_qsr(plant_qsr, alpha=..., margins=...)")
 def stabilising_qsr(plant_qsr: QSR, *, alpha: float = 1.0, margins=(1e-2, 1e-2)) -> QSR:
     """A controller supply rate that Theorem 1 pairs with `plant_qsr` (the recipe of `docs/concepts.md`, *The closed-loop theorem*).
 
@@ -333,9 +324,6 @@ def stabilising_qsr(plant_qsr: QSR, *, alpha: float = 1.0, margins=(1e-2, 1e-2))
     `alpha` and `margins` are keyword-only.
 
     **Returns:** the controller's `QSR`.
-
-    *Deprecated:* passing `alpha` and `margins` positionally still works with a
-    `DeprecationWarning`; it will be removed in 0.3.0.
     """
     if not isinstance(plant_qsr, QSR):
         raise ValueError("`plant_qsr` must be a `dj.QSR`.")

@@ -7,7 +7,7 @@ import scipy.sparse as sp
 from helpers import dissipation_ok
 
 import dissil_jax as dj
-from dissil_jax._lmi import ConvexifiedLMI, smat
+from dissil_jax.internal import ConvexifiedLMI, smat
 
 pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import dissil_jax as dj
-from dissil_jax import _rollout
+from dissil_jax.internal import rollout as _rollout
 
 
 def _loop_outputs(K, x0, u):

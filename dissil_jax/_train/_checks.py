@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax
 import numpy as np
+import optax
 
 from .._data import Windows
 from .._indefinite import check_feasible, is_indefinite
@@ -32,6 +33,20 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
             continue
         if not np.all(np.isfinite(v)) or np.any(np.asarray(v) < 0):
             raise ValueError(f"`{name}` must be finite and non-negative, got {v!r}.")
+
+
+def check_optimizer(optimizer, rule: str, **step_args) -> bool:
+    """True when an `optimizer` is given; then none of `step_args` (the default rule's
+    hyperparameters, named after `rule`) may be set, and it must be an optax transformation."""
+    if optimizer is None:
+        return False
+    given = [f"`{k}`" for k, v in step_args.items() if v is not None]
+    if given:
+        raise ValueError(f"pass either `optimizer` or {'/'.join(given)} ({rule}), not both.")
+    if not isinstance(optimizer, optax.GradientTransformation):
+        raise ValueError(f"`optimizer` must be an `optax.GradientTransformation`, got "
+                         f"{type(optimizer).__name__}.")
+    return True
 
 
 def check_n_state(windows: Windows, n_state) -> int:

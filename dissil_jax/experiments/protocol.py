@@ -104,7 +104,7 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
 
     # The experiments record every outcome (a diverged GD run counts as unstable), so no
     # trainer raises on a run that ended early.
-    common = dict(num_inits=inits, max_steps=spec.max_steps, tol=spec.tol, throw=False)
+    common = dict(num_inits=inits, max_steps=spec.max_steps, atol=spec.tol, throw=False)
     if method == "pgd":
         return dj.fit_pgd(key, windows, spec.qsr, learning_rate=spec.pgd_learning_rate,
                           decay=spec.pgd_decay, init_scale=spec.init_scale, **common)
@@ -118,9 +118,9 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
     if method == "direct":
         return dj.fit_direct(key, windows, spec.qsr, learning_rate=spec.direct_learning_rate,
                              init_scale=spec.direct_init_scale,
-                             **dict(common, tol=spec.direct_tol))
+                             **dict(common, atol=spec.direct_tol))
     if method == "mlp":
-        return dj.fit_mlp(key, windows, hidden=spec.hidden, num_inits=inits, tol=spec.tol,
+        return dj.fit_mlp(key, windows, hidden=spec.hidden, num_inits=inits, atol=spec.tol,
                           throw=False)
     raise ValueError(f"`method` must be one of {METHODS}, got {method!r}.")
 
@@ -183,7 +183,7 @@ def run_config(example: str, data: str, method: str, segments: int, *, inits: in
         stable.append(np.asarray(ev.stable, bool))
         bounded.append(np.asarray(ev.bounded, bool))
         pcc.append(np.asarray(res.percent_change_cost))
-        reasons += res.stop_reasons()
+        reasons += res.result_names()
         if res.certified is not None:
             certified.append(np.asarray(res.certified, bool))
     mse, stable, bounded = np.concatenate(mse), np.concatenate(stable), np.concatenate(bounded)
