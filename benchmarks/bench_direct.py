@@ -39,7 +39,7 @@ jax.config.update("jax_enable_x64", True)
 import dissil_jax as dj  # noqa: E402
 from dissil_jax.experiments.metrics import evaluate  # noqa: E402
 from dissil_jax.experiments.protocol import (  # noqa: E402
-    _test_setup,
+    evaluation_setup,
     example_spec,
     fit,
     training_data,
@@ -61,7 +61,7 @@ def timed(run):
 
 def test_mse(spec, res):
     plant, expert, _, (_, _, k_noise) = training_data(spec, 0, 0, "initial", 25)
-    x0, _, steps = _test_setup(spec, 0, 0)
+    x0, _, steps = evaluation_setup(spec, 0, 0)
     K = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), res.controllers)
     return float(np.median(np.asarray(evaluate(k_noise, plant, expert, K, x0, steps).mse)))
 

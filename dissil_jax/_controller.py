@@ -9,6 +9,8 @@ import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from ._validate import check_abcd, check_int
+
 
 def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
@@ -85,15 +87,7 @@ class LTIController(eqx.Module):
                 raise ValueError(f"`{name}` must be a matrix, got shape {M.shape}.")
             if not jnp.issubdtype(M.dtype, jnp.floating):
                 raise ValueError(f"`{name}` must be a floating-point array, got {M.dtype}.")
-        batch = self.A.shape[:-2]
-        n, p, m = self.A.shape[-1], self.B.shape[-1], self.C.shape[-2]
-        expected = {"A": (n, n), "B": (n, p), "C": (m, n), "D": (m, p)}
-        for name, M in zip(names, mats):
-            if M.shape[:-2] != batch or M.shape[-2:] != expected[name]:
-                raise ValueError(
-                    f"`{name}` has shape {M.shape}; with A {self.A.shape}, B {self.B.shape}, "
-                    f"C {self.C.shape} it must be {batch + expected[name]}."
-                )
+        check_abcd(*mats)
         for name, M in zip(names, mats):
             if _is_concrete(M) and not bool(jnp.all(jnp.isfinite(M))):
                 raise ValueError(f"`{name}` contains NaN or inf.")
@@ -153,10 +147,8 @@ class LTIController(eqx.Module):
         Ks = jax.vmap(lambda k: dj.LTIController.random(2, 1, 1, key=k))(keys)
         ```
         """
-        for name, d in (("n_state", n_state), ("n_in", n_in), ("n_out", n_out)):
-            if isinstance(d, bool) or np.ndim(d) != 0 or int(d) != d or d < 1:
-                raise ValueError(f"`{name}` must be a positive integer, got {d!r}.")
-        n, n_in, n_out = int(n_state), int(n_in), int(n_out)
+        n, n_in, n_out = (check_int(name, d) for name, d in
+                          (("n_state", n_state), ("n_in", n_in), ("n_out", n_out)))
         dtype = dtype or jnp.result_type(float)
         kA, kB, kC, kD = jr.split(key, 4)
         shapes = ((n, n), (n, n_in), (n_out, n), (n_out, n_in))

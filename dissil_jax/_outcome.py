@@ -46,12 +46,16 @@ class Outcome(eqx.Enumeration):
         "sizes near the reference P. Check the supply rate (e.g. R and S signs), or pass a "
         "different `P_ref`."
     )
+    no_multiplier = (
+        "no multiplier alpha > 0 makes the matrix of the QSR stability theorem (paper "
+        "Theorem 1) negative definite: the loop is not certified"
+    )
 
 
 #: The item names in code order: `NAMES[code(name)] == name`.
 NAMES: tuple[str, ...] = (
     "converged", "max_steps", "non_finite", "solver_failed", "loss_increased",
-    "not_certified", "solved", "unchanged", "skipped", "infeasible")
+    "not_certified", "solved", "unchanged", "skipped", "infeasible", "no_multiplier")
 if len(Outcome) != len(NAMES) or not all(isinstance(getattr(Outcome, n), Outcome) for n in NAMES):
     raise ImportError("`_outcome.NAMES` must list every `Outcome` item once.")
 _ITEMS = tuple(getattr(Outcome, n) for n in NAMES)

@@ -343,8 +343,9 @@ def project(
     _check_k_ref(K, K_ref)
     in_ref, in_act = None if P_ref is None else 0, 0 if jnp.ndim(active) else None
     first_order = _projection_fo.use_first_order(method, K, metric, qsr)
-    fn = partial(_projection_fo.project_one if first_order else _project_one, qsr=qsr,
-                 eps=eps, reg=reg, refine=refine)
+    fn = (partial(_projection_fo.project_one, fallback=_host_batch) if first_order
+          else _project_one)
+    fn = partial(fn, qsr=qsr, eps=eps, reg=reg, refine=refine)
     W = jax.tree.map(jnp.ones_like, K) if metric is None else metric
     for _ in K.batch_shape:
         fn = jax.vmap(fn, in_axes=(0, in_ref, 0, in_act, 0))

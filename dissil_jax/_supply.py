@@ -12,11 +12,15 @@ input is the plant output and the output is (minus) the plant input.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from collections.abc import Iterator
+from typing import Any
 
 import equinox as eqx
 import numpy as np
 import scipy.optimize
+
+from ._outcome import Outcome
+from ._validate import check_int
 
 _SYM_TOL = 1e-9
 
@@ -234,17 +238,29 @@ class QSR(eqx.Module):
         return f"QSR(Q={f(self.Q)}, S={f(self.S)}, R={f(self.R)})"
 
 
-def _check_dim(name: str, dim) -> int:
-    if int(dim) != dim or dim < 1:
-        raise ValueError(f"`{name}` must be a positive integer, got {dim!r}.")
-    return int(dim)
+_check_dim = check_int
 
 
-class ClosedLoopCertificate(NamedTuple):
-    """Outcome of [`closed_loop_certificate`][dissil_jax.closed_loop_certificate]."""
+class ClosedLoopCertificate(eqx.Module):
+    """What [`closed_loop_certificate`][dissil_jax.closed_loop_certificate] returns.
 
-    holds: bool
+    - `result`: the [`Outcome`][dissil_jax.Outcome], `solved` when Theorem 1's condition
+      holds, `no_multiplier` when no $\\alpha$ tried satisfies it;
+    - `alpha`: the best multiplier found (the one minimising $\\lambda_{\\max}$);
+    - `holds` (read-only): `result == Outcome.solved`, a `bool`.
+
+    It unpacks like the pair `(holds, alpha)`.
+    """
+
+    result: Outcome
     alpha: float
+
+    @property
+    def holds(self) -> bool:
+        return bool(self.result == Outcome.solved)
+
+    def __iter__(self) -> Iterator[Any]:
+        return iter((self.holds, self.alpha))
 
 
 def _theorem1_matrix(plant: QSR, ctrl: QSR, alpha: float) -> np.ndarray:
@@ -286,8 +302,9 @@ def closed_loop_certificate(plant_qsr: QSR, controller_qsr: QSR) -> ClosedLoopCe
     - `plant_qsr`: the plant's supply rate (input $u\\in\\mathbb{R}^m$, output $y\\in\\mathbb{R}^p$).
     - `controller_qsr`: the controller's supply rate (input $y$, output $\\hat y\\in\\mathbb{R}^m$).
 
-    **Returns:** `ClosedLoopCertificate(holds, alpha)`; `alpha` is the best multiplier found
-    (the one minimising $\\lambda_{\\max}$), returned even when `holds` is False.
+    **Returns:** a [`ClosedLoopCertificate`][dissil_jax.ClosedLoopCertificate] (`result`,
+    `alpha`, `holds`); `alpha` is the best multiplier found (the one minimising
+    $\\lambda_{\\max}$), returned even when the condition fails.
     """
     _check_interconnection(plant_qsr, controller_qsr)
     f = lambda la: np.linalg.eigvalsh(_theorem1_matrix(plant_qsr, controller_qsr, 10**la))[-1]
@@ -302,7 +319,9 @@ def closed_loop_certificate(plant_qsr: QSR, controller_qsr: QSR) -> ClosedLoopCe
         if res.fun < best:
             best_la, best = res.x, res.fun
     scale = 1.0 + np.abs(_theorem1_matrix(plant_qsr, controller_qsr, 10**best_la)).max()
-    return ClosedLoopCertificate(holds=bool(best < -1e-12 * scale), alpha=float(10**best_la))
+    holds = bool(best < -1e-12 * scale)
+    return ClosedLoopCertificate(Outcome.solved if holds else Outcome.no_multiplier,
+                                 float(10**best_la))
 
 
 def stabilising_qsr(plant_qsr: QSR, *, alpha: float = 1.0, margins=(1e-2, 1e-2)) -> QSR:

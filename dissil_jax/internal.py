@@ -36,9 +36,10 @@ from ._train._scale import loss_scale, scaled
 from ._train.direct import _run as direct_run_unchecked, default_hyperparameters
 from ._train.mlp import demonstration_pairs
 from ._train.pgd import METRIC_FLOOR, optimizer_metric
+from .experiments._paper import FIGURES, TABLES
 
 __all__ = [
-    "INIT_SCALE", "METRIC_FLOOR", "ConvexifiedLMI", "ICOProblem", "ICOSolver", "Iterate",
+    "FIGURES", "TABLES", "INIT_SCALE", "METRIC_FLOOR", "ConvexifiedLMI", "ICOProblem", "ICOSolver", "Iterate",
     "certified", "certify_fast", "check_n_state", "default_hyperparameters",
     "demonstration_pairs", "direct", "direct_map", "direct_run_unchecked", "ico", "ico_sdp",
     "init_controllers", "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi",

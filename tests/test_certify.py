@@ -145,15 +145,15 @@ def test_tol_is_the_relative_round_off_allowance():
     qsr = dj.QSR.passive(1)
     cert = dj.certify(K, qsr)
     assert cert.holds and 0 < cert.margin < 1e-6
-    assert dj.certify(K, qsr, P=cert.P, tol=0.0).holds
-    assert not dj.certify(K, qsr, P=cert.P, tol=1e-3).holds  # margin < tol * scale
-    assert not dj.certify(K, qsr, tol=1e-3).holds  # also after the SDP
+    assert dj.certify(K, qsr, P=cert.P, rtol=0.0).holds
+    assert not dj.certify(K, qsr, P=cert.P, rtol=1e-3).holds  # margin < tol * scale
+    assert not dj.certify(K, qsr, rtol=1e-3).holds  # also after the SDP
     # A comfortable system keeps its certificate under a loose tolerance.
     K2 = _first_order(0.5, 1.0, 1.0, 2.0)
-    assert dj.certify(K2, qsr, tol=1e-3).holds
+    assert dj.certify(K2, qsr, rtol=1e-3).holds
     for tol in (-1e-3, np.nan, np.inf):
-        with pytest.raises(ValueError, match="`tol`"):
-            dj.certify(K, qsr, tol=tol)
+        with pytest.raises(ValueError, match="`rtol`"):
+            dj.certify(K, qsr, rtol=tol)
 
 
 def test_given_P_is_checked_not_solved():

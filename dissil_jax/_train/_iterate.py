@@ -13,6 +13,9 @@ supply rate, ...) with two methods, and [`iterate`][] runs it:
   work, e.g. the projection); `code` is `converged` where the step succeeded and the
   failure otherwise (a failed projection). A method reports a non-finite gradient as a
   NaN `J`.
+- `select(accept, new, old)` (optional): the next state from the lanes that accept the
+  step; by default a per-lane `jnp.where` on every leaf (override it for state shared by
+  all lanes, like the direct map's one optimiser state).
 - `keep_non_finite` (class attribute): True for the unconstrained methods (GD, the MLP),
   which return the iterate whose loss became non-finite; False for the constrained ones,
   which keep their last finite, certified iterate.
@@ -64,6 +67,10 @@ class Method(eqx.Module):
     def step(self, state, active) -> tuple[Any, jax.Array, jax.Array]:
         """`(state, J, code)` after one step of every lane."""
 
+    def select(self, accept, new, old):
+        """The next state: `new` on the lanes that `accept` the step, `old` elsewhere."""
+        return where(accept, new, old)
+
 
 def terminate(loss, prev, loss0, ok, *, atol, rtol):
     """Per lane: the stopping rule $|J_k - J_{k-1}| <$ `atol` $+$ `rtol` $|J_0|$, or a
@@ -97,7 +104,7 @@ def iterate(method: Method, *, max_steps: int, atol, rtol):
         finite = jnp.isfinite(loss)
         code = jnp.where(failed | finite, code, _NON_FINITE)
         accept = active & ~failed & (finite | method.keep_non_finite)
-        state = where(accept, state, c["state"])
+        state = method.select(accept, state, c["state"])
         loss = jnp.where(accept, loss, c["loss"])
         ok = ~failed & finite
         stop = active & terminate(loss, c["loss"], loss0, ok, atol=atol, rtol=rtol)

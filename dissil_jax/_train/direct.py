@@ -18,7 +18,7 @@ from .._projection import project
 from .._rollout import imitation_loss
 from .._supply import QSR
 from ._checks import check_fit_args, check_n_state, check_optimizer
-from ._iterate import Method, iterate
+from ._iterate import Method, iterate, where
 from ._scale import loss_scale, scaled
 from .result import FitResult, fit_timed, raise_if_failed
 
@@ -87,6 +87,11 @@ class _Direct(Method):
         loss, grad, aux = self._evaluate(self.theta0)
         return (self.theta0, grad, aux, self.opt.init(self.theta0)), loss, \
             jnp.zeros(loss.shape, jnp.int32) + _outcome.code("max_steps")
+
+    def select(self, accept, new, old):
+        # One optimiser state for the whole batch (as before the driver loop existed): it
+        # moves on every step, the lanes' iterates only where accepted.
+        return (*where(accept, new[:3], old[:3]), new[3])
 
     def step(self, state, active):
         theta, grad, _, opt_state = state
