@@ -238,7 +238,7 @@ def input_passivity_qsr(plant, *, backoff: float = 1e-3) -> QSR:
     _square(A, B, C, D, "an input passivity index")
     _, nu = _index_sdp(A, B, C, D, "nu")
     p = C.shape[0]
-    make = lambda v: QSR.degenerate_conic(v, p)
+    make = lambda v: QSR.degenerate_conic(v, dim=p)
     return _backed_off(A, B, C, D, make, nu, backoff, "input passivity index")
 
 

@@ -179,11 +179,12 @@ class QSR(eqx.Module):
         return cls(-np.eye(n_out), np.zeros((n_out, n_in)), gamma**2 * np.eye(n_in))
 
     @classmethod
-    def conic(cls, a: float, b: float, dim: int) -> QSR:
+    def conic(cls, a: float, b: float, *, dim: int) -> QSR:
         """Interior cone $[a, b]$: $Q=-I$, $S=\\tfrac{a+b}{2}I$, $R=-abI$ (needs $a<b$).
 
         $w = -(y - a u)^\\top (y - b u)$, non-negative exactly when $y$ lies between $au$
-        and $bu$.
+        and $bu$. The size `dim` is keyword-only, as in every constructor whose
+        parameters come first ([`bounded_gain`][dissil_jax.QSR.bounded_gain]).
         """
         dim = _check_dim("dim", dim)
         if not (np.isfinite(a) and np.isfinite(b)) or not a < b:
@@ -191,7 +192,7 @@ class QSR(eqx.Module):
         return cls(-np.eye(dim), 0.5 * (a + b) * np.eye(dim), -a * b * np.eye(dim))
 
     @classmethod
-    def degenerate_conic(cls, d: float, dim: int) -> QSR:
+    def degenerate_conic(cls, d: float, *, dim: int) -> QSR:
         """Degenerate cone $[d, \\infty)$: $Q=0$, $S=\\tfrac12 I$, $R=-dI$."""
         dim = _check_dim("dim", dim)
         if not np.isfinite(d):

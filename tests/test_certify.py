@@ -72,8 +72,8 @@ def test_input_feedforward_index_matches_python_control():
     sys = control.ss([[0.5, 0.1], [0.0, -0.3]], [[1.0], [0.5]], [[1.0, 0.2]], [[1.2]], True)
     nu = control.get_input_ff_index(sys)
     K = dj.LTIController.from_statespace(sys)
-    assert dj.certify(K, dj.QSR.degenerate_conic(nu - 1e-4, 1)).holds
-    assert not dj.certify(K, dj.QSR.degenerate_conic(nu + 1e-4, 1)).holds
+    assert dj.certify(K, dj.QSR.degenerate_conic(nu - 1e-4, dim=1)).holds
+    assert not dj.certify(K, dj.QSR.degenerate_conic(nu + 1e-4, dim=1)).holds
 
 
 def test_bounded_gain_matches_hinf_norm():
@@ -264,7 +264,7 @@ def test_unbatched_certificate_keeps_scalars():
 
 
 @pytest.mark.parametrize("qsr", [dj.QSR.passive(2), dj.QSR.bounded_gain(1.5, n_in=2, n_out=2),
-                                 dj.QSR.conic(-0.5, 2.0, 2)], ids=["passive", "gain", "conic"])
+                                 dj.QSR.conic(-0.5, 2.0, dim=2)], ids=["passive", "gain", "conic"])
 def test_fast_path_and_sdp_agree(qsr):
     """Random controllers of both verdicts: the fast path and the SDP decide alike, and a
     storage either path returns passes the definition-based check."""

@@ -29,8 +29,8 @@ SUPPLY_RATES = {
     "passive": dj.QSR.passive(2),  # Q = 0
     "q_minus_1e-4": dj.QSR(-1e-4 * I2, I2 / 2, 0 * I2),  # the failure case
     "rank_deficient": dj.QSR(np.diag([-1.0, 0.0]), I2 / 2, 0 * I2),
-    "degenerate_cone": dj.QSR.degenerate_conic(0.5, 2),  # Q = 0, R < 0
-    "cone": dj.QSR.conic(-1.0, 3.0, 2),
+    "degenerate_cone": dj.QSR.degenerate_conic(0.5, dim=2),  # Q = 0, R < 0
+    "cone": dj.QSR.conic(-1.0, 3.0, dim=2),
     "gain_2x3": dj.QSR.bounded_gain(2.0, n_in=3, n_out=2),  # S = 0, non-square
     "input_only": dj.QSR(0 * I2, 0 * I2, I2),  # Q = S = 0: C and D are free
 }

@@ -43,7 +43,7 @@ def _start(key, windows, qsr, scale=0.3):
 CASES = [
     (1, 1, 1, dj.QSR.passive(1)),
     (1, 1, 1, NONLINEAR_QSR),
-    (2, 2, 2, dj.QSR.conic(-0.5, 2.0, 2)),
+    (2, 2, 2, dj.QSR.conic(-0.5, 2.0, dim=2)),
     (3, 2, 2, dj.QSR.passive(2)),
 ]
 

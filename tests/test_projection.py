@@ -23,9 +23,9 @@ def _with_status(K, qsr, P_ref=None, active=True, **kw):
 CASES = [
     ("nonlinear-paper", dj.QSR(-29.867, 3.556, 0.601), 1),
     ("passive-6x3", dj.QSR.passive(3), 6),
-    ("conic", dj.QSR.conic(-0.5, 2.0, 2), 3),
+    ("conic", dj.QSR.conic(-0.5, 2.0, dim=2), 3),
     ("bounded-gain-rect", dj.QSR.bounded_gain(0.7, n_in=3, n_out=2), 2),
-    ("degenerate-conic", dj.QSR.degenerate_conic(-0.2, 2), 2),
+    ("degenerate-conic", dj.QSR.degenerate_conic(-0.2, dim=2), 2),
 ]
 
 
@@ -135,7 +135,7 @@ def test_qsr_is_a_static_argument():
 )
 def test_property_every_projection_is_certified(seed, n, p, scale, kind):
     qsr = {"passive": dj.QSR.passive(p), "gain": dj.QSR.bounded_gain(1.5, n_in=p, n_out=p),
-           "conic": dj.QSR.conic(0.1, 3.0, p)}[kind]
+           "conic": dj.QSR.conic(0.1, 3.0, dim=p)}[kind]
     K = dj.LTIController.random(n, p, p, scale=scale, key=jax.random.PRNGKey(seed))
     Kp, P = dj.project(K, qsr)
     assert dissipation_ok(Kp, qsr, P)
@@ -192,7 +192,7 @@ def test_eps_is_the_margin_of_the_exact_lmi(getkey):
 
 
 def test_reg_pulls_P_to_the_reference(getkey):
-    qsr = dj.QSR.conic(-0.5, 2.0, 2)
+    qsr = dj.QSR.conic(-0.5, 2.0, dim=2)
     K = dj.LTIController.random(2, 2, 2, scale=1.0, key=jax.random.PRNGKey(1))
     P_ref = 2.0 * jnp.eye(2)
     gap = {}

@@ -224,7 +224,7 @@ def fit_direct(
     key, windows: Windows, qsr: QSR, *, optimizer=None, learning_rate: float | None = None,
     num_inits: int = 8, n_state: int | None = None, max_steps: int = 150, atol: float = 1e-3,
     rtol: float = 0.0, init_scale: float | None = None, margin: float = MARGIN,
-    eps: float = 1e-6, throw: bool = True,
+    fallback_eps: float = 1e-6, throw: bool = True,
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers without projections, through a direct map.
 
@@ -271,7 +271,8 @@ def fit_direct(
       whose contractions start near saturation, where gradients are small; a fixed
       $\\sigma$ saturates them more the wider the controller.
     - `margin` $\\varepsilon\\in(0,1)$: the map's strictness margin (static).
-    - `eps`: the margin of the fallback projection.
+    - `fallback_eps`: the LMI margin $\\varepsilon$ of the fallback projection (`eps` of
+      [`project`][dissil_jax.project]; called `eps` before).
     - `throw`: raise a `ValueError` when a run ends in failure (a non-finite loss, or a
       failed fallback projection); with `throw=False` see `result`.
 
@@ -292,4 +293,4 @@ def fit_direct(
                             max_steps=int(max_steps), atol=float(atol), rtol=float(rtol),
                             margin=margin),
         (learning_rate, init_scale), windows.y.dtype,
-        lambda res: certify_or_project(res, qsr, windows, eps=float(eps)), throw)
+        lambda res: certify_or_project(res, qsr, windows, eps=float(fallback_eps)), throw)
