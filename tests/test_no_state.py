@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import pytest
+from helpers import loop_outputs
 
 import dissil_jax as dj
 from dissil_jax import experiments as ex
@@ -19,13 +20,7 @@ from dissil_jax.systems import mass_spring_chain, paper_nonlinear_plant
 
 
 def _outputs_from_rest(K, y):
-    """ŷ_k = C x̂_k + D y_k, x̂_{k+1} = A x̂_k + B y_k from x̂_0 = 0 (one window, numpy)."""
-    A, B, C, D = (np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
-    x, out = np.zeros(A.shape[0]), []
-    for yk in np.asarray(y, np.float64):
-        out.append(C @ x + D @ yk)
-        x = A @ x + B @ yk
-    return np.array(out)
+    return loop_outputs(K, None, y)
 
 
 def _loss_from_rest(K, y, u):

@@ -1,7 +1,7 @@
 """The one driver loop of the gradient trainers (PGD, GD, the direct map, the MLP).
 
-A trainer is a [`Method`][]: an `eqx.Module` holding its data (windows, optimiser,
-supply rate, ...) with two methods, and [`iterate`][] runs it:
+A trainer is a `Method`: an `eqx.Module` holding its data (windows, optimiser,
+supply rate, ...) with two methods, and `iterate` runs it:
 
 - `init() -> (state, J_0, code_0)`: the initial iterate, evaluated. `state` is any pytree
   whose leaves have the lanes' shape in front (the initialisations: `[num_inits]`, or `()`
@@ -55,7 +55,7 @@ def where(mask, new, old):
 
 
 class Method(eqx.Module):
-    """A trainer for [`iterate`][]: `init`, `step` and `keep_non_finite` (module docstring)."""
+    """A trainer for `iterate`: `init`, `step`, `select`, `keep_non_finite` (module doc)."""
 
     keep_non_finite: ClassVar[bool] = False
 
