@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: test test-kernels demo reproduce install lint bench docs constraints clean
+.PHONY: test test-kernels demo reproduce install lint typecheck bench docs constraints clean
 
 # Exact, tested versions from constraints.txt, so that a fresh `make test` resolves the same
 # packages today and later; `pip install dissil_jax` alone uses pyproject's lower bounds.
@@ -53,6 +53,12 @@ reproduce: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check dissil_jax tests examples benchmarks
+
+# pyright in basic mode on dissil_jax/ (configured in pyproject.toml). Not yet part of
+# `lint`: it still reports errors, mostly optional values and third-party stub gaps
+# (numpy, scipy.sparse, cvxpy); see CHANGELOG.md.
+typecheck: $(STAMP)
+	$(BIN)/pyright
 
 bench: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python benchmarks/bench_projection.py

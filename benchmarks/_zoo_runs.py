@@ -38,11 +38,11 @@ def method(trainer: str, *, num_inits: int, **kw):
 
 
 def run_full(trainer: str, problem, *, num_inits: int, max_steps: int, **kw):
-    """One run without early stop (`tol=0`): the FitResult and the zoo's report."""
+    """One run without early stop (`atol=0`): the FitResult and the zoo's report."""
     out = {}
 
     def m(t):
-        out["res"] = method(trainer, num_inits=num_inits, max_steps=max_steps, tol=0.0, **kw)(t)
+        out["res"] = method(trainer, num_inits=num_inits, max_steps=max_steps, atol=0.0, **kw)(t)
         return out["res"]
 
     rep = zoo.evaluate(problem, m)

@@ -7,7 +7,7 @@ therefore projects in the metric W = sqrt(nu) (`dissil_jax._train.pgd.optimizer_
 The reference in the same run is the same loop with that metric switched off.
 
 Problems: those of `bench_optimizers.py` (realisable, noisy, the paper's linear and nonlinear
-examples with 25 initial segments). 8 initialisations, `tol=0`, `--steps` steps (default
+examples with 25 initial segments). 8 initialisations, `atol=0`, `--steps` steps (default
 1000). Reported per problem, rate and metric: the batch's total loss over its initial total
 after 150 steps, after 300 and at the end, the worst run's final/initial ratio, the largest
 rise of a run above its own best loss ((final - minimum along the run) / initial; 0 means
@@ -32,7 +32,7 @@ jax.config.update("jax_enable_x64", True)
 from bench_optimizers import problems  # noqa: E402
 
 import dissil_jax as dj  # noqa: E402
-from dissil_jax._train import pgd  # noqa: E402
+from dissil_jax.internal import pgd  # noqa: E402
 
 _METRIC = pgd.optimizer_metric
 
@@ -42,7 +42,7 @@ def run(windows, qsr, rate, steps, metric):
     pgd.optimizer_metric = _METRIC if metric else (lambda *_: None)
     try:
         fn = jax.jit(lambda key: dj.pgd_run(key, windows, qsr, optimizer=optax.adam(rate),
-                                            max_steps=steps, tol=0.0, throw=False))
+                                            max_steps=steps, atol=0.0, throw=False))
         jax.block_until_ready(fn(jr.PRNGKey(2)))  # compile
         start = time.perf_counter()
         res = jax.block_until_ready(fn(jr.PRNGKey(1)))
@@ -57,8 +57,7 @@ def summary(res, steps):
     last = np.array([row[~np.isnan(row)][-1] for row in h])
     total = lambda s: np.sum(np.where(np.isnan(h[:, s]), last, h[:, s])) / np.sum(h[:, 0])
     rise = np.max((last - np.nanmin(h, axis=1)) / h[:, 0])
-    failed = int(np.sum(~np.isin(np.asarray(res.stop_reason._value),
-                                 [dj.Outcome.converged._value, dj.Outcome.max_steps._value])))
+    failed = int(np.sum(~np.isin(res.result_names(), ["converged", "max_steps"])))
     return [total(min(150, steps)), total(min(300, steps)), total(steps),
             np.max(last / h[:, 0]), rise, failed]
 

@@ -3,7 +3,7 @@
 Parts (`--part`):
 
 - `stop`: every trainer with its defaults on the zoo's TUNING half, without early stop
-  (`tol=0`) for its default step budget. From the loss histories, offline, the step at which
+  (`atol=0`) for its default step budget. From the loss histories, offline, the step at which
   the relative rule $|J_k - J_{k-1}| \\le \\text{rtol}\\,|J_0|$ would stop each run, for
   candidate `rtol`s, and the loss there against the full budget's. Writes
   `benchmarks/results/defaults_stop.json` and prints a markdown table.
@@ -63,7 +63,7 @@ def part_stop(trainers, names):
                 test_error=[float(v) for v in rep.imitation_error],
                 certified=None if res.certified is None else [bool(v) for v in rep.certified],
                 stable=[bool(v) for v in rep.stable],
-                reasons=res.stop_reasons(), wall=time.perf_counter() - t)
+                reasons=res.result_names(), wall=time.perf_counter() - t)
             print(f"{trainer:7s} {name:18s} {time.perf_counter() - t:7.1f} s", flush=True)
             path.write_text(json.dumps(out))
     return out
@@ -152,7 +152,7 @@ def part_regret(trainers, names, half):
                     test_error=[float(v) for v in rep.imitation_error],
                     certified=None if res.certified is None else
                     [bool(v) for v in rep.certified],
-                    stable=[bool(v) for v in rep.stable], reasons=res.stop_reasons(),
+                    stable=[bool(v) for v in rep.stable], reasons=res.result_names(),
                     wall=time.perf_counter() - t)
                 print(f"{key:50s} {time.perf_counter() - t:7.1f} s", flush=True)
                 path.write_text(json.dumps(out))
@@ -198,8 +198,8 @@ def part_gd(names):
         cells = []
         for kw in rules.values():
             res = dj.fit_gd(jr.PRNGKey(0), p.train, n_state=p.n_state, num_inits=8,
-                            max_steps=150, tol=0.0, throw=False, **kw)
-            bad = int(sum(r == "non_finite" for r in res.stop_reasons()))
+                            max_steps=150, atol=0.0, throw=False, **kw)
+            bad = int(sum(r == "non_finite" for r in res.result_names()))
             ratio = np.asarray(res.final_loss) / np.asarray(res.initial_loss)
             cells.append(f"{bad}/8 diverged" if bad else f"{np.median(ratio):.2e}")
         lines.append(f"| {name} | {p.split} | " + " | ".join(cells) + " |")

@@ -37,14 +37,14 @@ import numpy as np  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 import dissil_jax as dj  # noqa: E402
-from dissil_jax._lmi import kyp_margin, kyp_scale  # noqa: E402
 from dissil_jax.experiments.metrics import evaluate  # noqa: E402
 from dissil_jax.experiments.protocol import (  # noqa: E402
-    _test_setup,
+    evaluation_setup,
     example_spec,
     fit,
     training_data,
 )
+from dissil_jax.internal import kyp_margin, kyp_scale  # noqa: E402
 
 
 def _f32(w):
@@ -61,7 +61,7 @@ def timed(run):
 
 def test_mse(spec, res):
     plant, expert, _, (_, _, k_noise) = training_data(spec, 0, 0, "initial", 25)
-    x0, _, steps = _test_setup(spec, 0, 0)
+    x0, _, steps = evaluation_setup(spec, 0, 0)
     K = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), res.controllers)
     return float(np.median(np.asarray(evaluate(k_noise, plant, expert, K, x0, steps).mse)))
 
@@ -92,7 +92,7 @@ def compare(example, inits, quick):
             pgd_wall = wall
         rows.append(row({"pgd": "PGD", "ico": "ICO", "direct": "Direct"}[method], res[method],
                         wall, pgd_wall, spec))
-    kw = dict(num_inits=inits, learning_rate=spec.direct_learning_rate, tol=spec.direct_tol,
+    kw = dict(num_inits=inits, learning_rate=spec.direct_learning_rate, atol=spec.direct_tol,
               init_scale=spec.direct_init_scale, throw=False)
     r, wall = timed(lambda: dj.fit_direct(k_fit, _f32(w), spec.qsr, **kw))
     rows.append(row("Direct, float32", r, wall, pgd_wall, spec))
@@ -131,7 +131,7 @@ def sweeps(spec, w, key, inits):
         for lr in rates:
             ratios = [float(np.median(dj.fit_direct(d[3][0], d[2], spec.qsr, num_inits=inits,
                                                     learning_rate=lr, init_scale=scale,
-                                                    tol=0.0, throw=False).final_loss)) / j
+                                                    atol=0.0, throw=False).final_loss)) / j
                       for d, j in zip(data, ico)]
             cells.append(", ".join(f"{r:.2f}" for r in ratios))
         print(f"| {scale:g} | " + " | ".join(cells) + " |")
@@ -143,7 +143,7 @@ def sweeps(spec, w, key, inits):
     for margin in (1e-3, 1e-2, 3e-2):
         out = []
         for ww in (w, _f32(w)):
-            r = dj.fit_direct(key, ww, spec.qsr, num_inits=inits, tol=0.0, margin=margin,
+            r = dj.fit_direct(key, ww, spec.qsr, num_inits=inits, atol=0.0, margin=margin,
                               learning_rate=spec.direct_learning_rate,
                               init_scale=spec.direct_init_scale, throw=False)
             out.append((float(np.median(r.final_loss)), min_rel_margin(r, spec.qsr),

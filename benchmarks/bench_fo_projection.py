@@ -29,12 +29,12 @@ sys.path.insert(0, os.path.dirname(__file__))
 from _high_order import PASSIVE, chain_windows  # noqa: E402
 
 import dissil_jax as dj  # noqa: E402
-from dissil_jax import _projection_fo  # noqa: E402
+from dissil_jax.internal import projection_fo as _projection_fo  # noqa: E402
 
 
 def run(windows, method, steps):
     fn = jax.jit(lambda key: dj.pgd_run(key, windows, PASSIVE, num_inits=8, max_steps=steps,
-                                        tol=0.0, throw=False, method=method))
+                                        atol=0.0, throw=False, method=method))
     jax.block_until_ready(fn(jr.PRNGKey(0)))
     before = _projection_fo.FALLBACKS["rows"]
     t = time.perf_counter()

@@ -41,7 +41,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from _high_order import PASSIVE, chain_windows, realisable  # noqa: E402
 
 import dissil_jax as dj  # noqa: E402
-from dissil_jax._train.direct import default_hyperparameters  # noqa: E402
+from dissil_jax.internal import default_hyperparameters  # noqa: E402
 
 LRS, SCALES = (0.3, 0.1, 0.03, 0.01), (0.5, 0.2, 0.05)
 
@@ -50,7 +50,7 @@ def use_lapack():
     """Put the LAPACK custom calls back into the direct map (for the reference only)."""
     import jax.scipy.linalg as jsl
 
-    from dissil_jax import _direct_map
+    from dissil_jax.internal import direct_map as _direct_map
 
     class Lapack:
         cholesky = staticmethod(jnp.linalg.cholesky)
@@ -76,7 +76,7 @@ def defaults(steps=300):
         lr_new, s_new = default_hyperparameters(n, 2)
         rows = np.concatenate([grid, [[0.3, 0.5], [lr_new, s_new]]])
         run = jax.jit(jax.vmap(lambda lr, s: dj.direct_run(
-            jr.PRNGKey(1), w, PASSIVE, num_inits=8, max_steps=steps, tol=0.0,
+            jr.PRNGKey(1), w, PASSIVE, num_inits=8, max_steps=steps, atol=0.0,
             learning_rate=lr, init_scale=s, throw=False)))
         r = run(jnp.asarray(rows[:, 0]), jnp.asarray(rows[:, 1]))
         fin = np.median(np.asarray(r.final_loss), axis=1) / J0
@@ -144,7 +144,7 @@ n = {n}
 k = jr.split(jr.PRNGKey(0), 3)
 w = dj.Windows(jr.normal(k[0], (25, n)), jr.normal(k[1], (25, 10, 2)), jr.normal(k[2], (25, 10, 2)))
 run = jax.jit(lambda key: dj.direct_run(key, w, dj.QSR.passive(2), num_inits=8, max_steps=150,
-                                        tol=0.0, throw=False))
+                                        atol=0.0, throw=False))
 jax.block_until_ready(run(jr.PRNGKey(1)))
 t = time.perf_counter(); jax.block_until_ready(run(jr.PRNGKey(2)))
 print("RESULT", (time.perf_counter() - t) / 150)

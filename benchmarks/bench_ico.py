@@ -33,11 +33,13 @@ import numpy as np  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 import dissil_jax as dj  # noqa: E402
-from dissil_jax._sdp import single_threaded_blas  # noqa: E402
-from dissil_jax._train import ico  # noqa: E402
-from dissil_jax._train._ico_sdp import ICOProblem  # noqa: E402
-from dissil_jax._train._ico_solver import ICOSolver  # noqa: E402
-from dissil_jax._train._ico_windows import stacked_factor  # noqa: E402
+from dissil_jax.internal import (  # noqa: E402
+    ICOProblem,
+    ICOSolver,
+    ico,
+    single_threaded_blas,
+    stacked_factor,
+)
 
 # The synthetic expert data are shared with the ICO tests.
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), os.pardir, "tests"))
@@ -118,7 +120,7 @@ def _iteration(pb, solver, theta, P, w, qsr):
     eps = min(pb.eps, (1 - 1e-3) * pb.kyp_margin(theta, P))
     d, P_new, w_new, status, _ = solver.solve(theta, P, w, eps)
     pb.loss(theta + d)
-    dj._lmi.kyp_certified(*pb.mats(theta + d), qsr, P_new)
+    dj.internal.kyp_certified(*pb.mats(theta + d), qsr, P_new)
     return (d, P_new, w_new, eps), time.perf_counter() - t0
 
 
@@ -155,7 +157,7 @@ def bench(N, iters, ref_iters, run_fit):
             w = float(np.clip(w_new, w / 4, 2 * w))
     row = dict(N=N, gap=np.nanmax(gaps + [np.nan]), **{k: np.median(v) for k, v in t.items()})
     if run_fit:
-        res = dj.fit_ico(jr.PRNGKey(1), windows, qsr, num_inits=2, max_steps=150, tol=1e-3)
+        res = dj.fit_ico(jr.PRNGKey(1), windows, qsr, num_inits=2, max_steps=150, atol=1e-3)
         row["fit"] = float(res.wall_time)
         row["steps"] = np.asarray(res.steps).tolist()
         row["certified"] = bool(np.all(np.asarray(res.certified)))

@@ -53,7 +53,7 @@ def run(plants, inits, num_test, segments):
     for i in plants:
         plant, expert, windows, (k_fit, _, k_noise) = protocol.training_data(
             spec, i, 0, "initial", segments)
-        x0, _, steps = protocol._test_setup(spec, i, 0)
+        x0, _, steps = protocol.evaluation_setup(spec, i, 0)
         plant_qsr, qsr, rho, nu = controller_rate(plant)
         row = dict(plant=i, rho=rho, nu=nu, q2=float(qsr.Q[0, 0]),
                    thm_indef=dj.closed_loop_certificate(plant_qsr, qsr).holds,

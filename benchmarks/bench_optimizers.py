@@ -8,9 +8,9 @@ Problems (all with the library's unit normalisation, so step sizes are unit-free
 
 Candidates: the paper's decaying-step rule (`learning_rate` η0, decay 0.99) at several η0,
 `optax.adam` at several rates, and ICO (no step size). Each runs 8 initialisations for
-150 steps with `tol=0`. Reported per problem: the median over initialisations of the final
+150 steps with `atol=0`. Reported per problem: the median over initialisations of the final
 loss over the initial loss, after all 150 steps and where the run would have stopped with
-`fit_pgd`'s default `tol` (the same iterates, cut at the first step whose loss changed by
+`fit_pgd`'s default `atol` (the same iterates, cut at the first step whose loss changed by
 less than `tol`), the median number of steps to reach 1 % of the initial loss (— if the
 median run never does), and the wall time per run. A default is used with the default
 `tol`, so it is judged there: a candidate's regret on a problem is its median final/initial
@@ -62,7 +62,7 @@ def candidates(quick):
     return out
 
 
-DEFAULT_TOL = inspect.signature(dj.fit_pgd).parameters["tol"].default
+DEFAULT_TOL = inspect.signature(dj.fit_pgd).parameters["atol"].default
 
 
 def run(name, kw, windows, qsr, steps, inits):
@@ -71,10 +71,10 @@ def run(name, kw, windows, qsr, steps, inits):
     if kw is None:
         if windows.horizon != 2:
             return None
-        res = dj.fit_ico(key, windows, qsr, num_inits=inits, max_steps=steps, tol=0.0,
+        res = dj.fit_ico(key, windows, qsr, num_inits=inits, max_steps=steps, atol=0.0,
                          throw=False)
     else:
-        res = dj.fit_pgd(key, windows, qsr, num_inits=inits, max_steps=steps, tol=0.0,
+        res = dj.fit_pgd(key, windows, qsr, num_inits=inits, max_steps=steps, atol=0.0,
                          throw=False, **kw)
     wall = (time.perf_counter() - t0) / inits
     hist = np.asarray(res.loss_history)
@@ -142,8 +142,8 @@ def main(quick=False):
     worst = regret.max(axis=0)
     near = [c for c, r in zip(names, worst) if r <= 2 * worst.min()]
     best = min(near, key=lambda c: sum(table[p, c][2] for p in probs))
-    print(f"\n{len(probs)} problems, {inits} initialisations x {steps} steps, tol=0 "
-          f"(and stopped at the default tol={DEFAULT_TOL:g})\n")
+    print(f"\n{len(probs)} problems, {inits} initialisations x {steps} steps, atol=0 "
+          f"(and stopped at the default atol={DEFAULT_TOL:g})\n")
     head = " | ".join(f"{p}: final/initial (tol 0; default tol), steps to 1 %, s/run"
                       for p in probs)
     print(f"| candidate | {head} | worst regret |")

@@ -19,7 +19,7 @@ import resource, sys, time
 import jax, numpy as np
 jax.config.update("jax_enable_x64", True)
 import dissil_jax as dj
-from dissil_jax import _certify_fast, _projection
+from dissil_jax.internal import certify_fast as _certify_fast, projection as _projection
 n, m = int(sys.argv[1]), int(sys.argv[2])
 qsr = dj.QSR.passive(m)
 K = dj.LTIController.random(n, m, m, scale=1.0, key=jax.random.PRNGKey(n))
@@ -29,8 +29,8 @@ jax.block_until_ready(proj[1])
 t_proj = time.perf_counter() - t
 Kp, P = proj
 ok = dj.certify(Kp, qsr, P=P).holds
-print(f"project n={n} m=p={m}: {t_proj:.1f} s ({_projection.SOLVER_STATS['solves']} solves, "
-      f"Clarabel {_projection.SOLVER_STATS['solve_time']:.1f} s), result {proj.result}, "
+print(f"project n={n} m=p={m}: {t_proj:.1f} s ({_projection.solver_stats()['solves']} solves, "
+      f"Clarabel {_projection.solver_stats()['solve_time']:.1f} s), result {proj.result}, "
       f"exact check {ok}", flush=True)
 for label in ("cached", "cleared"):
     if label == "cleared":

@@ -10,7 +10,7 @@ alternate, `--repeats` times each, and the medians are compared as ratios ref / 
 - `proj_new`: one `dj.project(K, qsr)` of a random N(0, 1) controller (no `P_ref`, three
   re-linearisation rounds), solvers already built;
 - `pgd`: `dj.fit_pgd` throughput, initialisations x steps per second (8 x 30 steps,
-  `tol=0`, the second of two identical calls so compilation is excluded).
+  `atol=0`, the second of two identical calls so compilation is excluded).
 
 Cases: n̂ = 1 with the nonlinear example's supply rate, n̂ = 6 with m = p = 3 passive.
 
@@ -65,7 +65,7 @@ for name, qsr, n in cases:
     x0, y = rng.normal(size=(100, n)), rng.normal(size=(100, 2, m))
     w = dj.Windows(x0, y, -0.5 * y)
     fit = lambda: dj.fit_pgd(jax.random.PRNGKey(3), w, qsr, num_inits=8, max_steps=30,
-                             tol=0.0, throw=False)
+                             atol=0.0, throw=False)
     fit()
     t = time.perf_counter()
     res = fit()
@@ -86,7 +86,7 @@ y = jax.random.normal(k2, (N, 10, 2))
 w = dj.Windows(jax.random.normal(k1, (N, n)), y, -0.5 * y)
 t = time.perf_counter()
 res = dj.fit_pgd(k3, w, dj.QSR.passive(2), max_steps=30, throw=False)
-reasons = [str(r)[:40] for r in res.stop_reasons()]
+reasons = [str(r)[:40] for r in res.result_names()]
 out = {"time": time.perf_counter() - t, "loss": np.asarray(res.final_loss).tolist(),
        "stops": reasons}
 print("RESULT " + json.dumps(out))

@@ -26,7 +26,7 @@ import numpy as np  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 import dissil_jax as dj  # noqa: E402
-from dissil_jax import _projection  # noqa: E402
+from dissil_jax.internal import projection as _projection  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(__file__))
 from _reference import cvxpy_projection_problem, solve_reference  # noqa: E402
@@ -52,7 +52,7 @@ def bench_projection(qsr, n, batch, ref_calls):
     proj = jax.jit(jax.vmap(lambda K, P: dj.project(K, qsr, P)))
     jax.block_until_ready(proj(target, P))  # compile + build solvers
     reps = 3
-    stats = _projection.SOLVER_STATS
+    stats = _projection.solver_stats()
     t0, s0, c0 = time.perf_counter(), stats["solve_time"], stats["solves"]
     for _ in range(reps):
         jax.block_until_ready(proj(target, P))
@@ -79,7 +79,7 @@ def bench_overhead(qsr, n, batch, reps):
                                                    key=k))(keys)
     proj = jax.jit(jax.vmap(lambda K: dj.project(K, qsr, refine=1)))
     jax.block_until_ready(proj(K))
-    stats = _projection.SOLVER_STATS
+    stats = _projection.solver_stats()
     t0, s0, c0 = time.perf_counter(), stats["solve_time"], stats["solves"]
     for _ in range(reps):
         jax.block_until_ready(proj(K))
@@ -94,7 +94,7 @@ def bench_pgd(qsr, n, num_inits, steps, ref_inits, ref_steps):
     N, h = 25, 2
     w = dj.Windows(jax.random.normal(kx, (N, n)), jax.random.normal(ky, (N, h, qsr.n_in)),
                    -0.2 * jax.random.normal(ky, (N, h, qsr.n_out)))
-    kw = dict(max_steps=steps, tol=0.0, learning_rate=1e-2)
+    kw = dict(max_steps=steps, atol=0.0, learning_rate=1e-2)
     dj.fit_pgd(key, w, qsr, num_inits=num_inits, **kw)  # compile
     t0 = time.perf_counter()
     dj.fit_pgd(key, w, qsr, num_inits=num_inits, **kw)
@@ -129,7 +129,7 @@ def main(quick=False):
     print("\nHost-layer overhead: jit(vmap(project(K, qsr, refine=1))), 32 random controllers")
     print(f"{'case':30s} {'threads':>8s} {'ours ms':>9s} {'clarabel ms':>12s} "
           f"{'ours/clarabel':>14s}")
-    from dissil_jax import _sdp as _threads
+    from dissil_jax.internal import sdp as _threads
 
     for name, qsr, n in CASES:
         for threads in (None, 1):

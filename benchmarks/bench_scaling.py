@@ -38,8 +38,11 @@ import numpy as np  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 import dissil_jax as dj  # noqa: E402
-from dissil_jax import _certify_fast, _projection  # noqa: E402
-from dissil_jax._lmi import ConvexifiedLMI  # noqa: E402
+from dissil_jax.internal import (  # noqa: E402
+    ConvexifiedLMI,  # noqa: E402
+    certify_fast as _certify_fast,
+    projection as _projection,
+)
 
 PATHS = ("project", "certify", "certify_sdp", "pgd", "ico", "direct")
 ICO_MAX_N = 24  # ICO's documented range
@@ -91,7 +94,7 @@ def cell(path, n, m, qsr, state):
     if path == "project":
         K = dj.LTIController.random(n, m, m, scale=1.0, key=key)
         dj.project(K, qsr, refine=1, throw=False, active=False)  # trace: not timed
-        rss0, stats = _rss_mib(), _projection.SOLVER_STATS
+        rss0, stats = _rss_mib(), _projection.solver_stats()
         s0, c0 = stats["solve_time"], stats["solves"]
         t, proj = _timed(lambda: dj.project(K, qsr, refine=1, throw=False))
         solve = stats["solve_time"] - s0
@@ -124,17 +127,17 @@ def cell(path, n, m, qsr, state):
         if n > ICO_MAX_N:
             return None, f"ICO beyond n̂ = {ICO_MAX_N} not measured"
         stamps = []
-        res = dj.fit_ico(key, w, qsr, num_inits=1, max_steps=4, tol=0.0, throw=False,
+        res = dj.fit_ico(key, w, qsr, num_inits=1, max_steps=4, atol=0.0, throw=False,
                          callback=lambda *a: stamps.append(time.perf_counter()))
         if len(stamps) < 2:
-            return None, f"no steps taken ({res.stop_reasons()[0]})"
+            return None, f"no steps taken ({res.result_names()[0]})"
         t = float(np.median(np.diff(stamps)))  # per SDP iteration, setup excluded
         return t, (f"certified={bool(np.all(np.asarray(res.certified)))} "
                    f"{len(stamps) - 1} iterations")
-    fit = lambda s: dj.fit_direct(key, w, qsr, max_steps=s, tol=0.0, throw=False)
+    fit = lambda s: dj.fit_direct(key, w, qsr, max_steps=s, atol=0.0, throw=False)
     t, total, res = _per_step(fit, 50, 1050)
     if t is None:
-        return None, f"no steps taken ({res.stop_reasons()[0]})"
+        return None, f"no steps taken ({res.result_names()[0]})"
     return t, (f"certified={bool(np.all(np.asarray(res.certified)))} run {total:.1f} s, "
                f"{_steps(res)} steps")
 

@@ -1,6 +1,6 @@
 """Sweep throughput on 1 against 2 forced host devices, measured in one run.
 
-A learning-rate sweep of `dj.pgd_run` (n̂ = 6, m = p = 3, passive supply rate, `tol=0`)
+A learning-rate sweep of `dj.pgd_run` (n̂ = 6, m = p = 3, passive supply rate, `atol=0`)
 runs with `dj.sweep` in subprocesses with
 `XLA_FLAGS=--xla_force_host_platform_device_count=1` and with `...=2`, alternated for 3
 rounds (the fastest run of each form is kept). On 2 devices the gathering form
@@ -27,8 +27,8 @@ def child(quick: bool):
     from jax.sharding import AxisType, NamedSharding, PartitionSpec as P
 
     import dissil_jax as dj
-    from dissil_jax import _projection, _sdp
     from dissil_jax.experiments import realisable_windows
+    from dissil_jax.internal import projection as _projection, sdp as _sdp
 
     qsr = dj.QSR.passive(3)
     windows, _ = realisable_windows(jax.random.PRNGKey(0), qsr, n_state=6, num_windows=25,
@@ -38,13 +38,13 @@ def child(quick: bool):
 
     def run(lr):
         return dj.pgd_run(jax.random.PRNGKey(1), windows, qsr, learning_rate=lr,
-                          num_inits=inits, max_steps=steps, tol=0.0, throw=False)
+                          num_inits=inits, max_steps=steps, atol=0.0, throw=False)
 
     forms = {"sweep": dj.sweep(run)}
     if jax.device_count() > 1:
         mesh = jax.make_mesh((jax.device_count(),), ("sweep",), axis_types=(AxisType.Auto,))
         forms["gather"] = jax.jit(jax.vmap(run), in_shardings=NamedSharding(mesh, P("sweep")))
-    stats, out = _projection.SOLVER_STATS, []
+    stats, out = _projection.solver_stats(), []
     for name, f in forms.items():
         jax.block_until_ready(f(lrs))  # compile, build the solvers
         best = None

@@ -3,8 +3,8 @@
 from ._certify import Certificate as Certificate, certify as certify
 from ._controller import LTIController as LTIController
 from ._data import Windows as Windows
-from ._deprecated import project_with_status as project_with_status
 from ._lmi import kyp_matrix as kyp_matrix
+from ._outcome import Outcome as Outcome
 from ._projection import Projection as Projection, project as project
 from ._ren_certify import RENCertificate as RENCertificate, certify_ren as certify_ren
 from ._ren_controller import (
@@ -19,7 +19,6 @@ from ._rollout import (
     predict as predict,
     rollout as rollout,
 )
-from ._sdp import Outcome as Outcome
 from ._supply import (
     QSR as QSR,
     ClosedLoopCertificate as ClosedLoopCertificate,
@@ -47,8 +46,3 @@ from ._train.ren import RENFitResult as RENFitResult, fit_ren as fit_ren
 from ._train.result import FitResult as FitResult
 from .systems import LinearPlant as LinearPlant, SectorPlant as SectorPlant
 
-
-def __getattr__(name: str):  # deprecated names (dj.Status) warn on access
-    from ._deprecated import module_getattr
-
-    return module_getattr(name)

@@ -5,35 +5,56 @@ from __future__ import annotations
 import equinox as eqx
 import numpy as np
 
-from . import _certify_fast, _certify_sdp
+from . import _certify_fast, _certify_sdp, _outcome
 from ._controller import LTIController
 from ._lmi import VERIFY_RTOL, kyp_margin, kyp_matrix, kyp_scale
+from ._outcome import Outcome
 from ._supply import QSR
 
 
 class Certificate(eqx.Module):
     """The outcome of [`certify`][dissil_jax.certify].
 
-    - `holds`: True iff `P` is positive definite and the KYP matrix at `P` is negative
-      definite beyond float64 round-off (an eigenvalue check, independent of the solver).
+    - `result`: the [`Outcome`][dissil_jax.Outcome]: `solved` iff `P` is positive definite
+      and the KYP matrix at `P` is negative definite beyond float64 round-off (an
+      eigenvalue check, independent of the solver); `not_certified` when that check fails,
+      `infeasible` or `solver_failed` when the SDP found no storage.
+    - `holds` (read-only): `result == Outcome.solved`, as a `bool` (a bool array when
+      batched).
     - `P`: the storage matrix ($V(x) = x^\\top P x$), float64.
     - `margin`: $\\min(-\\lambda_{\\max}(\\mathrm{KYP}(P)), \\lambda_{\\min}(P))$; negative when
       no certificate was found.
-    - `status`: how `P` was found: `"given"` (supplied), `"hint"`, `"cached"` (a recent
+    - `source`: where `P` came from: `"given"` (supplied), `"hint"`, `"cached"` (a recent
       projection's), `"riccati"`, or the SDP solver's status (`"optimal"`, ...); see
-      [`certify`][dissil_jax.certify].
+      [`certify`][dissil_jax.certify]. (Called `status` before; that name remains a
+      read-only alias.)
 
-    For one controller these are a `bool`, an $\\hat n\\times\\hat n$ array, a `float` and a
-    `str`. For a controller with leading batch axes `batch` they are numpy arrays with
-    those axes in front: `holds` (bool, shape `batch`), `P` (`[*batch, n, n]`), `margin`
-    (float64, shape `batch`) and `status` (a numpy string array of shape `batch`); member
-    `i` is the certificate `certify` returns for the `i`-th controller.
+    For one controller `P` is an $\\hat n\\times\\hat n$ array, `margin` a `float` and
+    `source` a `str`. For a controller with leading batch axes `batch` every field has
+    those axes in front: `result` (shape `batch`), `P` (`[*batch, n, n]`), `margin`
+    (float64) and `source` (a numpy string array); member `i` is the certificate `certify`
+    returns for the `i`-th controller.
     """
 
-    holds: bool | np.ndarray
+    result: Outcome
     P: np.ndarray
     margin: float | np.ndarray
-    status: str | np.ndarray = "given"
+    source: str | np.ndarray = "given"
+
+    @property
+    def holds(self) -> bool | np.ndarray:
+        ok = np.asarray(self.result == Outcome.solved)
+        return bool(ok) if ok.ndim == 0 else ok
+
+    @property
+    def status(self) -> str | np.ndarray:
+        """The former name of `source`."""
+        return self.source
+
+
+def _outcome_of_sdp(status: str) -> Outcome:
+    """The SDP's status string as an `Outcome` (no storage was found)."""
+    return getattr(Outcome, "infeasible" if status.startswith("infeasible") else "solver_failed")
 
 
 def _controller_arrays(K: LTIController, qsr: QSR):
@@ -55,18 +76,18 @@ def _storage_arg(name, P, batch, n):
     return np.broadcast_to(P, batch + (n, n)) if batch else P
 
 
-def certify(K: LTIController, qsr: QSR, *, P=None, tol: float = VERIFY_RTOL, hint=None,
+def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hint=None,
             max_margin: bool = False) -> Certificate:
     """Certify $(Q,S,R)$-dissipativity of `K` by the discrete KYP lemma (paper Lemma 2).
 
     A storage $P$ proves the certificate when an eigenvalue computation finds $P\\succ0$ and
     $\\mathrm{KYP}(P)\\prec0$ beyond round-off: the re-checked margin
-    $\\min(-\\lambda_{\\max}(\\mathrm{KYP}(P)), \\lambda_{\\min}(P))$ must exceed `tol`
+    $\\min(-\\lambda_{\\max}(\\mathrm{KYP}(P)), \\lambda_{\\min}(P))$ must exceed `rtol`
     times a bound on the size of the KYP terms, so nearly lossless systems with margins of
     order $10^{-7}$ are still decided correctly. The storage is found by, in order, until
     one proves it:
 
-    1. `hint`, if given (`status` `"hint"`);
+    1. `hint`, if given (`source` `"hint"`);
     2. the storage of a recent [`project`][dissil_jax.project] that returned exactly this
        controller (`"cached"`);
     3. a Riccati storage: the stabilising solution of the discrete Riccati equation of the
@@ -78,7 +99,7 @@ def certify(K: LTIController, qsr: QSR, *, P=None, tol: float = VERIFY_RTOL, hin
     $$\\max_{P,\\,t}\\ t \\quad\\text{s.t.}\\quad \\mathrm{KYP}(P) \\preceq -tI,\\quad P\\succeq tI,
     \\quad t\\le 1$$
 
-    (`status` is the solver's: `"optimal"`, `"optimal_inaccurate"`, `"infeasible"`, ...).
+    (`source` is the solver's: `"optimal"`, `"optimal_inaccurate"`, `"infeasible"`, ...).
     Margins are absolute; $t\\le1$ normalises the certificate (the LMI is not homogeneous in
     $P$ because of the fixed $Q,S,R$). Steps 1-3 skip the SDP but return a storage with a
     smaller margin; `max_margin=True` always solves the SDP. A controller that is not
@@ -92,8 +113,9 @@ def certify(K: LTIController, qsr: QSR, *, P=None, tol: float = VERIFY_RTOL, hin
     - `K`: an `LTIController`, possibly with leading batch axes.
     - `qsr`: the supply rate; `qsr.S` must be `K.n_out x K.n_in`.
     - `P`: optional storage matrix to check instead of searching: `[n, n]` (the
-      same for every member) or `[*K.batch_shape, n, n]`; `status` is `"given"`.
-    - `tol`: relative round-off allowance of the final eigenvalue check.
+      same for every member) or `[*K.batch_shape, n, n]`; `source` is `"given"`.
+    - `rtol`: relative round-off allowance of the final eigenvalue check (called `tol`
+      before).
     - `hint`: optional storage to try first, shaped like `P`.
     - `max_margin`: skip steps 1-3 and return the maximum-margin storage.
 
@@ -101,13 +123,14 @@ def certify(K: LTIController, qsr: QSR, *, P=None, tol: float = VERIFY_RTOL, hin
 
     ```python
     cert = dj.certify(Ks, qsr)   # Ks.batch_shape == (8,)
-    cert.holds.shape, cert.P.shape, cert.status[0]   # (8,), (8, n, n), 'riccati'
+    cert.holds.shape, cert.P.shape, cert.source[0]   # (8,), (8, n, n), 'riccati'
     ```
     """
     A, B, C, D = _controller_arrays(K, qsr)
     batch, n = K.batch_shape, K.n_state
-    if not (np.ndim(tol) == 0 and np.isfinite(tol) and tol >= 0):
-        raise ValueError(f"`tol` must be a finite non-negative number, got {tol!r}.")
+    if not (np.ndim(rtol) == 0 and np.isfinite(rtol) and rtol >= 0):
+        raise ValueError(f"`rtol` must be a finite non-negative number, got {rtol!r}.")
+    tol = rtol
     if P is not None:
         return _verdict(A, B, C, D, qsr, _storage_arg("P", P, batch, n), tol, "given")
     if hint is not None:
@@ -118,8 +141,9 @@ def certify(K: LTIController, qsr: QSR, *, P=None, tol: float = VERIFY_RTOL, hin
                      max_margin) for i in np.ndindex(*batch)]
     stack = lambda name, dtype: np.array([getattr(c, name) for c in certs], dtype).reshape(
         batch + ((n, n) if name == "P" else ()))
-    return Certificate(stack("holds", bool), stack("P", np.float64), stack("margin", np.float64),
-                       stack("status", str))
+    codes = np.array([_outcome.codes(c.result) for c in certs], np.int32).reshape(batch)
+    return Certificate(_outcome.item(codes), stack("P", np.float64),
+                       stack("margin", np.float64), stack("source", str))
 
 
 def _candidates(A, B, C, D, qsr, hint):
@@ -149,9 +173,10 @@ def _solve(A, B, C, D, qsr: QSR, tol) -> Certificate:
     try:
         P, status = _certify_sdp.solve(A, B, C, D, qsr)
     except Exception as e:  # pragma: no cover - depends on solver internals
-        return Certificate(False, np.full((n, n), np.nan), -np.inf, f"solver error: {e}")
+        return Certificate(Outcome.solver_failed, np.full((n, n), np.nan), -np.inf,
+                           f"solver error: {e}")
     if P is None:
-        return Certificate(False, np.full((n, n), np.nan), -np.inf, status)
+        return Certificate(_outcome_of_sdp(status), np.full((n, n), np.nan), -np.inf, status)
     return _verdict(A, B, C, D, qsr, P, tol, status)
 
 
@@ -159,11 +184,11 @@ def _verdict(A, B, C, D, qsr, P, tol, status) -> Certificate:
     """The eigenvalue check, vectorised over leading batch axes (scalars when unbatched)."""
     margin = kyp_margin(A, B, C, D, qsr, P)
     holds = margin > tol * kyp_scale(A, B, C, D, qsr, P)
+    codes = np.where(holds, _outcome.code("solved"), _outcome.code("not_certified"))
     if np.ndim(margin) == 0:
-        return Certificate(bool(holds), P, float(margin), status)
-    status = np.full(np.shape(margin), status)
-    return Certificate(np.asarray(holds, bool), np.array(P), np.asarray(margin, np.float64),
-                       status)
+        return Certificate(_outcome.item(codes), P, float(margin), status)
+    return Certificate(_outcome.item(codes), np.array(P), np.asarray(margin, np.float64),
+                       np.full(np.shape(margin), status))
 
 
 __all__ = ["Certificate", "certify", "kyp_matrix"]

@@ -2,57 +2,19 @@
 
 from __future__ import annotations
 
-import functools
-import inspect
-import warnings
-
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
+from ._validate import check_abcd, check_int
+
 
 def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
-
-
-def _is_prng_key(x) -> bool:
-    """True for a raw `jr.PRNGKey` (uint32 array) or a typed `jr.key`, traced or not."""
-    if not isinstance(x, (jax.Array, np.ndarray)):
-        return False
-    return jnp.issubdtype(x.dtype, jax.dtypes.prng_key) or np.ndim(x) >= 1
-
-
-def _old_random(key, n, n_in, n_out, scale=0.1, dtype=None):
-    """The 0.1 signature of `LTIController.random` (for binding deprecated calls)."""
-
-
-_OLD_RANDOM_SIGNATURE = inspect.signature(_old_random)
-
-
-def _legacy_random(fn):
-    """Accept the deprecated `LTIController.random(key, n, n_in, n_out, scale, dtype)`."""
-
-    @functools.wraps(fn)
-    def wrapper(cls, *args, **kwargs):
-        if (args and _is_prng_key(args[0])) or "n" in kwargs:
-            try:
-                old = _OLD_RANDOM_SIGNATURE.bind(*args, **kwargs).arguments
-            except TypeError as err:
-                raise TypeError(f"LTIController.random(): {err}") from None
-            warnings.warn(
-                "`LTIController.random(key, n, n_in, n_out, scale)` is deprecated; call "
-                "`LTIController.random(n_state, n_in, n_out, scale=..., key=key)` (sizes "
-                "first, `key` keyword-only and last, as in equinox). The old form will be "
-                "removed in 0.3.0.",
-                DeprecationWarning, stacklevel=2)
-            args = (old.pop("n"), old.pop("n_in"), old.pop("n_out"))
-            kwargs = old
-        return fn(cls, *args, **kwargs)
-
-    return wrapper
 
 
 def _collect_systems(sys) -> tuple[tuple[int, ...], list]:
@@ -126,15 +88,7 @@ class LTIController(eqx.Module):
                 raise ValueError(f"`{name}` must be a matrix, got shape {M.shape}.")
             if not jnp.issubdtype(M.dtype, jnp.floating):
                 raise ValueError(f"`{name}` must be a floating-point array, got {M.dtype}.")
-        batch = self.A.shape[:-2]
-        n, p, m = self.A.shape[-1], self.B.shape[-1], self.C.shape[-2]
-        expected = {"A": (n, n), "B": (n, p), "C": (m, n), "D": (m, p)}
-        for name, M in zip(names, mats):
-            if M.shape[:-2] != batch or M.shape[-2:] != expected[name]:
-                raise ValueError(
-                    f"`{name}` has shape {M.shape}; with A {self.A.shape}, B {self.B.shape}, "
-                    f"C {self.C.shape} it must be {batch + expected[name]}."
-                )
+        check_abcd(*mats)
         for name, M in zip(names, mats):
             if _is_concrete(M) and not bool(jnp.all(jnp.isfinite(M))):
                 raise ValueError(f"`{name}` contains NaN or inf.")
@@ -166,7 +120,6 @@ class LTIController(eqx.Module):
         return self.A @ x + self.B @ u, self.C @ x + self.D @ u
 
     @classmethod
-    @_legacy_random
     def random(
         cls,
         n_state: int,
@@ -194,14 +147,9 @@ class LTIController(eqx.Module):
         K = dj.LTIController.random(2, 1, 1, scale=0.5, key=jax.random.PRNGKey(0))
         Ks = jax.vmap(lambda k: dj.LTIController.random(2, 1, 1, key=k))(keys)
         ```
-
-        *Deprecated:* the 0.1 form `random(key, n, n_in, n_out, scale, dtype)` (key first)
-        still works with a `DeprecationWarning`; it will be removed in 0.3.0.
         """
-        for name, d in (("n_state", n_state), ("n_in", n_in), ("n_out", n_out)):
-            if isinstance(d, bool) or np.ndim(d) != 0 or int(d) != d or d < 1:
-                raise ValueError(f"`{name}` must be a positive integer, got {d!r}.")
-        n, n_in, n_out = int(n_state), int(n_in), int(n_out)
+        n, n_in, n_out = (check_int(name, d) for name, d in
+                          (("n_state", n_state), ("n_in", n_in), ("n_out", n_out)))
         dtype = dtype or jnp.result_type(float)
         kA, kB, kC, kD = jr.split(key, 4)
         shapes = ((n, n), (n, n_in), (n_out, n), (n_out, n_in))

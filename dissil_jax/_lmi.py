@@ -291,3 +291,17 @@ class ConvexifiedLMI:
 
     def svec(self, M: np.ndarray) -> np.ndarray:
         return svec(M, svec_indices(self.N))
+
+
+def cast(x, dtype) -> np.ndarray:
+    """Round to `dtype` and back to float64, so a check sees exactly what is returned."""
+    return np.asarray(x, np.float64).astype(dtype).astype(np.float64)
+
+
+def certified(A, B, C, D, qsr: QSR, P) -> np.ndarray:
+    """The exact float64 KYP check of a batch of (controller, $P$) pairs, as a bool array.
+
+    $P\\succ 0$ and KYP$(P)\\prec 0$ beyond round-off (paper Lemma 2), evaluated for the
+    whole batch at once with stacked eigenvalue computations.
+    """
+    return np.asarray(kyp_certified(A, B, C, D, qsr, P), bool)

@@ -14,6 +14,7 @@ import numpy as np
 
 from ._sdp import single_threaded_blas
 from ._supply import QSR
+from ._validate import check_abcd
 
 _SOLVER_OPTS = dict(tol_gap_abs=1e-9, tol_gap_rel=1e-9, tol_feas=1e-9, max_iter=400)
 
@@ -41,11 +42,7 @@ def _abcd(plant, what: str = "plant"):
             raise ValueError(f"`{what}.{name}` contains NaN or inf.")
         out.append(M)
     A, B, C, D = out
-    n, m, p = A.shape[0], B.shape[1], C.shape[0]
-    for name, M, shape in (("A", A, (n, n)), ("B", B, (n, m)), ("C", C, (p, n)),
-                           ("D", D, (p, m))):
-        if M.shape != shape:
-            raise ValueError(f"`{what}.{name}` has shape {M.shape}, expected {shape}.")
+    check_abcd(A, B, C, D, what=f"{what}.")
     if getattr(plant, "dt", None) == 0:
         raise ValueError(f"`{what}` is a continuous-time system; discretise it first.")
     return A, B, C, D
@@ -250,7 +247,7 @@ def input_passivity_qsr(plant, *, backoff: float = 1e-3) -> QSR:
     _square(A, B, C, D, "an input passivity index")
     _, nu = _index_sdp(A, B, C, D, "nu")
     p = C.shape[0]
-    make = lambda v: QSR(np.zeros((p, p)), 0.5 * np.eye(p), -v * np.eye(p))
+    make = lambda v: QSR.degenerate_conic(v, dim=p)
     return _backed_off(A, B, C, D, make, nu, backoff, "input passivity index")
 
 

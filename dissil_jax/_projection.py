@@ -18,9 +18,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _certify_fast, _projection_fo, _sdp
+from . import _certify_fast, _outcome, _projection_fo, _sdp
 from ._controller import LTIController
-from ._lmi import ConvexifiedLMI
+from ._lmi import ConvexifiedLMI, cast, certified
 from ._projection_args import (
     check_k_ref as _check_k_ref,
     check_options as _check_options,
@@ -31,15 +31,13 @@ from ._projection_solver import _ProjectionSolver
 from ._relinearise import project_rows_indefinite
 from ._supply import QSR
 
-# Clarabel's own reported solve time and solve count, summed over all threads, and the
-# number of host callbacks by (shard, batch size) (benchmarks).
-SOLVER_STATS = {"solve_time": 0.0, "solves": 0, "callbacks": collections.Counter()}
+_STATS = {"solve_time": 0.0, "solves": 0, "callbacks": collections.Counter()}
 _STATS_LOCK = threading.Lock()
 _LOCAL = threading.local()
 _LMI_CACHE: dict = {}
 _LMI_LOCK = threading.Lock()
 _SOLVED, _UNCHANGED, _SKIPPED, _NOT_CERTIFIED = (
-    _sdp.code(n) for n in ("solved", "unchanged", "skipped", "not_certified"))
+    _outcome.code(n) for n in ("solved", "unchanged", "skipped", "not_certified"))
 # A solution that fails the exact check after rounding is re-solved with the margin
 # enlarged by this factor, at most `_ATTEMPTS - 1` times.
 _ATTEMPTS, _EPS_GROWTH = 3, 100.0
@@ -55,6 +53,13 @@ def _lmi(qsr: QSR, n: int) -> ConvexifiedLMI:
         if lmi is None:
             lmi = _LMI_CACHE[key] = ConvexifiedLMI(n, qsr.n_in, qsr.n_out, qsr)
     return lmi
+
+
+def solver_stats() -> dict:
+    """The projection's counters since import, live (benchmarks take differences):
+    Clarabel's own reported `solve_time` and number of `solves`, summed over all threads,
+    and the number of host `callbacks` by `(shard, batch size)`."""
+    return _STATS
 
 
 def _thread_solver(qsr: QSR, n: int, eps: float, reg: float) -> _ProjectionSolver:
@@ -89,12 +94,12 @@ def _solve_batch(qsr, targets, P_tilde, eps, weights, *, base_eps, reg, dtype, s
             if x is not None:
                 xs[i] = x
         with _STATS_LOCK:
-            SOLVER_STATS["solve_time"] += spent
-            SOLVER_STATS["solves"] += len(rows)
+            _STATS["solve_time"] += spent
+            _STATS["solves"] += len(rows)
 
     _sdp.thread_map(work, range(count), shards=shards)
-    sol = tuple(_sdp.cast(M, dtype) for M in lmi.layout.unpack(xs))
-    ok = (codes == _SOLVED) & _sdp.certified(*sol[:4], qsr, sol[4])
+    sol = tuple(cast(M, dtype) for M in lmi.layout.unpack(xs))
+    ok = (codes == _SOLVED) & certified(*sol[:4], qsr, sol[4])
     return sol, codes, ok
 
 
@@ -136,7 +141,7 @@ def _project_rows(qsr, targets, P_tilde, weights, rounds, *, eps, reg, dtype, sh
     count = len(targets)
     layout = _lmi(qsr, P_tilde.shape[-1]).layout
     best_dist = np.full(count, np.inf)
-    codes = np.full(count, _sdp.code("solver_failed"), np.int32)
+    codes = np.full(count, _outcome.code("solver_failed"), np.int32)
     live, P_tilde, best = np.arange(count), P_tilde.copy(), None
     for _ in range(rounds):
         sols, found, codes[live] = _certified_solve(
@@ -172,7 +177,7 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, C0, D0, shard, *, qsr
     batch, n = A.shape[:-2], A.shape[-1]
     with _STATS_LOCK:
         index = int(np.ravel(shard)[0]) if np.size(shard) else 0
-        SOLVER_STATS["callbacks"][index, int(np.prod(batch))] += 1
+        _STATS["callbacks"][index, int(np.prod(batch))] += 1
     flat = [np.asarray(M, np.float64).reshape((-1,) + M.shape[len(batch):])
             for M in (A, B, C, D, P_ref)]
     act = np.asarray(active).reshape(-1)
@@ -180,7 +185,7 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, C0, D0, shard, *, qsr
     codes = np.full(act.shape[0], _SKIPPED, np.int32)
     todo = np.nonzero(act)[0]
     if has_ref and len(todo):
-        keep = _sdp.certified(*(M[todo] for M in flat[:4]), qsr, flat[4][todo])
+        keep = certified(*(M[todo] for M in flat[:4]), qsr, flat[4][todo])
         codes[todo[keep]] = _UNCHANGED
         todo = todo[~keep]
     if len(todo):
@@ -338,12 +343,13 @@ def project(
     _check_k_ref(K, K_ref)
     in_ref, in_act = None if P_ref is None else 0, 0 if jnp.ndim(active) else None
     first_order = _projection_fo.use_first_order(method, K, metric, qsr)
-    fn = partial(_projection_fo.project_one if first_order else _project_one, qsr=qsr,
-                 eps=eps, reg=reg, refine=refine)
+    fn = (partial(_projection_fo.project_one, fallback=_host_batch) if first_order
+          else _project_one)
+    fn = partial(fn, qsr=qsr, eps=eps, reg=reg, refine=refine)
     W = jax.tree.map(jnp.ones_like, K) if metric is None else metric
     for _ in K.batch_shape:
         fn = jax.vmap(fn, in_axes=(0, in_ref, 0, in_act, 0))
     K_out, P, codes = fn(K, P_ref, W, active, K if K_ref is None else K_ref)
     if throw:
         P = _raise_on_failure(P, codes)
-    return Projection(K_out, P, _sdp.item(codes))
+    return Projection(K_out, P, _outcome.item(codes))

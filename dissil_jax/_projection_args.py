@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 
 from ._controller import LTIController
 from ._indefinite import check_feasible, is_indefinite
 from ._supply import QSR
+from ._validate import check_int
 
 
 def check_qsr(K: LTIController, qsr: QSR) -> None:
@@ -53,8 +55,7 @@ def check_options(K: LTIController, P_ref, active, eps, reg, refine, metric=None
         if not (np.ndim(v) == 0 and np.isfinite(v) and (v > 0 or (lo_ok and v == 0))):
             raise ValueError(f"`{name}` must be a finite {'non-negative' if lo_ok else 'positive'}"
                              f" number, got {v!r}.")
-    if isinstance(refine, bool) or np.ndim(refine) != 0 or int(refine) != refine or refine < 0:
-        raise ValueError(f"`refine` must be a non-negative integer, got {refine!r}.")
+    check_int("refine", refine, minimum=0)
     if jnp.shape(active) not in ((), K.batch_shape):
         raise ValueError(f"`active` must be a bool scalar or have the batch shape "
                          f"{K.batch_shape} of `K`, got shape {jnp.shape(active)}.")

@@ -35,7 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _linalg
+from . import _linalg, _lmi, _outcome, _sdp
+from ._controller import LTIController
 from ._indefinite import is_indefinite
 from ._supply import QSR
 
@@ -168,12 +169,13 @@ def admm(target, P_tilde, qsr: QSR, *, margin, reg, rho, tol, max_iter, state=No
 MARGIN_FO, TOL_FO, MAX_ITER_FO, RHO_FO = 1e-4, 1e-6, 5000, 1.0
 
 
-def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, active, shard, *, qsr, has_ref, eps,
-                reg, refine, shards):
-    """pure_callback target: the exact float64 check of the ADMM results, Clarabel for the
-    rows that fail it (`_projection._host_batch`), codes as `project`'s."""
-    from . import _projection, _sdp
+_SKIPPED, _UNCHANGED, _SOLVED = (_outcome.code(n) for n in ("skipped", "unchanged", "solved"))
 
+
+def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, active, shard, *, qsr, has_ref, eps,
+                reg, refine, shards, fallback):
+    """pure_callback target: the exact float64 check of the ADMM results, Clarabel for the
+    rows that fail it (`fallback`, `_projection._host_batch`), codes as `project`'s."""
     dtype = np.asarray(A).dtype
     batch = A.shape[:-2]
     flat = lambda M: np.asarray(M, np.float64).reshape((-1,) + M.shape[len(batch):])
@@ -182,24 +184,24 @@ def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, active, shard, *, qsr, has
     ref = flat(P_ref)
     act = np.asarray(active).reshape(-1)
     out = [t.copy() for t in tgt] + [ref.copy()]
-    codes = np.full(act.shape[0], _projection._SKIPPED, np.int32)
+    codes = np.full(act.shape[0], _SKIPPED, np.int32)
     todo = np.nonzero(act)[0]
     if has_ref and len(todo):  # as Clarabel's path: a certified target stays unchanged
-        keep = _sdp.certified(*(t[todo] for t in tgt), qsr, ref[todo])
-        codes[todo[keep]] = _projection._UNCHANGED
+        keep = _lmi.certified(*(t[todo] for t in tgt), qsr, ref[todo])
+        codes[todo[keep]] = _UNCHANGED
         todo = todo[~keep]
     if len(todo):
-        rounded = [_sdp.cast(M[todo], dtype) for M in sol]
+        rounded = [_lmi.cast(M[todo], dtype) for M in sol]
         finite = np.all([np.all(np.isfinite(M), axis=(-2, -1)) for M in rounded], axis=0)
-        ok = finite & _sdp.certified(*rounded[:4], qsr, rounded[4])
+        ok = finite & _lmi.certified(*rounded[:4], qsr, rounded[4])
         for o, M in zip(out, rounded):
             o[todo[ok]] = M[ok]
-        codes[todo[ok]] = _projection._SOLVED
+        codes[todo[ok]] = _SOLVED
         bad = todo[~ok]
         if len(bad):
             ones = [np.ones_like(t[bad]) for t in tgt]
             # C0, D0: the linearisation point of an indefinite Q, which this path refuses
-            res = _projection._host_batch(
+            res = fallback(
                 *(t[bad] for t in tgt), ref[bad], *ones, np.ones(len(bad), bool),
                 tgt[2][bad], tgt[3][bad], np.zeros(len(bad), np.int32), qsr=qsr,
                 has_ref=has_ref, eps=eps, reg=reg, refine=refine, shards=shards)
@@ -217,15 +219,15 @@ FALLBACKS = {"rows": 0}
 _FALLBACK_LOCK = __import__("threading").Lock()
 
 
-def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, margin=None,
-                tol=None, max_iter=None, rho=None):
+def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, fallback,
+                margin=None, tol=None, max_iter=None, rho=None):
     """The unbatched first-order projection (vmap for batches): ADMM at $\\tilde P$ =
     `P_ref`, or from $\\tilde P = I$ with `refine` re-linearisations, then one
     `pure_callback` for the exact check (and the Clarabel fallback). `W` (the metric's
     weights, all ones: `use_first_order` admits no metric) and `K_ref` (the linearisation
-    point of an indefinite $Q$, which `use_first_order` refuses) keep `project`'s signature."""
-    from . import _sdp
-
+    point of an indefinite $Q$, which `use_first_order` refuses) keep `project`'s signature;
+    `fallback` is the Clarabel batch solve (`_projection._host_batch`, passed in so that
+    this module does not import the one that dispatches to it)."""
     # module constants read at call time (the tests shrink the budget to force the fallback)
     margin = MARGIN_FO if margin is None else margin
     tol = TOL_FO if tol is None else tol
@@ -245,12 +247,11 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, margi
     shard, shards = _sdp.shard()
     shapes = tuple(jax.ShapeDtypeStruct(M.shape, dtype) for M in (*target, P_ref))
     callback = functools.partial(_host_check, qsr=qsr, has_ref=has_ref, eps=float(eps),
-                                 reg=float(reg), refine=int(refine), shards=shards)
+                                 reg=float(reg), refine=int(refine), shards=shards,
+                                 fallback=fallback)
     *mats, codes = jax.pure_callback(
         callback, (*shapes, jax.ShapeDtypeStruct((), jnp.int32)), *x, *target, P_ref,
         jnp.asarray(active, bool), shard, vmap_method="broadcast_all")
-    from ._controller import LTIController
-
     return LTIController(*mats[:4]), mats[4], codes
 
 

@@ -2,52 +2,50 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from typing import Any
+
+import equinox as eqx
 import jax
-import jax.numpy as jnp
+import jax.core
 import numpy as np
+from jaxtyping import Array, Float
 
-from . import _sdp
+from . import _outcome
 from ._controller import LTIController
-from ._sdp import Outcome
+from ._outcome import Outcome
 
 
-class Projection(tuple):
-    """What [`project`][dissil_jax.project] returns: the pair `(controller, P)`, plus `result`.
+class Projection(eqx.Module):
+    """What [`project`][dissil_jax.project] returns: `controller`, `P` and `result`.
 
-    It unpacks like a pair (`K, P = dj.project(K, qsr)`) and indexes like one
-    (`dj.project(K, qsr)[0]`); `result` is the [`Outcome`][dissil_jax.Outcome] of each
-    projection (batched like `K`). It is a JAX pytree, so it can be returned from `jax.jit`.
+    It unpacks like the pair `(controller, P)` (`K, P = dj.project(K, qsr)`) and indexes
+    like one (`dj.project(K, qsr)[0]`); `result` is the [`Outcome`][dissil_jax.Outcome] of
+    each projection (batched like `K`). An `eqx.Module`, so it can be returned from
+    `jax.jit`.
     """
 
-    def __new__(cls, controller, P, result):
-        self = super().__new__(cls, (controller, P))
-        self.result = result
-        return self
+    controller: LTIController
+    P: Float[Array, "*batch n n"]
+    result: Outcome
 
-    @property
-    def controller(self) -> LTIController:
-        return self[0]
+    def __iter__(self) -> Iterator[Any]:
+        return iter((self.controller, self.P))
 
-    @property
-    def P(self):
-        return self[1]
+    def __len__(self) -> int:
+        return 2
 
-    def __repr__(self):
-        return f"Projection(controller={self[0]!r}, P={self[1]!r}, result={self.result!r})"
-
-
-jax.tree_util.register_pytree_node(
-    Projection, lambda p: ((p[0], p[1], p.result), None),
-    lambda _, children: Projection(*children))
+    def __getitem__(self, i: int) -> Any:
+        return (self.controller, self.P)[i]
 
 
 def raise_on_failure(P, codes):
     """`throw=True`: a ValueError eagerly, an `EquinoxRuntimeError` under `jit`."""
+    bad = _outcome.failed(codes)
     if not isinstance(codes, jax.core.Tracer):
         codes = np.asarray(codes)
-        bad = codes[_sdp.failed(codes)]
+        bad = codes[_outcome.failed(codes)]
         if bad.size:
-            raise ValueError(f"dj.project: {Outcome[_sdp.item(bad.max())]}")
+            raise ValueError(f"dj.project: {_outcome.message(_outcome.NAMES[int(bad.max())])}")
         return P
-    worst = _sdp.item(jnp.max(jnp.where(_sdp.failed(codes), codes, -1)))
-    return worst.error_if(P, jnp.any(_sdp.failed(codes)))
+    return _outcome.worst(codes, bad).error_if(P, bad.any())

@@ -16,10 +16,10 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from . import _sdp
+from . import _outcome, _sdp
 from ._lmi import ConvexifiedLMI, svec_pos
 
-_SOLVED = _sdp.code("solved")
+_SOLVED = _outcome.code("solved")
 
 
 def _floor_block(lmi: ConvexifiedLMI, floor: float) -> sp.csc_matrix:

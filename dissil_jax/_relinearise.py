@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import _sdp
+from . import _outcome
 from ._indefinite import static_point
 
 # A row stops re-linearising once a round shortens its distance by less than this fraction.
@@ -34,7 +34,7 @@ def project_rows_indefinite(solve, layout, qsr, targets, P_tilde, H0, weights, r
     P_t = np.array(P_tilde, np.float64)
     C0, D0 = (np.array(M, np.float64) for M in H0)
     best_dist = np.full(count, np.inf)
-    codes = np.full(count, _sdp.code("solver_failed"), np.int32)
+    codes = np.full(count, _outcome.code("solver_failed"), np.int32)
     fell_back = np.zeros(count, bool)
     live, best = np.arange(count), None
     budget = np.full(count, max(1, rounds))
@@ -66,5 +66,5 @@ def project_rows_indefinite(solve, layout, qsr, targets, P_tilde, H0, weights, r
         P_t[rows_on] = best[4][rows_on]
         C0[rows_on], D0[rows_on] = best[2][rows_on], best[3][rows_on]
         live = np.concatenate([rows_retry, rows_on])
-    codes[np.isfinite(best_dist)] = _sdp.code("solved")
+    codes[np.isfinite(best_dist)] = _outcome.code("solved")
     return best, codes

@@ -6,11 +6,11 @@ import functools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
 
 from ._controller import LTIController
 from ._data import Windows
+from ._validate import check_int
 
 # Below this horizon the explicit (O, T) product beats the sequential scan on CPU
 # (one batched matmul instead of h dependent steps); see benchmarks/bench_rollout.py.
@@ -32,9 +32,7 @@ def observability_toeplitz(
     **Returns:** `(O, T)` with shapes `[*batch, h*m, n]` and `[*batch, h*m, h*p]`
     (time-major blocks), where `batch` is `K.batch_shape` (empty for one controller).
     """
-    if isinstance(horizon, bool) or np.ndim(horizon) != 0 or int(horizon) != horizon or horizon < 1:
-        raise ValueError(f"`horizon` must be a positive integer, got {horizon!r}.")
-    horizon = int(horizon)
+    horizon = check_int("horizon", horizon)
     if not isinstance(K, LTIController):
         raise ValueError(f"`K` must be a `dj.LTIController`, got {type(K).__name__}.")
     fn = functools.partial(_observability_toeplitz, horizon=horizon)

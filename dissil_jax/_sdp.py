@@ -2,15 +2,11 @@
 
 It owns, in one place:
 
-- [`Outcome`][dissil_jax.Outcome], the one enumeration of how a projection, an SDP step or
-  a training run ended, with its messages;
 - the Clarabel settings of each problem family ([`clarabel_settings`]) and the mapping of
-  Clarabel's status strings onto `Outcome`;
+  Clarabel's status strings onto [`Outcome`][dissil_jax.Outcome] codes (`_outcome.py`);
 - [`Layout`], the variable vector $x = (\\operatorname{vec}A, \\operatorname{vec}B,
   \\operatorname{vec}C, \\operatorname{vec}D, \\operatorname{triu}P)$ with batched
   `pack`/`unpack`;
-- `certified`, the exact float64 KYP check of a whole batch at once, after rounding to the
-  caller's dtype (`cast`);
 - `thread_map`, which spreads per-item solves over the process-wide pool with BLAS held to
   one thread, giving each of several concurrent shards its share of the pool (`shard`).
 """
@@ -22,74 +18,15 @@ import math
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-if TYPE_CHECKING:
-    from ._supply import QSR
+from ._outcome import code
 
-
-
-class Outcome(eqx.Enumeration):
-    """How a projection, an SDP step or a training run ended.
-
-    Projections report `solved`, `unchanged`, `skipped` or one of the three failures
-    (`infeasible`, `solver_failed`, `not_certified`); trainers report why each run stopped
-    (`FitResult.stop_reason`): `converged`, `max_steps`, `non_finite`, or the failure that
-    ended it. A failure never comes with an uncertified controller: the projection returns
-    its (flagged) target, the trainers their last certified iterate.
-    """
-
-    converged = "converged: |ΔJ| < tol"
-    max_steps = "stopped at max_steps"
-    non_finite = (
-        "the loss became NaN or infinite: the steps were too large for this problem; pass "
-        "a smaller `learning_rate` (or an `optimizer` with a bounded step, such as "
-        "`optax.adam`) or a smaller `init_scale`"
-    )
-    solver_failed = (
-        "Clarabel failed to solve the SDP (max iterations or numerical trouble), usually for "
-        "a target far outside the dissipative set; pass a smaller `init_scale` or step, or a "
-        "larger `eps`"
-    )
-    loss_increased = "ICO's float64 re-evaluation found the loss increased; the step was refused"
-    not_certified = (
-        "the solver's point failed the exact float64 KYP check even with an enlarged margin "
-        "(no controller is returned without a certificate); pass a larger `eps`"
-    )
-    solved = "projected and verified by the exact float64 KYP check"
-    unchanged = "the target was already certified by P_ref and is returned as is"
-    skipped = "inactive (e.g. a converged trainer lane); returned as is"
-    infeasible = (
-        "the SDP is infeasible: `qsr` admits no strictly dissipative controller of these "
-        "sizes near the reference P. Check the supply rate (e.g. R and S signs), or pass a "
-        "different `P_ref`."
-    )
-
-
-def code(name: str) -> int:
-    """The integer code of an `Outcome` item, for host code and `pure_callback` results."""
-    return int(getattr(Outcome, name)._value)
-
-
-def item(codes) -> Outcome:
-    """Wrap integer codes (any shape, numpy or JAX) as an `Outcome` item."""
-    return type(Outcome.solved)(jnp.asarray(codes, jnp.int32), Outcome)
-
-
-NAMES: tuple[str, ...] = tuple(sorted(Outcome._name_to_item, key=code))
-FAILURES = tuple(code(n) for n in ("infeasible", "solver_failed", "not_certified"))
 _CLARABEL_OK = {"Solved", "AlmostSolved"}
 _CLARABEL_INFEASIBLE = {"PrimalInfeasible", "AlmostPrimalInfeasible"}
-
-
-def failed(codes):
-    """Elementwise: is this outcome one of the SDP failures? (numpy or JAX codes)"""
-    return (codes == FAILURES[0]) | (codes == FAILURES[1]) | (codes == FAILURES[2])
 
 
 def clarabel_outcome(status: str) -> int:
@@ -185,22 +122,6 @@ class Layout:
         """`(A, B, C, D, P)` from $x$, batched."""
         x = np.asarray(x)
         return (*self.mats(x), self.P(x[..., self.ntheta:]))
-
-
-def cast(x, dtype) -> np.ndarray:
-    """Round to `dtype` and back to float64, so a check sees exactly what is returned."""
-    return np.asarray(x, np.float64).astype(dtype).astype(np.float64)
-
-
-def certified(A, B, C, D, qsr: QSR, P) -> np.ndarray:
-    """The exact float64 KYP check of a batch of (controller, $P$) pairs, as a bool array.
-
-    $P\\succ 0$ and KYP$(P)\\prec 0$ beyond round-off (paper Lemma 2), evaluated for the
-    whole batch at once with stacked eigenvalue computations.
-    """
-    from ._lmi import kyp_certified  # _lmi builds on `Layout`
-
-    return np.asarray(kyp_certified(A, B, C, D, qsr, P), bool)
 
 
 # -- threads -----------------------------------------------------------------------------

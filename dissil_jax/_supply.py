@@ -12,13 +12,15 @@ input is the plant output and the output is (minus) the plant input.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from collections.abc import Iterator
+from typing import Any
 
 import equinox as eqx
 import numpy as np
 import scipy.optimize
 
-from ._deprecated import positional_options
+from ._outcome import Outcome
+from ._validate import check_int
 
 _SYM_TOL = 1e-9
 
@@ -157,8 +159,6 @@ class QSR(eqx.Module):
         return cls(np.zeros((dim, dim)), 0.5 * np.eye(dim), np.zeros((dim, dim)))
 
     @classmethod
-    @positional_options("QSR.bounded_gain", ("n_out", "n_in"),
-                        "QSR.bounded_gain(gamma, n_in=..., n_out=...)", leading=2)
     def bounded_gain(cls, gamma: float, *, n_in: int, n_out: int) -> QSR:
         """$\\gamma$-bounded $\\ell_2$ gain: $Q=-I$, $S=0$, $R=\\gamma^2 I$.
 
@@ -172,9 +172,6 @@ class QSR(eqx.Module):
         - `n_out`: output dimension $m$ (keyword only).
 
         **Returns:** the `QSR` with $S$ of shape `(n_out, n_in)`.
-
-        *Deprecated:* the positional form `bounded_gain(gamma, n_out, n_in)` (output size
-        first) still works with a `DeprecationWarning`; it will be removed in 0.3.0.
         """
         n_out, n_in = _check_dim("n_out", n_out), _check_dim("n_in", n_in)
         if not np.isfinite(gamma) or gamma <= 0:
@@ -182,11 +179,12 @@ class QSR(eqx.Module):
         return cls(-np.eye(n_out), np.zeros((n_out, n_in)), gamma**2 * np.eye(n_in))
 
     @classmethod
-    def conic(cls, a: float, b: float, dim: int) -> QSR:
+    def conic(cls, a: float, b: float, *, dim: int) -> QSR:
         """Interior cone $[a, b]$: $Q=-I$, $S=\\tfrac{a+b}{2}I$, $R=-abI$ (needs $a<b$).
 
         $w = -(y - a u)^\\top (y - b u)$, non-negative exactly when $y$ lies between $au$
-        and $bu$.
+        and $bu$. The size `dim` is keyword-only, as in every constructor whose
+        parameters come first ([`bounded_gain`][dissil_jax.QSR.bounded_gain]).
         """
         dim = _check_dim("dim", dim)
         if not (np.isfinite(a) and np.isfinite(b)) or not a < b:
@@ -194,7 +192,7 @@ class QSR(eqx.Module):
         return cls(-np.eye(dim), 0.5 * (a + b) * np.eye(dim), -a * b * np.eye(dim))
 
     @classmethod
-    def degenerate_conic(cls, d: float, dim: int) -> QSR:
+    def degenerate_conic(cls, d: float, *, dim: int) -> QSR:
         """Degenerate cone $[d, \\infty)$: $Q=0$, $S=\\tfrac12 I$, $R=-dI$."""
         dim = _check_dim("dim", dim)
         if not np.isfinite(d):
@@ -241,17 +239,29 @@ class QSR(eqx.Module):
         return f"QSR(Q={f(self.Q)}, S={f(self.S)}, R={f(self.R)})"
 
 
-def _check_dim(name: str, dim) -> int:
-    if int(dim) != dim or dim < 1:
-        raise ValueError(f"`{name}` must be a positive integer, got {dim!r}.")
-    return int(dim)
+_check_dim = check_int
 
 
-class ClosedLoopCertificate(NamedTuple):
-    """Outcome of [`closed_loop_certificate`][dissil_jax.closed_loop_certificate]."""
+class ClosedLoopCertificate(eqx.Module):
+    """What [`closed_loop_certificate`][dissil_jax.closed_loop_certificate] returns.
 
-    holds: bool
+    - `result`: the [`Outcome`][dissil_jax.Outcome], `solved` when Theorem 1's condition
+      holds, `no_multiplier` when no $\\alpha$ tried satisfies it;
+    - `alpha`: the best multiplier found (the one minimising $\\lambda_{\\max}$);
+    - `holds` (read-only): `result == Outcome.solved`, a `bool`.
+
+    It unpacks like the pair `(holds, alpha)`.
+    """
+
+    result: Outcome
     alpha: float
+
+    @property
+    def holds(self) -> bool:
+        return bool(self.result == Outcome.solved)
+
+    def __iter__(self) -> Iterator[Any]:
+        return iter((self.holds, self.alpha))
 
 
 def _theorem1_matrix(plant: QSR, ctrl: QSR, alpha: float) -> np.ndarray:
@@ -293,8 +303,9 @@ def closed_loop_certificate(plant_qsr: QSR, controller_qsr: QSR) -> ClosedLoopCe
     - `plant_qsr`: the plant's supply rate (input $u\\in\\mathbb{R}^m$, output $y\\in\\mathbb{R}^p$).
     - `controller_qsr`: the controller's supply rate (input $y$, output $\\hat y\\in\\mathbb{R}^m$).
 
-    **Returns:** `ClosedLoopCertificate(holds, alpha)`; `alpha` is the best multiplier found
-    (the one minimising $\\lambda_{\\max}$), returned even when `holds` is False.
+    **Returns:** a [`ClosedLoopCertificate`][dissil_jax.ClosedLoopCertificate] (`result`,
+    `alpha`, `holds`); `alpha` is the best multiplier found (the one minimising
+    $\\lambda_{\\max}$), returned even when the condition fails.
     """
     _check_interconnection(plant_qsr, controller_qsr)
     f = lambda la: np.linalg.eigvalsh(_theorem1_matrix(plant_qsr, controller_qsr, 10**la))[-1]
@@ -309,11 +320,11 @@ def closed_loop_certificate(plant_qsr: QSR, controller_qsr: QSR) -> ClosedLoopCe
         if res.fun < best:
             best_la, best = res.x, res.fun
     scale = 1.0 + np.abs(_theorem1_matrix(plant_qsr, controller_qsr, 10**best_la)).max()
-    return ClosedLoopCertificate(holds=bool(best < -1e-12 * scale), alpha=float(10**best_la))
+    holds = bool(best < -1e-12 * scale)
+    return ClosedLoopCertificate(Outcome.solved if holds else Outcome.no_multiplier,
+                                 float(10**best_la))
 
 
-@positional_options("stabilising_qsr", ("alpha", "margins"),
-                    "stabilising_qsr(plant_qsr, alpha=..., margins=...)")
 def stabilising_qsr(plant_qsr: QSR, *, alpha: float = 1.0, margins=(1e-2, 1e-2)) -> QSR:
     """A controller supply rate that Theorem 1 pairs with `plant_qsr` (the recipe of `docs/concepts.md`, *The closed-loop theorem*).
 
@@ -333,9 +344,6 @@ def stabilising_qsr(plant_qsr: QSR, *, alpha: float = 1.0, margins=(1e-2, 1e-2))
     `alpha` and `margins` are keyword-only.
 
     **Returns:** the controller's `QSR`.
-
-    *Deprecated:* passing `alpha` and `margins` positionally still works with a
-    `DeprecationWarning`; it will be removed in 0.3.0.
     """
     if not isinstance(plant_qsr, QSR):
         raise ValueError("`plant_qsr` must be a `dj.QSR`.")

@@ -47,7 +47,7 @@ def fit_and_test(k_fit, k_noise, windows, spec, inits, plant, expert, x0, steps,
     """Train with the example's PGD settings (as protocol.fit), test as protocol.run_config."""
     def fit():
         return dj.fit_pgd(k_fit, windows, spec.qsr, num_inits=inits, max_steps=spec.max_steps,
-                          tol=spec.tol, learning_rate=spec.pgd_learning_rate,
+                          atol=spec.tol, learning_rate=spec.pgd_learning_rate,
                           decay=spec.pgd_decay, init_scale=spec.init_scale, throw=False)
 
     if windows.y.shape not in compiled:  # compile outside the timed run (one per shape)
@@ -65,7 +65,7 @@ def fit_and_test(k_fit, k_noise, windows, spec, inits, plant, expert, x0, steps,
         held_first=first2,
         held_tail=window_error(res.controllers, held_out, HELD_OUT) - first2,  # causal rollout
         steps=np.asarray(res.steps), time=train_time,
-        converged=np.array([r == "converged" for r in res.stop_reasons()]),
+        converged=np.array([r == "converged" for r in res.result_names()]),
         certified=bool(np.all(np.asarray(res.certified))),
     )
 

@@ -36,7 +36,7 @@ def main(plants, inits, max_steps) -> None:
               f"{qsr.Q[0, 0]:.3f} I, R2 = {qsr.R[0, 0]:.3f} I; Theorem 1: {thm.holds}")
         assert thm.holds
         for name, fit in (("PGD", dj.fit_pgd), ("ICO", dj.fit_ico)):
-            res = fit(key, windows, qsr, num_inits=inits, max_steps=max_steps, tol=spec.tol)
+            res = fit(key, windows, qsr, num_inits=inits, max_steps=max_steps, atol=spec.tol)
             cert = dj.certify(res.controllers, qsr, P=np.asarray(res.P))
             radius = lti_spectral_radius(plant, res.controllers)
             print(f"  {name}: final loss {np.median(np.asarray(res.final_loss)):.4f}, "

@@ -27,7 +27,7 @@ def main(quick: bool = False):
 
     def run(lr):
         return dj.pgd_run(jax.random.PRNGKey(1), windows, qsr, learning_rate=lr,
-                          num_inits=4, max_steps=steps, tol=1e-5)
+                          num_inits=4, max_steps=steps, atol=1e-5)
 
     t = time.perf_counter()
     res = jax.jit(jax.vmap(run))(lrs)

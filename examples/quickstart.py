@@ -45,7 +45,7 @@ def main(quick: bool = False):
 
     t = time.perf_counter()
     res = dj.fit_pgd(jax.random.PRNGKey(1), windows, qsr, num_inits=4 if quick else 10,
-                     max_steps=40 if quick else 150, tol=1e-5)
+                     max_steps=40 if quick else 150, atol=1e-5)
     print(f"PGD: {res.num_inits} initialisations in {time.perf_counter() - t:.2f} s")
     for i in range(res.num_inits):
         print(f"  init {i}: loss {float(res.initial_loss[i]):8.4f} -> {float(res.final_loss[i]):8.4f}"
@@ -59,7 +59,7 @@ def main(quick: bool = False):
           f"P={np.round(cert.P, 4).tolist()}")
     # Unconstrained runs may diverge; throw=False returns them (stop_reason "non_finite").
     gd = dj.fit_gd(jax.random.PRNGKey(1), windows, num_inits=4, max_steps=40 if quick else 150,
-                   tol=1e-5, throw=False)
+                   atol=1e-5, throw=False)
     Kg = jax.tree.map(lambda a: a[int(jnp.nanargmin(gd.final_loss))], gd.controllers)
     print(f"unconstrained GD reaches loss {float(gd.final_loss.min()):.4f}; "
           f"dissipative w.r.t. the controller QSR: {dj.certify(Kg, qsr).holds}")

@@ -159,6 +159,18 @@ def dissipation_ok(K, qsr, P, rel_margin=1e-12, *, python_control=True):
 independent_kyp_ok = dissipation_ok  # old name, used by tests/test_pgd.py
 
 
+def loop_outputs(K, x0, y):
+    """One window by a plain Python loop (float64 numpy): $\\hat y_k = C\\hat x_k + D y_k$,
+    $\\hat x_{k+1} = A\\hat x_k + B y_k$ from `x0` (None: at rest, $\\hat x_0 = 0$)."""
+    A, B, C, D = (np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
+    x = np.zeros(A.shape[0]) if x0 is None else np.asarray(x0, np.float64)
+    out = []
+    for yk in np.asarray(y, np.float64):
+        out.append(C @ x + D @ yk)
+        x = A @ x + B @ yk
+    return np.array(out)
+
+
 def random_windows(key, N=10, h=2, n=1, p=1, m=1, gain=0.5):
     """Windows from a known linear map so a good controller exists: u = -gain * y."""
     k1, k2 = jax.random.split(key)

@@ -4,8 +4,7 @@ import clarabel
 import numpy as np
 import scipy.sparse as sp
 
-from dissil_jax._lmi import smat
-from dissil_jax._train._ico_layout import svec_len
+from dissil_jax.internal import smat, svec_len
 
 
 def overbound(pb, x, theta0, P_tilde, w_tilde, eps=None):

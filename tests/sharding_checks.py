@@ -23,7 +23,7 @@ import numpy as np
 from jax.sharding import AxisType, NamedSharding, PartitionSpec as P
 
 import dissil_jax as dj
-from dissil_jax import _projection, _sdp
+from dissil_jax.internal import projection as _projection, sdp as _sdp
 
 REMAT = "Involuntary full rematerialization"
 CALLS = []  # per projection callback: [shard, batch shape, peak solves at once]
@@ -124,7 +124,7 @@ def problem():
 
     def pgd(lr, qsr=qsr):
         return dj.pgd_run(jax.random.PRNGKey(1), windows, qsr, learning_rate=lr, num_inits=2,
-                          max_steps=15, tol=1e-2, throw=False)
+                          max_steps=15, atol=1e-2, throw=False)
 
     return qsr, pgd, jnp.array([0.1, 3.0, 1.0, 1.5])
 

@@ -72,8 +72,8 @@ def test_input_feedforward_index_matches_python_control():
     sys = control.ss([[0.5, 0.1], [0.0, -0.3]], [[1.0], [0.5]], [[1.0, 0.2]], [[1.2]], True)
     nu = control.get_input_ff_index(sys)
     K = dj.LTIController.from_statespace(sys)
-    assert dj.certify(K, dj.QSR.degenerate_conic(nu - 1e-4, 1)).holds
-    assert not dj.certify(K, dj.QSR.degenerate_conic(nu + 1e-4, 1)).holds
+    assert dj.certify(K, dj.QSR.degenerate_conic(nu - 1e-4, dim=1)).holds
+    assert not dj.certify(K, dj.QSR.degenerate_conic(nu + 1e-4, dim=1)).holds
 
 
 def test_bounded_gain_matches_hinf_norm():
@@ -145,15 +145,15 @@ def test_tol_is_the_relative_round_off_allowance():
     qsr = dj.QSR.passive(1)
     cert = dj.certify(K, qsr)
     assert cert.holds and 0 < cert.margin < 1e-6
-    assert dj.certify(K, qsr, P=cert.P, tol=0.0).holds
-    assert not dj.certify(K, qsr, P=cert.P, tol=1e-3).holds  # margin < tol * scale
-    assert not dj.certify(K, qsr, tol=1e-3).holds  # also after the SDP
+    assert dj.certify(K, qsr, P=cert.P, rtol=0.0).holds
+    assert not dj.certify(K, qsr, P=cert.P, rtol=1e-3).holds  # margin < tol * scale
+    assert not dj.certify(K, qsr, rtol=1e-3).holds  # also after the SDP
     # A comfortable system keeps its certificate under a loose tolerance.
     K2 = _first_order(0.5, 1.0, 1.0, 2.0)
-    assert dj.certify(K2, qsr, tol=1e-3).holds
+    assert dj.certify(K2, qsr, rtol=1e-3).holds
     for tol in (-1e-3, np.nan, np.inf):
-        with pytest.raises(ValueError, match="`tol`"):
-            dj.certify(K, qsr, tol=tol)
+        with pytest.raises(ValueError, match="`rtol`"):
+            dj.certify(K, qsr, rtol=tol)
 
 
 def test_given_P_is_checked_not_solved():
@@ -264,7 +264,7 @@ def test_unbatched_certificate_keeps_scalars():
 
 
 @pytest.mark.parametrize("qsr", [dj.QSR.passive(2), dj.QSR.bounded_gain(1.5, n_in=2, n_out=2),
-                                 dj.QSR.conic(-0.5, 2.0, 2)], ids=["passive", "gain", "conic"])
+                                 dj.QSR.conic(-0.5, 2.0, dim=2)], ids=["passive", "gain", "conic"])
 def test_fast_path_and_sdp_agree(qsr):
     """Random controllers of both verdicts: the fast path and the SDP decide alike, and a
     storage either path returns passes the definition-based check."""

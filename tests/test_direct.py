@@ -18,10 +18,9 @@ import pytest
 from helpers import dissipation_ok, expert_windows, index
 
 import dissil_jax as dj
-from dissil_jax import _direct_map as dm, _sdp
-from dissil_jax._train import direct
 from dissil_jax.experiments import realisable_windows
 from dissil_jax.experiments.protocol import example_spec, fit, run_config, training_data
+from dissil_jax.internal import certified, direct, direct_map as dm
 
 I2, I3 = np.eye(2), np.eye(3)
 #: Every kind of supply rate the library accepts (Q <= 0).
@@ -30,8 +29,8 @@ SUPPLY_RATES = {
     "passive": dj.QSR.passive(2),  # Q = 0
     "q_minus_1e-4": dj.QSR(-1e-4 * I2, I2 / 2, 0 * I2),  # the issue's failure case
     "rank_deficient": dj.QSR(np.diag([-1.0, 0.0]), I2 / 2, 0 * I2),
-    "degenerate_cone": dj.QSR.degenerate_conic(0.5, 2),  # Q = 0, R < 0
-    "cone": dj.QSR.conic(-1.0, 3.0, 2),
+    "degenerate_cone": dj.QSR.degenerate_conic(0.5, dim=2),  # Q = 0, R < 0
+    "cone": dj.QSR.conic(-1.0, 3.0, dim=2),
     "gain_2x3": dj.QSR.bounded_gain(2.0, n_in=3, n_out=2),  # S = 0, non-square
     "input_only": dj.QSR(0 * I2, 0 * I2, I2),  # Q = S = 0: C and D are free
 }
@@ -60,7 +59,7 @@ def test_map_is_dissipative_with_its_margin_for_every_theta(getkey, name):
     for scale in (0.3, 1.0, 3.0):
         th = _random_theta(getkey(), 40, n, qsr, scale)
         K, P = jax.vmap(lambda t: dm.direct_map(t, qsr))(th)
-        assert bool(np.all(_sdp.certified(K.A, K.B, K.C, K.D, qsr, P)))
+        assert bool(np.all(certified(K.A, K.B, K.C, K.D, qsr, P)))
         M = dj.kyp_matrix(*(np.asarray(a, np.float64) for a in (K.A, K.B, K.C, K.D)), qsr,
                           np.asarray(P, np.float64))
         bound = np.zeros_like(M)
@@ -123,14 +122,14 @@ def test_fit_direct_is_certified(getkey, name, dtype):
     m, p = qsr.S.shape
     w = expert_windows(3, 2, p, m, N=16)
     w = _f32(w) if dtype == "float32" else w
-    res = dj.fit_direct(getkey(), w, qsr, num_inits=4, max_steps=30, tol=0.0)
+    res = dj.fit_direct(getkey(), w, qsr, num_inits=4, max_steps=30, atol=0.0)
     K = res.controllers
     assert K.A.dtype == res.P.dtype == res.loss_history.dtype == jnp.dtype(dtype)
     assert bool(jnp.all(res.certified)) and not bool(jnp.any(res.projected))
     assert bool(np.all(dj.certify(K, qsr, P=res.P).holds))
     assert bool(np.all(dj.certify(K, qsr).holds))
     assert bool(jnp.all(res.final_loss < res.initial_loss))
-    assert res.stop_reasons() == ["max_steps"] * 4
+    assert res.result_names() == ["max_steps"] * 4
 
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
@@ -142,7 +141,7 @@ def test_issue_failure_case_q_minus_1e4(dtype):
     spec = example_spec("linear")
     w = training_data(spec, 0, 0, "initial", 25)[2]
     w = _f32(w) if dtype == "float32" else w
-    kw = dict(num_inits=20, learning_rate=spec.direct_learning_rate, tol=0.0)
+    kw = dict(num_inits=20, learning_rate=spec.direct_learning_rate, atol=0.0)
     near = dj.fit_direct(jr.PRNGKey(0), w, dj.QSR(-1e-4 * I3, I3 / 2, 0 * I3), **kw)
     assert bool(jnp.all(near.certified)) and not bool(jnp.any(near.projected))
     med = float(jnp.median(near.final_loss))
@@ -157,8 +156,8 @@ def test_training_loss_within_2x_of_ico_small():
     realisable windows), with the defaults: median training loss within 2x of ICO's."""
     qsr = SUPPLY_RATES["passive"]
     w, _ = realisable_windows(jr.PRNGKey(0), qsr, n_state=2, num_windows=25, noise=0.1)
-    ico = dj.fit_ico(jr.PRNGKey(1), w, qsr, num_inits=4, tol=1e-3)
-    res = dj.fit_direct(jr.PRNGKey(1), w, qsr, num_inits=4, tol=0.0)
+    ico = dj.fit_ico(jr.PRNGKey(1), w, qsr, num_inits=4, atol=1e-3)
+    res = dj.fit_direct(jr.PRNGKey(1), w, qsr, num_inits=4, atol=0.0)
     assert float(jnp.median(res.final_loss)) <= 2 * float(jnp.median(ico.final_loss))
 
 
@@ -183,7 +182,7 @@ def test_batched_training_equals_python_loop(getkey):
     qsr = SUPPLY_RATES["strict_paper"]
     w = expert_windows(1, 1, 1, 1, N=20)
     key = getkey()
-    res = dj.fit_direct(key, w, qsr, num_inits=3, max_steps=40, tol=1e-3, learning_rate=0.05,
+    res = dj.fit_direct(key, w, qsr, num_inits=3, max_steps=40, atol=1e-3, learning_rate=0.05,
                         init_scale=0.7)
     th0 = dm.init_params(key, 3, 1, 1, 1, 0.7, jnp.float64)
     stopped_early = False
@@ -206,7 +205,7 @@ def test_learning_rate_sweep_with_vmap_equals_loop(getkey):
     w = expert_windows(2, 2, 2, 2)
     key, lrs = getkey(), [0.01, 0.05, 0.2]
     run = lambda lr: dj.direct_run(key, w, qsr, learning_rate=lr, num_inits=2, max_steps=15,
-                                   tol=1e-6)
+                                   atol=1e-6)
     swept = jax.jit(jax.vmap(run))(jnp.asarray(lrs))
     assert swept.loss_history.shape == (3, 2, 16) and swept.certified is None
     for j, lr in enumerate(lrs):
@@ -222,7 +221,7 @@ def test_the_run_is_pure_jax_and_differentiable(getkey):
     w = expert_windows(2, 2, 2, 2)
     key = getkey()
     final = jax.jit(lambda lr: jnp.mean(dj.direct_run(
-        key, w, qsr, learning_rate=lr, num_inits=2, max_steps=10, tol=0.0,
+        key, w, qsr, learning_rate=lr, num_inits=2, max_steps=10, atol=0.0,
         throw=False).final_loss))
     jaxpr = str(jax.make_jaxpr(final)(0.05))
     assert "callback" not in jaxpr and "while" in jaxpr
@@ -236,8 +235,8 @@ def test_unit_free(c):
     qsr = SUPPLY_RATES["passive"]
     wk = lambda s: realisable_windows(jr.PRNGKey(4), qsr, n_state=2, num_windows=30,
                                       noise=0.1, scale=s)[0]
-    ref = dj.fit_direct(jr.PRNGKey(0), wk(1.0), qsr, num_inits=3, max_steps=20, tol=0.0)
-    res = dj.fit_direct(jr.PRNGKey(0), wk(c), qsr, num_inits=3, max_steps=20, tol=0.0)
+    ref = dj.fit_direct(jr.PRNGKey(0), wk(1.0), qsr, num_inits=3, max_steps=20, atol=0.0)
+    res = dj.fit_direct(jr.PRNGKey(0), wk(c), qsr, num_inits=3, max_steps=20, atol=0.0)
     for a, b in zip(jax.tree.leaves(res.controllers), jax.tree.leaves(ref.controllers)):
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(res.loss_history, c**2 * ref.loss_history, rtol=1e-6)
@@ -267,7 +266,7 @@ def test_defaults_follow_the_order(getkey):
     w = dj.Windows(jr.normal(getkey(), (6, n)), jr.normal(getkey(), (6, 3, p)),
                    jr.normal(getkey(), (6, 3, p)))
     run = lambda **kw: dj.direct_run(jr.PRNGKey(0), w, dj.QSR.passive(p), num_inits=2,
-                                     max_steps=3, tol=0.0, **kw).loss_history
+                                     max_steps=3, atol=0.0, **kw).loss_history
     lr, s = direct.default_hyperparameters(n, p)
     np.testing.assert_array_equal(run(), run(learning_rate=lr, init_scale=s))
     assert not np.array_equal(run(), run(learning_rate=0.3, init_scale=0.5))
@@ -295,7 +294,7 @@ def test_failed_check_is_projected_and_flagged(getkey):
     assert bool(np.all(dj.certify(out.controllers, qsr, P=out.P).holds))
     np.testing.assert_allclose(out.final_loss[1], dj.imitation_loss(index(out.controllers, 1), w))
     np.testing.assert_array_equal(out.final_loss[::2], res.final_loss[::2])
-    assert out.stop_reasons() == res.stop_reasons()
+    assert out.result_names() == res.result_names()
 
 
 def test_bad_arguments(getkey):
@@ -332,7 +331,7 @@ def test_sharded_sweep_equals_unsharded(tmp_path):
         w = dj.Windows(rng.normal(size=(12, 2)), rng.normal(size=(12, 2, 2)),
                        rng.normal(size=(12, 2, 2)))
         run = jax.jit(jax.vmap(lambda lr: dj.direct_run(
-            jr.PRNGKey(0), w, qsr, learning_rate=lr, num_inits=3, max_steps=30, tol=3e-2,
+            jr.PRNGKey(0), w, qsr, learning_rate=lr, num_inits=3, max_steps=30, atol=3e-2,
             throw=False)))
         lrs = jnp.array([0.01, 0.03, 0.1, 0.3])
         mesh = jax.make_mesh((2,), ("d",), axis_types=(AxisType.Auto,))
@@ -343,8 +342,8 @@ def test_sharded_sweep_equals_unsharded(tmp_path):
                                    / (1 + np.abs(np.asarray(b, float)))))
                    for a, b in zip(jax.tree.leaves(sharded), jax.tree.leaves(plain)))
         same = all(np.array_equal(np.asarray(a), np.asarray(b), equal_nan=True)
-                   for a, b in zip(jax.tree.leaves((sharded.steps, sharded.stop_reason)),
-                                   jax.tree.leaves((plain.steps, plain.stop_reason))))
+                   for a, b in zip(jax.tree.leaves((sharded.steps, sharded.result)),
+                                   jax.tree.leaves((plain.steps, plain.result))))
         steps = np.asarray(sharded.steps).tolist()
         print(json.dumps(dict(devices=devices, diff=diff, same=same, steps=steps)))
     """)
@@ -364,7 +363,7 @@ def test_protocol_uses_the_specs_direct_settings(getkey):
                                direct_learning_rate=0.123, direct_init_scale=0.7)
     w, key = expert_windows(10, 1, 1, 1), getkey()
     res = fit("direct", key, w, spec, 2)
-    ref = dj.fit_direct(key, w, spec.qsr, num_inits=2, max_steps=6, tol=1e-9,
+    ref = dj.fit_direct(key, w, spec.qsr, num_inits=2, max_steps=6, atol=1e-9,
                         learning_rate=0.123, init_scale=0.7)
     np.testing.assert_array_equal(res.loss_history, ref.loss_history)
 
@@ -381,7 +380,7 @@ def test_nonlinear_example_criteria():
     assert rec["mse_median"] <= 0.02
     spec = example_spec("nonlinear")
     w = training_data(spec, 0, 0, "initial", 25)[2]
-    kw = dict(num_inits=100, max_steps=150, tol=0.0, learning_rate=spec.direct_learning_rate)
+    kw = dict(num_inits=100, max_steps=150, atol=0.0, learning_rate=spec.direct_learning_rate)
     dj.fit_direct(jr.PRNGKey(0), w, spec.qsr, **kw)  # compile
     res = dj.fit_direct(jr.PRNGKey(0), w, spec.qsr, **kw)
     assert bool(jnp.all(res.steps == 150)) and float(res.wall_time) < 1.0
@@ -396,12 +395,12 @@ def test_linear_example_criteria(dtype):
     spec = example_spec("linear")
     w64 = training_data(spec, 0, 0, "initial", 25)[2]
     w = _f32(w64) if dtype == "float32" else w64
-    kw = dict(num_inits=20, learning_rate=spec.direct_learning_rate, tol=spec.direct_tol)
+    kw = dict(num_inits=20, learning_rate=spec.direct_learning_rate, atol=spec.direct_tol)
     dj.fit_direct(jr.PRNGKey(1), w, spec.qsr, **kw)  # compile
     t = time.perf_counter()
     res = dj.fit_direct(jr.PRNGKey(1), w, spec.qsr, **kw)
     assert time.perf_counter() - t < 1.0
     assert bool(jnp.all(res.certified)) and not bool(jnp.any(res.projected))
     assert bool(np.all(dj.certify(res.controllers, spec.qsr).holds))
-    ico = dj.fit_ico(jr.PRNGKey(1), w64, spec.qsr, num_inits=20, tol=spec.tol, throw=False)
+    ico = dj.fit_ico(jr.PRNGKey(1), w64, spec.qsr, num_inits=20, atol=spec.tol, throw=False)
     assert float(jnp.median(res.final_loss)) <= 2 * float(jnp.median(ico.final_loss))

@@ -206,7 +206,7 @@ def test_controller_dimension_mismatch(linear):
 
 
 def test_summary_counts_unstable_as_inf():
-    from dissil_jax._train.result import FitResult
+    from dissil_jax import FitResult
 
     class Fake(eqx.Module):
         mse: np.ndarray

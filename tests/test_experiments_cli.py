@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from dissil_jax.experiments import __main__ as cli
-from dissil_jax.experiments._paper import FIGURES, TABLES
 from dissil_jax.experiments.protocol import example_spec, run_config
 from dissil_jax.experiments.report import merge_records, tables_markdown
+from dissil_jax.internal import FIGURES, TABLES
 
 KEYS = {"example", "data", "method", "segments", "percent_stable", "percent_change_cost",
         "train_time_s", "mse_median", "mse_max", "mse_q1", "mse_q3", "percent_bounded",

@@ -11,12 +11,14 @@ from helpers import dissipation_ok, expert_windows, index, tree_allclose
 from ico_checks import cone_min, cone_spec, feasible_point, overbound
 
 import dissil_jax as dj
-from dissil_jax import _sdp
-from dissil_jax._train import _ico_sdp
-from dissil_jax._train._ico_blocks import Iterate
-from dissil_jax._train._ico_sdp import ICOProblem
-from dissil_jax._train._ico_solver import ICOSolver
-from dissil_jax._train._ico_windows import stacked_factor
+from dissil_jax.internal import (
+    ICOProblem,
+    ICOSolver,
+    Iterate,
+    ico_sdp as _ico_sdp,
+    outcome as _outcome,
+    stacked_factor,
+)
 
 pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 
@@ -41,7 +43,7 @@ def _start(key, windows, qsr, scale=0.3):
 CASES = [
     (1, 1, 1, dj.QSR.passive(1)),
     (1, 1, 1, NONLINEAR_QSR),
-    (2, 2, 2, dj.QSR.conic(-0.5, 2.0, 2)),
+    (2, 2, 2, dj.QSR.conic(-0.5, 2.0, dim=2)),
     (3, 2, 2, dj.QSR.passive(2)),
 ]
 
@@ -130,7 +132,7 @@ def test_stacked_cone_equals_per_window_cones(getkey, qsr):
         theta = pb.theta(K.A, K.B, K.C, K.D)
         solver = ICOSolver(pb)
         d, _, w, status, _ = solver.solve(theta, P, 0.8)
-        assert status == _sdp.code("solved")
+        assert status == _outcome.code("solved")
         out[cone] = (solver.obj_val, d, w, pb)
     (obj_s, d_s, w_s, pb_s), (obj_w, d_w, w_w, pb_w) = out["stacked"], out["soc"]
     assert pb_s.nrows < pb_w.nrows - 2 * 40  # the point of stacking
@@ -177,7 +179,7 @@ def test_inplace_update_matches_fresh_solver(getkey):
     theta = pb.theta(K.A, K.B, K.C, K.D)
     reused = ICOSolver(pb)
     d, P1, w1, status, _ = reused.solve(theta, P, 1.0)
-    assert status == _sdp.code("solved")
+    assert status == _outcome.code("solved")
     theta2 = theta + d
     d_upd, P_upd, w_upd, _, _ = reused.solve(theta2, P1, 0.5)
     fresh = ICOSolver(pb)
@@ -199,7 +201,7 @@ def test_fit_ico_monotone_and_every_iterate_certified(getkey, n, p, m, qsr):
         with lock:
             iterates.append((i, step, K, P, loss))
 
-    res = dj.fit_ico(getkey(), windows, qsr, num_inits=3, max_steps=12, tol=1e-6,
+    res = dj.fit_ico(getkey(), windows, qsr, num_inits=3, max_steps=12, atol=1e-6,
                      init_scale=0.5, callback=callback)
     hist = np.asarray(res.loss_history)
     assert hist.shape == (3, 13)
@@ -226,8 +228,8 @@ def test_fit_ico_monotone_and_every_iterate_certified(getkey, n, p, m, qsr):
 def test_ico_nc_reaches_lower_loss_than_ico(getkey):
     windows = expert_windows(11, 2, 2, 2, N=20)
     key = getkey()
-    res = dj.fit_ico(key, windows, dj.QSR.passive(2), num_inits=2, max_steps=40, tol=1e-5)
-    res_nc = dj.fit_ico_nc(key, windows, num_inits=2, max_steps=40, tol=1e-5)
+    res = dj.fit_ico(key, windows, dj.QSR.passive(2), num_inits=2, max_steps=40, atol=1e-5)
+    res_nc = dj.fit_ico_nc(key, windows, num_inits=2, max_steps=40, atol=1e-5)
     assert res_nc.P is None and res_nc.certified is None
     assert res_nc.loss_history.shape == (2, 41)
     assert float(jnp.min(res_nc.final_loss)) <= float(jnp.min(res.final_loss)) + 1e-9
@@ -257,11 +259,11 @@ def test_rejected_step_keeps_certified_iterate(getkey, monkeypatch):
     monkeypatch.setattr(ICOSolver, "solve", bad_solve)
     key = getkey()
     with pytest.raises(ValueError, match="loss_increased|not_certified"):
-        dj.fit_ico(key, windows, qsr, num_inits=1, max_steps=10, tol=0.0)
+        dj.fit_ico(key, windows, qsr, num_inits=1, max_steps=10, atol=0.0)
     calls.clear()
-    res = dj.fit_ico(key, windows, qsr, num_inits=1, max_steps=10, tol=0.0, throw=False)
+    res = dj.fit_ico(key, windows, qsr, num_inits=1, max_steps=10, atol=0.0, throw=False)
     assert int(res.steps[0]) == 1 and not bool(res.converged[0])
-    assert res.stop_reasons()[0] in ("loss_increased", "not_certified")
+    assert res.result_names()[0] in ("loss_increased", "not_certified")
     assert bool(res.certified[0])
     hist = np.asarray(res.loss_history[0])
     assert np.isfinite(hist[1]) and np.all(np.isnan(hist[2:]))
@@ -291,7 +293,7 @@ def _assert_stopping_rule(res, tol, max_steps):
     """`converged` means exactly: the last accepted step changed the loss by less than `tol`
     (and no earlier one did); otherwise the run used all `max_steps`."""
     hist, steps = np.asarray(res.loss_history), np.asarray(res.steps)
-    for i, reason in enumerate(res.stop_reasons()):
+    for i, reason in enumerate(res.result_names()):
         s = int(steps[i])
         h = hist[i, : s + 1]
         assert np.all(np.isfinite(h)) and np.all(np.isnan(hist[i, s + 1:]))
@@ -309,17 +311,17 @@ def test_converged_flag_and_no_warning(getkey):
     windows = expert_windows(2, 1, 1, 1)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        res = dj.fit_ico_nc(getkey(), windows, num_inits=2, max_steps=50, tol=1e-4)
-        short = dj.fit_ico_nc(getkey(), windows, num_inits=2, max_steps=3, tol=1e-4)
+        res = dj.fit_ico_nc(getkey(), windows, num_inits=2, max_steps=50, atol=1e-4)
+        short = dj.fit_ico_nc(getkey(), windows, num_inits=2, max_steps=3, atol=1e-4)
         ico = dj.fit_ico(getkey(), windows, dj.QSR.passive(1), num_inits=2, max_steps=40,
-                         tol=1e-3, init_scale=0.5)
-    assert bool(jnp.all(res.converged)) and res.stop_reasons() == ["converged"] * 2
+                         atol=1e-3, init_scale=0.5)
+    assert bool(jnp.all(res.converged)) and res.result_names() == ["converged"] * 2
     assert np.all(np.asarray(res.steps) < 50)
     assert res.wall_time.shape == () and float(res.wall_time) > 0
     _assert_stopping_rule(res, 1e-4, 50)
-    assert not bool(jnp.any(short.converged)) and short.stop_reasons() == ["max_steps"] * 2
+    assert not bool(jnp.any(short.converged)) and short.result_names() == ["max_steps"] * 2
     _assert_stopping_rule(short, 1e-4, 3)
-    assert ico.stop_reasons() == ["converged"] * 2 and bool(jnp.all(ico.certified))
+    assert ico.result_names() == ["converged"] * 2 and bool(jnp.all(ico.certified))
     _assert_stopping_rule(ico, 1e-3, 40)
     for i in range(2):
         assert dissipation_ok(index(ico.controllers, i), dj.QSR.passive(1), ico.P[i])
@@ -337,10 +339,10 @@ def test_fit_ico_with_per_window_cones(getkey, cone):
             iterates.append((i, step, K, P, loss))
 
     key = getkey()
-    res = dj.fit_ico(key, windows, qsr, num_inits=2, max_steps=4, tol=0.0, window_cone=cone,
+    res = dj.fit_ico(key, windows, qsr, num_inits=2, max_steps=4, atol=0.0, window_cone=cone,
                      callback=callback)
-    ref = dj.fit_ico(key, windows, qsr, num_inits=2, max_steps=4, tol=0.0)  # "stacked"
-    assert res.stop_reasons() == ["max_steps"] * 2 and bool(jnp.all(res.certified))
+    ref = dj.fit_ico(key, windows, qsr, num_inits=2, max_steps=4, atol=0.0)  # "stacked"
+    assert res.result_names() == ["max_steps"] * 2 and bool(jnp.all(res.certified))
     assert len(iterates) == 2 * 5
     for i, step, K, P, loss in iterates:
         assert dissipation_ok(K, qsr, P)
@@ -374,7 +376,7 @@ def test_fit_ico_float32_controllers_are_certified_as_returned(getkey):
         with lock:
             last[i] = (step, K, P)
 
-    res = dj.fit_ico(getkey(), w32, qsr, num_inits=2, max_steps=6, tol=0.0, callback=callback)
+    res = dj.fit_ico(getkey(), w32, qsr, num_inits=2, max_steps=6, atol=0.0, callback=callback)
     assert res.controllers.A.dtype == jnp.float32 and res.P.dtype == jnp.float32
     assert np.all(np.asarray(res.steps) >= 1) and bool(jnp.all(res.certified))
     f32 = lambda M: np.asarray(M, np.float64).astype(np.float32).astype(np.float64)

@@ -9,11 +9,8 @@ import pytest
 from helpers import expert_windows
 
 import dissil_jax as dj
-import dissil_jax._train.ico as ico
-from dissil_jax import _sdp
-from dissil_jax._train._ico_sdp import ICOProblem
-from dissil_jax._train._ico_solver import ICOSolver
 from dissil_jax.experiments.protocol import example_spec, training_data
+from dissil_jax.internal import ICOProblem, ICOSolver, ico, outcome as _outcome
 
 
 def test_large_initial_draws_do_not_stop_ico_early():
@@ -21,9 +18,9 @@ def test_large_initial_draws_do_not_stop_ico_early():
     P / lambda_max(P~), 4 of these runs stopped at their first SDP (InsufficientProgress)."""
     spec = example_spec("nonlinear")
     _, _, windows, (k_fit, _, _) = training_data(spec, 0, 0, "initial", 25)
-    res = dj.fit_ico(k_fit, windows, spec.qsr, num_inits=100, max_steps=150, tol=spec.tol,
+    res = dj.fit_ico(k_fit, windows, spec.qsr, num_inits=100, max_steps=150, atol=spec.tol,
                      init_scale=1.0)
-    reasons = Counter(res.stop_reasons())
+    reasons = Counter(res.result_names())
     assert set(reasons) <= {"converged", "max_steps"}, reasons
     assert bool(jnp.all(res.certified)) and bool(jnp.all(res.steps > 0))
 
@@ -43,7 +40,7 @@ def test_failed_solve_recentres_on_the_certificate_once(monkeypatch, fail_every_
     def flaky(self, theta0, P_tilde, w_tilde, eps=None):
         calls["solve"] += 1
         if fail_every_time or calls["solve"] == 1:
-            return None, None, None, _sdp.code("solver_failed"), 0.0
+            return None, None, None, _outcome.code("solver_failed"), 0.0
         return solve(self, theta0, P_tilde, w_tilde, eps)
 
     def counted(*args, **kwargs):
@@ -52,11 +49,11 @@ def test_failed_solve_recentres_on_the_certificate_once(monkeypatch, fail_every_
 
     monkeypatch.setattr(ICOSolver, "solve", flaky)
     monkeypatch.setattr(ico, "certify", counted)
-    res = dj.fit_ico(jr.PRNGKey(3), windows, qsr, num_inits=1, max_steps=5, tol=0.0,
+    res = dj.fit_ico(jr.PRNGKey(3), windows, qsr, num_inits=1, max_steps=5, atol=0.0,
                      throw=False)
     assert calls["certify"] == 1  # one re-centring, at the first failure only
     assert bool(res.certified[0])
     if fail_every_time:
-        assert res.stop_reasons() == ["solver_failed"] and int(res.steps[0]) == 0
+        assert res.result_names() == ["solver_failed"] and int(res.steps[0]) == 0
     else:
-        assert res.stop_reasons() == ["max_steps"] and int(res.steps[0]) == 5
+        assert res.result_names() == ["max_steps"] and int(res.steps[0]) == 5

@@ -8,7 +8,7 @@ import pytest
 from helpers import dissipation_matrix, dissipation_ok, index, random_windows
 
 import dissil_jax as dj
-from dissil_jax._lmi import ConvexifiedLMI
+from dissil_jax.internal import ConvexifiedLMI
 
 pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 
@@ -138,7 +138,7 @@ def test_pgd_and_ico_under_indefinite_rates(getkey):
         w = random_windows(getkey(), N=8, n=n, p=m, m=m)
         for fit in (dj.fit_pgd, dj.fit_ico):
             res = fit(getkey(), w, qsr, num_inits=2, max_steps=3, throw=False)
-            assert bool(jnp.all(res.certified)), res.stop_reasons()
+            assert bool(jnp.all(res.certified)), res.result_names()
             for i in range(2):
                 _assert_certified(index(res.controllers, i), qsr, res.P[i])
             if fit is dj.fit_ico:

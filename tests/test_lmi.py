@@ -7,14 +7,14 @@ import scipy.sparse as sp
 from helpers import dissipation_ok
 
 import dissil_jax as dj
-from dissil_jax._lmi import ConvexifiedLMI, smat
+from dissil_jax.internal import ConvexifiedLMI, smat
 
 pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 
 SUPPLIES = [
     ("passive", dj.QSR.passive(2)),
     ("bounded-gain-rect", dj.QSR.bounded_gain(0.7, n_in=3, n_out=2)),
-    ("conic", dj.QSR.conic(-0.5, 2.0, 2)),
+    ("conic", dj.QSR.conic(-0.5, 2.0, dim=2)),
     ("nonlinear-paper", dj.QSR(-29.867, 3.556, 0.601)),
 ]
 

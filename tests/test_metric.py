@@ -13,7 +13,7 @@ import pytest
 from helpers import dissipation_ok, index
 
 import dissil_jax as dj
-from dissil_jax._train.pgd import METRIC_FLOOR, optimizer_metric
+from dissil_jax.internal import METRIC_FLOOR, optimizer_metric
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "benchmarks"))
 from _reference import cvxpy_projection_problem, solve_reference  # noqa: E402

@@ -30,7 +30,7 @@ def test_mlp_controller_is_memoryless(getkey):
 def test_fit_mlp_lowers_loss(getkey):
     windows = random_windows(getkey(), N=20, h=2, n=2, p=2, m=2)
     res = dj.fit_mlp(getkey(), windows, hidden=(16, 16), num_inits=3, max_steps=300,
-                     learning_rate=1e-2, tol=0.0)
+                     learning_rate=1e-2, atol=0.0)
     hist = np.asarray(res.loss_history)
     assert hist.shape == (3, 301)
     assert np.all(np.isfinite(hist))
@@ -65,9 +65,9 @@ def test_paper_network_has_three_weight_matrices(getkey):
         assert weights == [(width, 3), (width, width), (3, width)]
 
 
-def _plain_adam_loop(key, windows, hidden, max_steps, learning_rate, tol):
+def _plain_adam_loop(key, windows, hidden, max_steps, learning_rate, atol):
     """One network trained by a plain Python loop: full-batch Adam on the paper's loss,
-    stop when |J_k - J_(k-1)| < tol (the loss of the final parameters is recorded)."""
+    stop when |J_k - J_(k-1)| < atol (the loss of the final parameters is recorded)."""
     import optax
 
     model = dj.MLPController(windows.n_in, windows.n_out, hidden, key=key, dtype=jnp.float64)
@@ -86,7 +86,7 @@ def _plain_adam_loop(key, windows, hidden, max_steps, learning_rate, tol):
     for _ in range(max_steps + 1):
         J, g = vg(params)
         hist.append(float(J))
-        if abs(float(J) - prev) < tol or len(hist) == max_steps + 1:
+        if abs(float(J) - prev) < atol or len(hist) == max_steps + 1:
             break
         prev = float(J)
         updates, state = opt.update(g, state, params)
@@ -97,9 +97,9 @@ def _plain_adam_loop(key, windows, hidden, max_steps, learning_rate, tol):
 def test_vmapped_training_equals_loop(getkey):
     windows = random_windows(getkey(), N=10, h=2, n=1, p=2, m=1)
     key = getkey()
-    kwargs = dict(hidden=(8, 8), max_steps=60, learning_rate=5e-3, tol=1e-4)
+    kwargs = dict(hidden=(8, 8), max_steps=60, learning_rate=5e-3, atol=1e-4)
     res = dj.fit_mlp(key, windows, num_inits=4, **kwargs)
-    assert len(set(res.stop_reasons())) >= 1
+    assert len(set(res.result_names())) >= 1
     for i, k in enumerate(jr.split(key, 4)):
         model, hist = _plain_adam_loop(k, windows, **kwargs)
         assert tree_allclose(model, jax.tree.map(lambda a: a[i], res.controllers),
@@ -115,8 +115,8 @@ def test_vmapped_training_equals_loop(getkey):
 def test_stopping_rule(getkey):
     windows = random_windows(getkey(), N=10, h=2)
     res = dj.fit_mlp(getkey(), windows, hidden=(4,), num_inits=2, max_steps=200,
-                     learning_rate=1e-3, tol=1e-2)
-    assert bool(jnp.all(res.converged)) and res.stop_reasons() == ["converged"] * 2
+                     learning_rate=1e-3, atol=1e-2)
+    assert bool(jnp.all(res.converged)) and res.result_names() == ["converged"] * 2
     steps = np.asarray(res.steps)
     hist = np.asarray(res.loss_history)
     for i in range(2):
@@ -132,7 +132,7 @@ def test_float32_training(getkey):
     w = random_windows(getkey(), N=12, h=2, n=1, p=2, m=2)
     w32 = dj.Windows(*(jnp.asarray(a, jnp.float32) for a in (w.x0, w.y, w.u)))
     res = dj.fit_mlp(getkey(), w32, hidden=(8, 8), num_inits=2, max_steps=100,
-                     learning_rate=1e-2, tol=0.0)
+                     learning_rate=1e-2, atol=0.0)
     assert res.loss_history.dtype == jnp.float32
     assert res.controllers.params.layers[0].weight.dtype == jnp.float32
     assert bool(jnp.all(res.final_loss < 0.5 * res.initial_loss))

@@ -10,23 +10,17 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import pytest
+from helpers import loop_outputs
 
 import dissil_jax as dj
-from dissil_jax import _rollout, experiments as ex
-from dissil_jax._train._checks import check_n_state
-from dissil_jax._train._init import init_controllers
+from dissil_jax import experiments as ex
 from dissil_jax.experts import lqr_expert
+from dissil_jax.internal import check_n_state, init_controllers, rollout as _rollout
 from dissil_jax.systems import mass_spring_chain, paper_nonlinear_plant
 
 
 def _outputs_from_rest(K, y):
-    """ŷ_k = C x̂_k + D y_k, x̂_{k+1} = A x̂_k + B y_k from x̂_0 = 0 (one window, numpy)."""
-    A, B, C, D = (np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
-    x, out = np.zeros(A.shape[0]), []
-    for yk in np.asarray(y, np.float64):
-        out.append(C @ x + D @ yk)
-        x = A @ x + B @ yk
-    return np.array(out)
+    return loop_outputs(K, None, y)
 
 
 def _loss_from_rest(K, y, u):
@@ -171,7 +165,7 @@ def test_init_controllers_with_n_state(getkey, n_hat):
 
 
 def test_mlp_pairs_ignore_x0(getkey):
-    from dissil_jax._train.mlp import _pairs
+    from dissil_jax.internal import demonstration_pairs as _pairs
 
     w = _random_windows(getkey(), 3, 2, 1, 1)
     X, T = _pairs(w)
@@ -298,7 +292,7 @@ def test_fit_pgd_learns_a_passive_expert_from_rest():
     with pytest.raises(ValueError, match="`n_state` is required"):
         dj.fit_pgd(jr.PRNGKey(2), windows, qsr, num_inits=2, max_steps=1)
     res = dj.fit_pgd(jr.PRNGKey(2), windows, qsr, n_state=3, num_inits=8, learning_rate=0.3,
-                     decay=0.99, max_steps=150, tol=0.0)
+                     decay=0.99, max_steps=150, atol=0.0)
     assert res.controllers.n_state == 3
     ratio = np.asarray(res.final_loss) / np.asarray(res.initial_loss)
     assert np.all(ratio <= 0.05), ratio

@@ -6,8 +6,7 @@ import pytest
 from helpers import independent_kyp_ok, index, random_windows, through_solves
 
 import dissil_jax as dj
-from dissil_jax._train import pgd
-from dissil_jax._train._init import INIT_SCALE, init_controllers
+from dissil_jax.internal import INIT_SCALE, init_controllers, outcome as _outcome, pgd
 
 QSR = dj.QSR(-29.867, 3.556, 0.601)
 
@@ -74,7 +73,7 @@ def test_vmapped_training_equals_python_loop(getkey, constrained, size):
     w = random_windows(getkey(), N=12, n=size, p=size, m=size, gain=0.2)
     qsr = (QSR if size == 1 else dj.QSR.passive(2)) if constrained else None
     key = getkey()
-    kw = dict(num_inits=3, max_steps=12, learning_rate=0.05, decay=0.95, tol=1e-4,
+    kw = dict(num_inits=3, max_steps=12, learning_rate=0.05, decay=0.95, atol=1e-4,
               init_scale=0.3)
     res = dj.fit_pgd(key, w, qsr, **kw) if qsr is not None else dj.fit_gd(key, w, **kw)
     K0 = init_controllers(key, 3, w, 0.3)
@@ -103,7 +102,7 @@ def test_initial_draw_is_standard_normal(getkey):
 
 def test_pgd_controllers_certified_and_loss_decreases(getkey):
     w = random_windows(getkey(), N=20, gain=0.25)
-    res = dj.fit_pgd(getkey(), w, QSR, num_inits=4, max_steps=60, learning_rate=0.05, tol=0.0)
+    res = dj.fit_pgd(getkey(), w, QSR, num_inits=4, max_steps=60, learning_rate=0.05, atol=0.0)
     assert res.controllers.batch_shape == (4,) and res.P.shape == (4, 1, 1)
     assert bool(jnp.all(res.certified))
     for i in range(4):
@@ -112,7 +111,7 @@ def test_pgd_controllers_certified_and_loss_decreases(getkey):
         assert dj.certify(Ki, QSR).holds
     assert bool(jnp.all(res.final_loss < res.initial_loss))
     assert bool(jnp.all(res.steps == 60)) and not bool(jnp.any(res.converged))
-    assert res.stop_reasons() == ["max_steps"] * 4
+    assert res.result_names() == ["max_steps"] * 4
     assert res.loss_history.shape == (4, 61) and not bool(jnp.any(jnp.isnan(res.loss_history)))
     assert float(res.wall_time) > 0
     np.testing.assert_allclose(res.final_loss, res.loss_history[:, -1])
@@ -137,7 +136,7 @@ def test_learning_rate_sweep_with_vmap_equals_loop(getkey):
     key = getkey()
     lrs = [0.01, 0.05, 0.1]
     run = lambda lr: dj.pgd_run(key, w, QSR, learning_rate=lr, num_inits=2, max_steps=8,
-                                tol=1e-6, init_scale=0.3)
+                                atol=1e-6, init_scale=0.3)
     swept = jax.jit(jax.vmap(run))(jnp.asarray(lrs))
     assert swept.loss_history.shape == (3, 2, 9)
     K0, P0 = dj.project(init_controllers(key, 2, w, 0.3), QSR)
@@ -148,7 +147,7 @@ def test_learning_rate_sweep_with_vmap_equals_loop(getkey):
 
 def test_gd_has_no_certificate_and_fits_better(getkey):
     w = random_windows(getkey(), N=10, gain=0.8)  # gain 0.8 lies outside the controller cone
-    kw = dict(num_inits=2, max_steps=80, learning_rate=0.05, tol=0.0)
+    kw = dict(num_inits=2, max_steps=80, learning_rate=0.05, atol=0.0)
     gd = dj.fit_gd(getkey(), w, **kw)
     pg = dj.fit_pgd(getkey(), w, QSR, **kw)
     assert gd.P is None and gd.certified is None
@@ -158,30 +157,30 @@ def test_gd_has_no_certificate_and_fits_better(getkey):
 def test_stop_reasons(getkey):
     """Every stopping rule is reported: converged, max_steps and a diverging run."""
     w = random_windows(getkey(), N=10, gain=0.2)
-    capped = dj.fit_gd(getkey(), w, num_inits=2, max_steps=5, learning_rate=0.05, tol=0.0)
-    conv = dj.fit_gd(getkey(), w, num_inits=2, max_steps=500, learning_rate=0.05, tol=1e-3)
-    assert conv.stop_reasons() == ["converged"] * 2 and bool(jnp.all(conv.converged))
+    capped = dj.fit_gd(getkey(), w, num_inits=2, max_steps=5, learning_rate=0.05, atol=0.0)
+    conv = dj.fit_gd(getkey(), w, num_inits=2, max_steps=500, learning_rate=0.05, atol=1e-3)
+    assert conv.result_names() == ["converged"] * 2 and bool(jnp.all(conv.converged))
     assert bool(jnp.all(conv.steps < 500))
-    assert capped.stop_reasons() == ["max_steps"] * 2 and not bool(jnp.any(capped.converged))
+    assert capped.result_names() == ["max_steps"] * 2 and not bool(jnp.any(capped.converged))
     assert bool(jnp.all(capped.steps == 5))
     # Divergence: a huge learning rate on unconstrained GD drives the loss to inf/NaN.
-    diverging = dict(num_inits=2, max_steps=200, learning_rate=1e6, tol=0.0, init_scale=1.0)
+    diverging = dict(num_inits=2, max_steps=200, learning_rate=1e6, atol=0.0, init_scale=1.0)
     wb = random_windows(getkey(), N=10, gain=2.0)
     big = dj.fit_gd(getkey(), wb, throw=False, **diverging)
-    assert big.stop_reasons() == ["non_finite"] * 2
+    assert big.result_names() == ["non_finite"] * 2
     with pytest.raises(ValueError, match="non_finite"):
         dj.fit_gd(getkey(), wb, **diverging)
     assert not bool(jnp.any(big.converged))
     with pytest.raises(ValueError, match="stop_reason"):
         dj.FitResult(None, None, None, big.loss_history, big.final_loss, big.converged,
-                     big.steps, big.wall_time).stop_reasons()
+                     big.steps, big.wall_time).result_names()
 
 
 def test_stopping_rule_uses_the_papers_loss(getkey):
     """The run stops at the first step where the paper's J (summed over the horizon, eq. 16)
     changes by less than tol; with the per-step average (J/h) it would stop elsewhere."""
     w = random_windows(getkey(), N=10, h=3, gain=0.2)
-    res = dj.fit_gd(getkey(), w, num_inits=4, max_steps=300, learning_rate=0.02, tol=1e-3)
+    res = dj.fit_gd(getkey(), w, num_inits=4, max_steps=300, learning_rate=0.02, atol=1e-3)
     hist = np.asarray(res.loss_history)
     for i in range(4):
         n = int(res.steps[i])
@@ -223,10 +222,10 @@ class _FailAfter:
     report `solver_failed` (a solver failure injected on the host)."""
 
     def __init__(self, monkeypatch, ok):
-        from dissil_jax import _projection, _sdp
+        from dissil_jax.internal import projection as _projection
 
         self.ok, self.calls, self._orig = ok, 0, _projection._ProjectionSolver.solve
-        self.failed = _sdp.code("solver_failed")
+        self.failed = _outcome.code("solver_failed")
         fail = self
 
         def solve(solver, *args):
@@ -241,14 +240,14 @@ class _FailAfter:
 def test_solver_failure_mid_run_keeps_the_last_certified_iterate(getkey, monkeypatch):
     w = random_windows(getkey(), N=12, gain=0.6)  # gain outside the cone: every step projects
     key = getkey()
-    ref = dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, tol=0.0)
+    ref = dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, atol=0.0)
     fail = _FailAfter(monkeypatch, ok=4)
-    res = dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, tol=0.0,
+    res = dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, atol=0.0,
                      throw=False)
     assert fail.calls > 4
     with pytest.raises(ValueError, match="solver_failed"):
-        dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, tol=0.0)
-    assert res.stop_reasons() == ["solver_failed"] and not bool(res.converged[0])
+        dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, atol=0.0)
+    assert res.result_names() == ["solver_failed"] and not bool(res.converged[0])
     k = int(res.steps[0])
     assert 0 < k < 6
     # Step k failed: it is recorded with the kept iterate, which is the last accepted iterate
@@ -269,7 +268,7 @@ def test_failed_initial_projection(getkey, monkeypatch):
     with pytest.raises(Exception, match="Clarabel failed"):  # traced: EquinoxRuntimeError
         jax.jit(lambda k: dj.pgd_run(k, w, QSR, num_inits=2, max_steps=3).final_loss)(getkey())
     res = dj.pgd_run(getkey(), w, QSR, num_inits=2, max_steps=3, throw=False)
-    assert res.stop_reasons() == ["solver_failed"] * 2
+    assert res.result_names() == ["solver_failed"] * 2
     assert not bool(jnp.any(res.certified)) and bool(jnp.all(res.steps == 0))
 
 
@@ -278,7 +277,7 @@ def test_non_finite_loss_under_a_constraint_keeps_the_last_finite_iterate(getkey
     reference run: the constrained run must keep its step-2 iterate, certified."""
     w = random_windows(getkey(), N=12, gain=0.6)
     key = getkey()
-    kw = dict(num_inits=1, max_steps=6, learning_rate=0.05, tol=0.0)
+    kw = dict(num_inits=1, max_steps=6, learning_rate=0.05, atol=0.0)
     ref = dj.fit_pgd(key, w, QSR, **kw)
     hist = np.asarray(ref.loss_history[0])
     assert np.all(np.diff(hist) < 0)
@@ -295,7 +294,7 @@ def test_non_finite_loss_under_a_constraint_keeps_the_last_finite_iterate(getkey
     # a new function object, so that jit's cache cannot serve the unpatched trace
     monkeypatch.setattr(pgd, "_run_jit", eqx.filter_jit(lambda *a, **k: pgd._run(*a, **k)))
     res = dj.fit_pgd(key, w, QSR, throw=False, **kw)
-    assert res.stop_reasons() == ["non_finite"] and int(res.steps[0]) == 3
+    assert res.result_names() == ["non_finite"] and int(res.steps[0]) == 3
     assert float(res.final_loss[0]) == pytest.approx(hist[2], rel=1e-12)
     assert float(res.loss_history[0, 3]) == pytest.approx(hist[2], rel=1e-12)
     assert bool(res.certified[0])
@@ -312,7 +311,7 @@ def test_float32_training(getkey, constrained):
     w = random_windows(getkey(), N=12, n=2, p=2, m=2, gain=0.3)
     w32 = dj.Windows(*(jnp.asarray(a, jnp.float32) for a in (w.x0, w.y, w.u)))
     qsr = dj.QSR.passive(2)
-    kw = dict(num_inits=3, max_steps=20, learning_rate=0.05, tol=0.0)
+    kw = dict(num_inits=3, max_steps=20, learning_rate=0.05, atol=0.0)
     res = dj.fit_pgd(getkey(), w32, qsr, **kw) if constrained else dj.fit_gd(getkey(), w32, **kw)
     assert res.controllers.A.dtype == jnp.float32 and res.loss_history.dtype == jnp.float32
     assert bool(jnp.all(res.final_loss < res.initial_loss))

@@ -8,24 +8,24 @@ from helpers import dissipation_matrix, dissipation_ok, index, tree_allclose
 from hypothesis import given, settings, strategies as st
 
 import dissil_jax as dj
-from dissil_jax import _projection, _sdp
+from dissil_jax.internal import outcome as _outcome, projection as _projection, sdp as _sdp
 
 pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 
-Outcome = type("Codes", (), {n: _sdp.code(n) for n in _sdp.NAMES})  # integer codes by name
+Outcome = type("Codes", (), {n: _outcome.code(n) for n in _outcome.NAMES})  # codes by name
 
 
 def _with_status(K, qsr, P_ref=None, active=True, **kw):
     """`(K_proj, P, outcome codes)` of `dj.project(..., throw=False)`."""
     proj = dj.project(K, qsr, P_ref, throw=False, active=active, **kw)
-    return proj[0], proj[1], proj.result._value
+    return proj[0], proj[1], _outcome.codes(proj.result)
 
 CASES = [
     ("nonlinear-paper", dj.QSR(-29.867, 3.556, 0.601), 1),
     ("passive-6x3", dj.QSR.passive(3), 6),
-    ("conic", dj.QSR.conic(-0.5, 2.0, 2), 3),
+    ("conic", dj.QSR.conic(-0.5, 2.0, dim=2), 3),
     ("bounded-gain-rect", dj.QSR.bounded_gain(0.7, n_in=3, n_out=2), 2),
-    ("degenerate-conic", dj.QSR.degenerate_conic(-0.2, 2), 2),
+    ("degenerate-conic", dj.QSR.degenerate_conic(-0.2, dim=2), 2),
 ]
 
 
@@ -135,7 +135,7 @@ def test_qsr_is_a_static_argument():
 )
 def test_property_every_projection_is_certified(seed, n, p, scale, kind):
     qsr = {"passive": dj.QSR.passive(p), "gain": dj.QSR.bounded_gain(1.5, n_in=p, n_out=p),
-           "conic": dj.QSR.conic(0.1, 3.0, p)}[kind]
+           "conic": dj.QSR.conic(0.1, 3.0, dim=p)}[kind]
     K = dj.LTIController.random(n, p, p, scale=scale, key=jax.random.PRNGKey(seed))
     Kp, P = dj.project(K, qsr)
     assert dissipation_ok(Kp, qsr, P)
@@ -192,7 +192,7 @@ def test_eps_is_the_margin_of_the_exact_lmi(getkey):
 
 
 def test_reg_pulls_P_to_the_reference(getkey):
-    qsr = dj.QSR.conic(-0.5, 2.0, 2)
+    qsr = dj.QSR.conic(-0.5, 2.0, dim=2)
     K = dj.LTIController.random(2, 2, 2, scale=1.0, key=jax.random.PRNGKey(1))
     P_ref = 2.0 * jnp.eye(2)
     gap = {}
@@ -245,7 +245,7 @@ def _assert_flagged(qsr, target, batch, P_ref, code, match):
     with pytest.raises(Exception, match=match):  # EquinoxRuntimeError via the callback
         jax.block_until_ready(jax.jit(lambda K: dj.project(K, qsr))(target))
     Kb, Pb, sb = _with_status(batch, qsr, P_ref)
-    assert int(sb[0]) == Outcome.unchanged and bool(_sdp.failed(int(sb[1])))
+    assert int(sb[0]) == Outcome.unchanged and bool(_outcome.failed(int(sb[1])))
     assert tree_allclose(Kb, batch, rtol=0, atol=0)
     assert dissipation_ok(index(Kb, 0), qsr, Pb[0])  # the certified lane is untouched
     return int(sb[1])

@@ -3,18 +3,12 @@ import jax.flatten_util  # noqa: F401
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import loop_outputs
 
 import dissil_jax as dj
-from dissil_jax import _rollout
+from dissil_jax.internal import rollout as _rollout
 
-
-def _loop_outputs(K, x0, u):
-    A, B, C, D = (np.asarray(M) for M in (K.A, K.B, K.C, K.D))
-    x, ys = np.asarray(x0), []
-    for uk in np.asarray(u):
-        ys.append(C @ x + D @ uk)
-        x = A @ x + B @ uk
-    return np.array(ys)
+_loop_outputs = loop_outputs
 
 
 @pytest.mark.parametrize("n, p, m, h", [(1, 1, 1, 2), (3, 2, 1, 5), (6, 3, 3, 7)])

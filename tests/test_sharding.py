@@ -21,7 +21,7 @@ import pytest
 from helpers import tree_allclose
 
 import dissil_jax as dj
-from dissil_jax import _sdp
+from dissil_jax.internal import sdp as _sdp
 
 CHECKS = Path(__file__).with_name("sharding_checks.py")
 # One worker runs every test here, so the subprocess behind `found` runs once per test run.

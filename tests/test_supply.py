@@ -11,13 +11,13 @@ def test_special_cases_match_their_definitions():
     u, y = rng.normal(size=(50, 2)), rng.normal(size=(50, 2))
     np.testing.assert_allclose(dj.QSR.passive(2).supply(u, y), np.sum(u * y, -1))
     a, b = -0.5, 2.0
-    w = dj.QSR.conic(a, b, 2).supply(u, y)
+    w = dj.QSR.conic(a, b, dim=2).supply(u, y)
     np.testing.assert_allclose(w, -np.sum((y - a * u) * (y - b * u), -1))
     g = 1.7
     np.testing.assert_allclose(dj.QSR.bounded_gain(g, n_in=2, n_out=2).supply(u, y),
                                g**2 * np.sum(u * u, -1) - np.sum(y * y, -1))
     d = -0.3
-    np.testing.assert_allclose(dj.QSR.degenerate_conic(d, 2).supply(u, y),
+    np.testing.assert_allclose(dj.QSR.degenerate_conic(d, dim=2).supply(u, y),
                                np.sum(y * u, -1) - d * np.sum(u * u, -1))
 
 
@@ -57,7 +57,7 @@ def test_qsr_validation_names_argument(args, name):
 
 def test_constructor_validation():
     with pytest.raises(ValueError, match="`a`"):
-        dj.QSR.conic(2.0, 1.0, 1)
+        dj.QSR.conic(2.0, 1.0, dim=1)
     with pytest.raises(ValueError, match="`gamma`"):
         dj.QSR.bounded_gain(-1.0, n_in=1, n_out=1)
     with pytest.raises(ValueError, match="`dim`"):
@@ -183,7 +183,7 @@ def test_qsr_hash_and_equality_by_value():
     assert hash(a) == hash(b)
     assert (a == b) is True and (a != b) is False
     assert dj.QSR(-1.0, 3.556, 29.333) == dj.QSR(-1.0, 3.556, 29.333)
-    others = [dj.QSR.passive(3), dj.QSR.conic(0.0, 1.0, 2), dj.QSR.degenerate_conic(0.1, 2),
+    others = [dj.QSR.passive(3), dj.QSR.conic(0.0, 1.0, dim=2), dj.QSR.degenerate_conic(0.1, dim=2),
               dj.QSR.bounded_gain(1.0, n_in=2, n_out=2), dj.QSR.bounded_gain(1.0, n_in=3, n_out=2)]
     for other in others:
         assert (a == other) is False and (a != other) is True
@@ -197,8 +197,8 @@ def test_qsr_hash_and_equality_by_value():
     # equal after a pickle round trip, and the arrays stay read-only
     import pickle
 
-    c = pickle.loads(pickle.dumps(dj.QSR.conic(-0.5, 2.0, 2)))
-    assert c == dj.QSR.conic(-0.5, 2.0, 2) and not c.Q.flags.writeable
+    c = pickle.loads(pickle.dumps(dj.QSR.conic(-0.5, 2.0, dim=2)))
+    assert c == dj.QSR.conic(-0.5, 2.0, dim=2) and not c.Q.flags.writeable
 
 
 def test_qsr_has_no_array_leaves_and_read_only_float64_arrays():
@@ -233,21 +233,21 @@ def test_qsr_as_static_argument_of_jit_and_filter_jit():
         return x @ jnp.asarray(qsr.S) @ jnp.asarray(qsr.R)
 
     x = jnp.ones((3, 2))
-    ref = np.ones((3, 2)) @ dj.QSR.conic(-1.0, 2.0, 2).S @ dj.QSR.conic(-1.0, 2.0, 2).R
+    ref = np.ones((3, 2)) @ dj.QSR.conic(-1.0, 2.0, dim=2).S @ dj.QSR.conic(-1.0, 2.0, dim=2).R
     static = jax.jit(f, static_argnums=1)
-    np.testing.assert_allclose(static(x, dj.QSR.conic(-1.0, 2.0, 2)), ref)
-    np.testing.assert_allclose(static(x, dj.QSR.conic(-1.0, 2.0, 2)), ref)
+    np.testing.assert_allclose(static(x, dj.QSR.conic(-1.0, 2.0, dim=2)), ref)
+    np.testing.assert_allclose(static(x, dj.QSR.conic(-1.0, 2.0, dim=2)), ref)
     assert len(traces) == 1  # an equal supply rate hits the compilation cache
-    static(x, dj.QSR.conic(-1.0, 3.0, 2))
+    static(x, dj.QSR.conic(-1.0, 3.0, dim=2))
     assert len(traces) == 2  # a different one retraces
     # as an ordinary (pytree) argument of jax.jit and eqx.filter_jit: no leaves, so static
     for wrap in (jax.jit, eqx.filter_jit):
         traces.clear()
         g = wrap(f)
-        np.testing.assert_allclose(g(x, dj.QSR.conic(-1.0, 2.0, 2)), ref)
-        g(x, dj.QSR.conic(-1.0, 2.0, 2))
+        np.testing.assert_allclose(g(x, dj.QSR.conic(-1.0, 2.0, dim=2)), ref)
+        g(x, dj.QSR.conic(-1.0, 2.0, dim=2))
         assert len(traces) == 1
         assert isinstance(traces[0], dj.QSR) and isinstance(traces[0].S, np.ndarray)
     # and through jax.vmap (nothing to map over in the supply rate)
-    out = jax.vmap(f, in_axes=(0, None))(jnp.ones((4, 3, 2)), dj.QSR.conic(-1.0, 2.0, 2))
+    out = jax.vmap(f, in_axes=(0, None))(jnp.ones((4, 3, 2)), dj.QSR.conic(-1.0, 2.0, dim=2))
     np.testing.assert_allclose(out, np.broadcast_to(ref, (4, 3, 2)))

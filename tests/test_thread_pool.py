@@ -23,8 +23,7 @@ import pytest
 from jax.test_util import check_grads
 
 import dissil_jax as dj
-from dissil_jax import _linalg
-from dissil_jax._train.direct import _run
+from dissil_jax.internal import direct_run_unchecked as _run, linalg as _linalg
 
 
 def _custom_calls(fn, *args):
@@ -39,7 +38,7 @@ def test_direct_run_compiles_without_custom_calls(getkey):
     w = dj.Windows(jr.normal(getkey(), (4, n)), jr.normal(getkey(), (4, 3, p)),
                    jr.normal(getkey(), (4, 3, p)))
     run = lambda key, w: _run(key, w, dj.QSR.passive(p), 0.03, 0.3, optimizer=None,
-                              num_inits=4, n_state=n, max_steps=3, tol=0.0, margin=1e-2)
+                              num_inits=4, n_state=n, max_steps=3, atol=0.0, margin=1e-2)
     assert _custom_calls(run, getkey(), w) == []
     # The detector itself sees the LAPACK calls of the plain jnp versions.
     chol = jax.vmap(jnp.linalg.cholesky)
@@ -100,7 +99,7 @@ k = jr.split(jr.PRNGKey(0), 3)
 w = dj.Windows(jr.normal(k[0], (25, n)), jr.normal(k[1], (25, 10, p)),
                jr.normal(k[2], (25, 10, p)))
 r = dj.fit_direct(jr.PRNGKey(1), w, dj.QSR.passive(p), num_inits=inits, learning_rate=0.03,
-                  max_steps=steps, tol=0.0, throw=False)
+                  max_steps=steps, atol=0.0, throw=False)
 print("OK", bool(r.certified.all()))
 """
 

@@ -241,20 +241,20 @@ def test_fit_gd_defaults_stay_finite_on_the_held_out_half(problems):
     paper_diverged = 0
     for name in zoo.HELD_OUT:
         p = problems[name]
-        kw = dict(num_inits=4, n_state=p.n_state, max_steps=40, tol=0.0, throw=False)
+        kw = dict(num_inits=4, n_state=p.n_state, max_steps=40, atol=0.0, throw=False)
         res = dj.fit_gd(jr.PRNGKey(0), p.train, **kw)
-        assert res.stop_reasons() == ["max_steps"] * 4, name
+        assert res.result_names() == ["max_steps"] * 4, name
         hist = np.asarray(res.loss_history)
         assert np.all(np.isfinite(hist)), name
         assert np.all(hist[:, -1] < hist[:, 0]), name
         paper = dj.fit_gd(jr.PRNGKey(0), p.train, learning_rate=1.0, decay=0.99,
                           init_scale=1.0, **kw)  # the paper's rule at PGD's defaults
-        paper_diverged += "non_finite" in paper.stop_reasons()
+        paper_diverged += "non_finite" in paper.result_names()
     assert paper_diverged >= len(zoo.HELD_OUT) // 2
     # The failure message is true for GD (nothing certified) and names the fix.
     with pytest.raises(ValueError) as err:
         dj.fit_gd(jr.PRNGKey(0), p.train, learning_rate=1e3, decay=0.99, num_inits=2,
-                  n_state=p.n_state, max_steps=40, tol=0.0)
+                  n_state=p.n_state, max_steps=40, atol=0.0)
     msg = str(err.value)
     assert "non_finite" in msg and "`learning_rate`" in msg and "last finite iterate" in msg
     assert "certified" not in msg and ".." not in msg

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import jax
+import jax.core
 import numpy as np
+import optax
 
 from .._data import Windows
 from .._indefinite import check_feasible, is_indefinite
 from .._supply import QSR
+from .._validate import check_int
 
 
 def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
@@ -23,15 +26,27 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
         qsr.check_sizes(windows.n_in, windows.n_out)
         if is_indefinite(qsr):  # a Q <= 0 that admits no controller is reported by the solver
             check_feasible(qsr)
-    if int(num_inits) != num_inits or num_inits < 1:
-        raise ValueError(f"`num_inits` must be a positive integer, got {num_inits!r}.")
-    if int(max_steps) != max_steps or max_steps < 0:
-        raise ValueError(f"`max_steps` must be a non-negative integer, got {max_steps!r}.")
+    check_int("num_inits", num_inits)
+    check_int("max_steps", max_steps, minimum=0)
     for name, v in nonnegative.items():
         if isinstance(v, jax.core.Tracer):
             continue
         if not np.all(np.isfinite(v)) or np.any(np.asarray(v) < 0):
             raise ValueError(f"`{name}` must be finite and non-negative, got {v!r}.")
+
+
+def check_optimizer(optimizer, rule: str, **step_args) -> bool:
+    """True when an `optimizer` is given; then none of `step_args` (the default rule's
+    hyperparameters, named after `rule`) may be set, and it must be an optax transformation."""
+    if optimizer is None:
+        return False
+    given = [f"`{k}`" for k, v in step_args.items() if v is not None]
+    if given:
+        raise ValueError(f"pass either `optimizer` or {'/'.join(given)} ({rule}), not both.")
+    if not isinstance(optimizer, optax.GradientTransformation):
+        raise ValueError(f"`optimizer` must be an `optax.GradientTransformation`, got "
+                         f"{type(optimizer).__name__}.")
+    return True
 
 
 def check_n_state(windows: Windows, n_state) -> int:
@@ -56,10 +71,7 @@ def check_n_state(windows: Windows, n_state) -> int:
                 "rest (x̂0 = 0), so the data do not fix its order; pass e.g. `n_state=2`."
             )
         return windows.n_state
-    if isinstance(n_state, bool) or np.ndim(n_state) != 0 or int(n_state) != n_state \
-            or n_state < 1:
-        raise ValueError(f"`n_state` must be a positive integer, got {n_state!r}.")
-    n_state = int(n_state)
+    n_state = check_int("n_state", n_state)
     if windows.x0 is not None and n_state != windows.n_state:
         raise ValueError(
             f"`n_state` = {n_state} but `windows.x0` has width {windows.n_state}: the controller "

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import _sdp
+from .. import _outcome, _sdp
 from ._ico_sdp import ICOProblem
 
 
@@ -34,7 +34,7 @@ class ICOSolver:
         sol = self.solver.solve()
         outcome = _sdp.clarabel_outcome(str(sol.status))
         self.obj_val = float(sol.obj_val)
-        if outcome != _sdp.code("solved"):
+        if outcome != _outcome.code("solved"):
             return None, None, None, outcome, float(sol.solve_time)
         x = np.asarray(sol.x)
         P = None if pb.qsr is None else pb.layout.P(x[pb.oP:pb.oY], ps)

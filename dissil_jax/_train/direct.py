@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-import time
+from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -10,19 +11,19 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .. import _sdp
+from .. import _lmi, _outcome
 from .._data import Windows
 from .._direct_map import MARGIN, check_margin, direct_map, init_params
 from .._indefinite import is_indefinite
 from .._projection import project
 from .._rollout import imitation_loss
 from .._supply import QSR
-from ._checks import check_fit_args, check_n_state
+from ._checks import check_fit_args, check_n_state, check_optimizer
+from ._iterate import Method, iterate, where
 from ._scale import loss_scale, scaled
-from .result import FitResult, raise_if_failed
+from .result import FitResult, fit_timed, raise_if_failed
 
-_CONVERGED, _MAX_STEPS, _NON_FINITE = (
-    _sdp.code(r) for r in ("converged", "max_steps", "non_finite"))
+_CONVERGED = _outcome.code("converged")
 
 #: Defaults at the reference width n + p = 9 (the paper's linear example, n = 6, p = 3),
 #: chosen on training loss (`benchmarks/bench_direct.py`): Adam's step in the normalised
@@ -53,13 +54,6 @@ def default_hyperparameters(n_state: int, n_in: int) -> tuple[float, float]:
             INIT_SCALE * min(1.0, (_WIDTH / width) ** 0.5))
 
 
-def _where(mask, new, old):
-    """Per-initialisation select on pytrees whose leaves have the init axis first."""
-    return jax.tree.map(
-        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - mask.ndim)), a, b),
-        new, old)
-
-
 def _loss_fn(qsr, margin):
     def loss(theta, windows):
         K, P = direct_map(theta, qsr, margin)
@@ -68,90 +62,79 @@ def _loss_fn(qsr, margin):
     return jax.vmap(jax.value_and_grad(loss, has_aux=True), in_axes=(0, None))
 
 
-def _loop(theta0, windows, opt, *, qsr, margin, max_steps, tol):
-    """Unconstrained descent on $J_s(K(\\theta))$ for a batch of initialisations.
+class MapDescent(Method):
+    """Unconstrained descent on $J_s(K(\\theta))$ through a direct map, for the driver loop
+    (`_iterate.py`); `loss_fn(theta, windows) -> ((J, aux), grad)` batched over the lanes
+    (`_loss_fn` here for LTI controllers, the REN map's twin in `ren.py`).
 
-    Pure JAX (one `lax.while_loop`, no callback), so it can be jitted, vmapped over the
-    optimiser's hyperparameters and sharded. Iteration $k = 0..$`max_steps` takes step $k$
-    (none at $k = 0$) and evaluates the map, the loss and its gradient once, so they are
-    traced once; a run whose loss stops being finite keeps its last finite iterate.
-    Returns `(K, P, loss_history, final_loss, steps, reason)`.
+    Pure JAX (no callback), so the run can be jitted, vmapped over the optimiser's
+    hyperparameters and sharded. The state carries the gradient of the current iterate, so
+    each step evaluates the map, the loss and its gradient once; a non-finite gradient
+    counts as a non-finite loss, and the run keeps its last finite iterate.
     """
-    batched = _loss_fn(qsr, margin)
-    num_inits = theta0.X.shape[0]
-    (loss0, aux0), _ = jax.eval_shape(batched, theta0, windows)
-    zeros = lambda tree: jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), tree)
-    carry = dict(k=jnp.zeros((), jnp.int32), theta=theta0, grad=zeros(theta0), aux=zeros(aux0),
-                 opt=opt.init(theta0), loss=jnp.full(num_inits, jnp.nan, loss0.dtype),
-                 hist=jnp.full((num_inits, max_steps + 1), jnp.nan, loss0.dtype),
-                 done=jnp.zeros(num_inits, bool), steps=jnp.zeros(num_inits, jnp.int32),
-                 reason=jnp.full(num_inits, _MAX_STEPS, jnp.int32))
 
-    def cond(c):
-        return (c["k"] <= max_steps) & jnp.any(~c["done"])
+    theta0: Any
+    windows: Windows
+    opt: optax.GradientTransformation
+    loss_fn: Callable
 
-    def body(c):
-        first, active = c["k"] == 0, ~c["done"]
-        updates, opt_state = opt.update(c["grad"], c["opt"], c["theta"])
-        theta = optax.apply_updates(c["theta"], updates)
-        theta, opt_state = jax.tree.map(lambda a, b: jnp.where(first, a, b),
-                                        (c["theta"], c["opt"]), (theta, opt_state))
-        (loss, aux), grad = batched(theta, windows)
+    def _evaluate(self, theta):
+        (loss, aux), grad = self.loss_fn(theta, self.windows)
         finite = jnp.isfinite(loss)
         for g in jax.tree.leaves(grad):
             finite &= jnp.all(jnp.isfinite(g), axis=tuple(range(1, g.ndim)))
-        keep = ~active | ~finite
-        theta, grad, aux = _where(keep, (c["theta"], c["grad"], c["aux"]), (theta, grad, aux))
-        loss = jnp.where(keep & ~first, c["loss"], loss)
-        stop = active & (~finite | (~first & (jnp.abs(loss - c["loss"]) < tol)))
-        code = jnp.where(finite, _CONVERGED, _NON_FINITE)
-        hist = c["hist"].at[:, c["k"]].set(jnp.where(active, loss, jnp.nan))
-        return dict(k=c["k"] + 1, theta=theta, grad=grad, aux=aux, opt=opt_state, loss=loss,
-                    hist=hist, done=c["done"] | stop,
-                    steps=c["steps"] + (active & ~first).astype(jnp.int32),
-                    reason=jnp.where(stop, code, c["reason"]).astype(jnp.int32))
+        return jnp.where(finite, loss, jnp.nan), grad, aux
 
-    c = jax.lax.while_loop(cond, body, carry)
-    return (*c["aux"], c["hist"], c["loss"], c["steps"], c["reason"])
+    def init(self):
+        loss, grad, aux = self._evaluate(self.theta0)
+        return (self.theta0, grad, aux, self.opt.init(self.theta0)), loss, \
+            jnp.zeros(loss.shape, jnp.int32) + _outcome.code("max_steps")
+
+    def select(self, accept, new, old):
+        # One optimiser state for the whole batch (as before the driver loop existed): it
+        # moves on every step, the lanes' iterates only where accepted.
+        return (*where(accept, new[:3], old[:3]), new[3])
+
+    def step(self, state, active):
+        theta, grad, _, opt_state = state
+        updates, opt_state = self.opt.update(grad, opt_state, theta)
+        theta = optax.apply_updates(theta, updates)
+        loss, grad, aux = self._evaluate(theta)
+        return (theta, grad, aux, opt_state), loss, jnp.full(loss.shape, _CONVERGED, jnp.int32)
 
 
 def _run(key, windows, qsr, learning_rate, init_scale, *, optimizer, num_inits, n_state,
-         max_steps, tol, margin) -> FitResult:
+         max_steps, atol, rtol, margin) -> FitResult:
     """`direct_run` without argument checks or `throw` (traceable; `qsr`, `optimizer` static)."""
     s2 = loss_scale(windows)
     dtype = windows.y.dtype
     theta0 = init_params(key, num_inits, n_state, windows.n_in, windows.n_out, init_scale,
                          dtype)
     opt = optax.adam(learning_rate) if optimizer is None else optimizer
-    K, P, hist, loss, steps, reason = _loop(theta0, scaled(windows, s2), opt, qsr=qsr,
-                                            margin=margin, max_steps=max_steps, tol=tol / s2)
+    (_, _, (K, P), _), hist, loss, steps, reason = iterate(
+        MapDescent(theta0, scaled(windows, s2), opt, _loss_fn(qsr, margin)),
+        max_steps=max_steps, atol=atol / s2, rtol=rtol)
     return FitResult(
         controllers=K, P=P, certified=None,
         loss_history=hist * s2, final_loss=loss * s2, converged=reason == _CONVERGED,
-        steps=steps, wall_time=jnp.asarray(jnp.nan, hist.dtype), stop_reason=_sdp.item(reason),
-        projected=jnp.zeros(num_inits, bool))
+        steps=steps, wall_time=jnp.asarray(jnp.nan, hist.dtype),
+        result=_outcome.item(reason), projected=jnp.zeros(num_inits, bool))
 
 
 _run_jit = eqx.filter_jit(_run)
 
 
-def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, tol,
+def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, atol, rtol,
              init_scale, n_state, margin):
     """Check the arguments; returns `(optimizer, learning_rate, init_scale, n_state, margin)`
     (`learning_rate` and `init_scale` from `default_hyperparameters` where None)."""
     if qsr is None:
         raise ValueError("`qsr` is required: the direct map parameterises the (Q,S,R)-"
                          "dissipative controllers; use `dj.fit_gd` for unconstrained training.")
-    if optimizer is not None:
-        if learning_rate is not None:
-            raise ValueError("pass either `optimizer` or `learning_rate` (Adam's step), "
-                             "not both.")
-        if not isinstance(optimizer, optax.GradientTransformation):
-            raise ValueError(f"`optimizer` must be an `optax.GradientTransformation`, got "
-                             f"{type(optimizer).__name__}.")
+    if check_optimizer(optimizer, "Adam's step", learning_rate=learning_rate):
         learning_rate = 0.0  # unused
     given = dict(learning_rate=learning_rate, init_scale=init_scale)
-    check_fit_args(windows, qsr, num_inits, max_steps, tol=tol,
+    check_fit_args(windows, qsr, num_inits, max_steps, atol=atol, rtol=rtol,
                    **{k: v for k, v in given.items() if v is not None})
     if is_indefinite(qsr):
         raise ValueError(
@@ -169,7 +152,8 @@ def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, to
 def direct_run(
     key, windows: Windows, qsr: QSR, *, optimizer=None, learning_rate=None,
     init_scale=None, num_inits: int = 8, n_state: int | None = None,
-    max_steps: int = 150, tol: float = 1e-3, margin: float = MARGIN, throw: bool = True,
+    max_steps: int = 150, atol: float = 1e-3, rtol: float = 0.0, margin: float = MARGIN,
+    throw: bool = True,
 ) -> FitResult:
     """The pure, traceable run behind [`fit_direct`][dissil_jax.fit_direct].
 
@@ -193,10 +177,10 @@ def direct_run(
     """
     optimizer, learning_rate, init_scale, n_state, margin = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
-        tol=tol, init_scale=init_scale, n_state=n_state, margin=margin)
+        atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, margin=margin)
     res = _run(key, windows, qsr, learning_rate, init_scale, optimizer=optimizer,
-               num_inits=num_inits, n_state=n_state, max_steps=max_steps, tol=tol,
-               margin=margin)
+               num_inits=num_inits, n_state=n_state, max_steps=max_steps, atol=atol,
+               rtol=rtol, margin=margin)
     return raise_if_failed(res) if throw else res
 
 
@@ -208,12 +192,12 @@ def certify_or_project(res: FitResult, qsr: QSR, windows: Windows, *, eps: float
     linearised at the map's $P$ or, if that fails, from $\\tilde P = I$ with refinement;
     it is flagged in `projected`, and its `final_loss` is that of the projected controller.
     If both projections fail, the run keeps the map's controller with `certified` False and
-    `stop_reason` the projection's failure.
+    `result` the projection's failure.
     """
     K, P = res.controllers, res.P
-    ok = _sdp.certified(K.A, K.B, K.C, K.D, qsr, P)
+    ok = _lmi.certified(K.A, K.B, K.C, K.D, qsr, P)
     projected = np.zeros(ok.shape, bool)
-    reason = np.asarray(res.stop_reason._value).copy()
+    reason = np.asarray(_outcome.codes(res.result)).copy()
     final = np.asarray(res.final_loss).copy()
     loss = jax.vmap(imitation_loss, in_axes=(0, None))
     for P_ref in ("map", None):
@@ -222,27 +206,27 @@ def certify_or_project(res: FitResult, qsr: QSR, windows: Windows, *, eps: float
             break
         take = lambda tree: jax.tree.map(lambda a: a[bad], tree)
         proj = project(take(K), qsr, take(P) if P_ref else None, throw=False, eps=eps)
-        codes = np.asarray(proj.result._value)
-        good = ~_sdp.failed(codes)
+        codes = np.asarray(_outcome.codes(proj.result))
+        good = ~_outcome.failed(codes)
         idx = bad[good]
         K = jax.tree.map(lambda a, b: a.at[idx].set(b[good]), K, proj.controller)
         P = P.at[idx].set(proj.P[good])
         final[idx] = np.asarray(loss(proj.controller, windows))[good]
         reason[bad[~good]] = codes[~good]
-        reason[idx] = np.asarray(res.stop_reason._value)[idx]
+        reason[idx] = np.asarray(_outcome.codes(res.result))[idx]
         projected[idx] = ok[idx] = True
     return eqx.tree_at(
-        lambda r: (r.controllers, r.P, r.certified, r.projected, r.final_loss, r.stop_reason),
+        lambda r: (r.controllers, r.P, r.certified, r.projected, r.final_loss, r.result),
         res, (K, P, jnp.asarray(ok), jnp.asarray(projected),
-              jnp.asarray(final, res.final_loss.dtype), _sdp.item(reason)),
+              jnp.asarray(final, res.final_loss.dtype), _outcome.item(reason)),
         is_leaf=lambda x: x is None)
 
 
 def fit_direct(
     key, windows: Windows, qsr: QSR, *, optimizer=None, learning_rate: float | None = None,
-    num_inits: int = 8, n_state: int | None = None, max_steps: int = 150, tol: float = 1e-3,
-    init_scale: float | None = None, margin: float = MARGIN, eps: float = 1e-6,
-    throw: bool = True,
+    num_inits: int = 8, n_state: int | None = None, max_steps: int = 150, atol: float = 1e-3,
+    rtol: float = 0.0, init_scale: float | None = None, margin: float = MARGIN,
+    fallback_eps: float = 1e-6, throw: bool = True,
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers without projections, through a direct map.
 
@@ -257,10 +241,10 @@ def fit_direct(
     training is unconstrained gradient descent on $J_s(K(\\theta))$, the imitation loss
     ([`imitation_loss`][dissil_jax.imitation_loss]) of the windows in normalised units
     (as [`fit_pgd`][dissil_jax.fit_pgd]: scaling $x_0$, $y$, $u$ by $c>0$ changes nothing;
-    losses and `tol` are in the user's units), all in one compiled `lax.while_loop`
+    losses and `atol` are in the user's units), all in one compiled `lax.while_loop`
     without leaving the device (no LAPACK call in the loop either: its factorisations are
     loop-based, see [Thread-pool deadlocks](scaling.md#thread-pool-deadlocks)). The run
-    stops when $|J(K_{i+1}) - J(K_i)| <$ `tol` or after
+    stops when $|J(K_{i+1}) - J(K_i)| <$ `atol` $+$ `rtol` $|J(K_0)|$ or after
     `max_steps`.
 
     **Certified at the end.** Each returned $(K, P)$ is checked in float64 on the host
@@ -280,7 +264,7 @@ def fit_direct(
       width $w = \\hat n + p$: $0.3\\min(1, 9/w)$ (0.3 at the paper's sizes; parameters
       and loss are unit-free), see `default_hyperparameters` and
       [concepts](concepts.md#a-direct-parameterisation).
-    - `num_inits`, `n_state`, `max_steps`, `tol`: as in [`fit_pgd`][dissil_jax.fit_pgd].
+    - `num_inits`, `n_state`, `max_steps`, `atol`, `rtol`: as in [`fit_pgd`][dissil_jax.fit_pgd].
     - `init_scale` $\\sigma$: the initial $\\theta$ has $X = I$ (so $P\\approx I$, the
       projection's starting point) and i.i.d. $\\mathcal N(0,\\sigma^2)$ entries in $W$
       and $V$: a random dissipative controller. Default $0.5\\min(1, \\sqrt{9/w})$, so
@@ -289,9 +273,10 @@ def fit_direct(
       whose contractions start near saturation, where gradients are small; a fixed
       $\\sigma$ saturates them more the wider the controller.
     - `margin` $\\varepsilon\\in(0,1)$: the map's strictness margin (static).
-    - `eps`: the margin of the fallback projection.
+    - `fallback_eps`: the LMI margin $\\varepsilon$ of the fallback projection (`eps` of
+      [`project`][dissil_jax.project]; called `eps` before).
     - `throw`: raise a `ValueError` when a run ends in failure (a non-finite loss, or a
-      failed fallback projection); with `throw=False` see `stop_reason`.
+      failed fallback projection); with `throw=False` see `result`.
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult] with `certified` from the float64
     check and `projected` (bool per initialisation).
@@ -303,15 +288,11 @@ def fit_direct(
     """
     optimizer, learning_rate, init_scale, n_state, margin = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
-        tol=tol, init_scale=init_scale, n_state=n_state, margin=margin)
-    start = time.perf_counter()
-    dtype = windows.y.dtype
-    res = _run_jit(key, windows, qsr, *(jnp.asarray(v, dtype) for v in
-                                        (learning_rate, init_scale)),
-                   optimizer=optimizer, num_inits=int(num_inits), n_state=n_state,
-                   max_steps=int(max_steps), tol=float(tol), margin=margin)
-    jax.block_until_ready(res)
-    res = certify_or_project(res, qsr, windows, eps=float(eps))
-    res = eqx.tree_at(lambda r: r.wall_time, res,
-                      jnp.asarray(time.perf_counter() - start, dtype))
-    return raise_if_failed(res) if throw else res
+        atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, margin=margin)
+    return fit_timed(
+        lambda *h: _run_jit(key, windows, qsr, *h, optimizer=optimizer,
+                            num_inits=int(num_inits), n_state=n_state,
+                            max_steps=int(max_steps), atol=float(atol), rtol=float(rtol),
+                            margin=margin),
+        (learning_rate, init_scale), windows.y.dtype,
+        lambda res: certify_or_project(res, qsr, windows, eps=float(fallback_eps)), throw)

@@ -8,7 +8,7 @@ from collections.abc import Callable
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _sdp
+from .. import _lmi, _outcome, _sdp
 from .._certify import certify
 from .._controller import LTIController
 from .._data import Windows
@@ -22,14 +22,15 @@ from ._scale import loss_scale, scaled
 from .result import FitResult, raise_if_failed
 
 _CONVERGED, _MAX_STEPS, _LOSS_INCREASED, _NOT_CERTIFIED = (
-    _sdp.code(n) for n in ("converged", "max_steps", "loss_increased", "not_certified"))
+    _outcome.code(n) for n in ("converged", "max_steps", "loss_increased", "not_certified"))
 
 # Bounds on the Young weight's linearisation point, relative to its data-derived scale.
 _W_RANGE = 1e4
 
 
-def _check_args(windows, qsr, num_inits, max_steps, tol, init_scale):
-    check_fit_args(windows, qsr, num_inits, max_steps, tol=tol, init_scale=init_scale)
+def _check_args(windows, qsr, num_inits, max_steps, atol, rtol, init_scale):
+    check_fit_args(windows, qsr, num_inits, max_steps, atol=atol, rtol=rtol,
+                   init_scale=init_scale)
     if windows.x0 is None:
         raise ValueError(
             "`windows.x0` is None, but ICO needs the controller state at every window start: "
@@ -70,7 +71,7 @@ def _step(pb: ICOProblem, solver: ICOSolver, theta, P, w_tilde):
     return dtheta, P_new, w_new, status
 
 
-def _run_one(pb: ICOProblem, theta, P, *, max_steps, tol, dtype, index, callback):
+def _run_one(pb: ICOProblem, theta, P, *, max_steps, atol, rtol, dtype, index, callback):
     """Algorithm 1 for one initialisation (host, float64). Returns a dict of results."""
     qsr = pb.qsr
     solver = ICOSolver(pb)
@@ -96,15 +97,15 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, tol, dtype, index, callback
         if dtheta is None:
             reason = status
             break
-        theta_new = _sdp.cast(theta + dtheta, dtype)
+        theta_new = _lmi.cast(theta + dtheta, dtype)
         if qsr is not None:
-            P_new = _sdp.cast((P_new + P_new.T) / 2, dtype)
+            P_new = _lmi.cast((P_new + P_new.T) / 2, dtype)
         J_new = pb.loss(theta_new)
         # Guards against solver inaccuracy (the SDP guarantees both in exact arithmetic).
         if not J_new <= J:
             reason = _LOSS_INCREASED
             break
-        if qsr is not None and not _sdp.certified(*pb.mats(theta_new), qsr, P_new):
+        if qsr is not None and not _lmi.certified(*pb.mats(theta_new), qsr, P_new):
             reason = _NOT_CERTIFIED
             break
         dJ = J - J_new
@@ -115,7 +116,7 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, tol, dtype, index, callback
                                 min(2 * w_tilde, w_scale * _W_RANGE)))
         if callback is not None:
             callback(index, step, theta, P, J)
-        if abs(dJ) < tol:
+        if abs(dJ) < atol + rtol * abs(hist[0]):  # the trainers' rule (`_iterate.terminate`)
             reason = _CONVERGED
             break
     return dict(theta=theta, P=P, J=J, hist=hist, steps=steps, reason=reason)
@@ -128,9 +129,9 @@ def _not_started(pb: ICOProblem, theta, P, outcome, max_steps):
     return dict(theta=theta, P=P, J=J, hist=hist, steps=0, reason=int(outcome))
 
 
-def _fit(key, windows, qsr, *, num_inits, max_steps, tol, init_scale, eps, prox, window_cone,
-         callback, throw):
-    _check_args(windows, qsr, num_inits, max_steps, tol, init_scale)
+def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps, prox,
+         window_cone, callback, throw):
+    _check_args(windows, qsr, num_inits, max_steps, atol, rtol, init_scale)
     dtype = windows.y.dtype
     start = time.perf_counter()
     K0 = init_controllers(key, num_inits, windows, init_scale, dtype)
@@ -138,8 +139,8 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, tol, init_scale, eps, prox,
     if qsr is not None:
         # paper Alg. 1 "Init": random, then projected (eq. 13)
         K0, P0 = proj = project(K0, qsr, throw=False)
-        P0, code0 = np.asarray(P0, np.float64), np.asarray(proj.result._value)
-    # The SDP is built on unit-free windows (`_scale.py`): J = s2 * J_s, tol likewise.
+        P0, code0 = np.asarray(P0, np.float64), np.asarray(_outcome.codes(proj.result))
+    # The SDP is built on unit-free windows (`_scale.py`): J = s2 * J_s, atol likewise.
     s2 = float(loss_scale(windows, np, of="outputs"))
     ws = scaled(windows, s2)
     pb = ICOProblem(np.asarray(ws.x0), np.asarray(ws.y), np.asarray(ws.target), qsr, eps=eps,
@@ -153,8 +154,8 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, tol, init_scale, eps, prox,
 
     def work(indices):
         return [_run_one(pb, thetas[i], None if qsr is None else P0[i], max_steps=max_steps,
-                         tol=tol / s2, dtype=dtype, index=i, callback=user_cb)
-                if not _sdp.failed(code0[i]) else _not_started(pb, thetas[i], P0[i], code0[i],
+                         atol=atol / s2, rtol=rtol, dtype=dtype, index=i, callback=user_cb)
+                if not _outcome.failed(code0[i]) else _not_started(pb, thetas[i], P0[i], code0[i],
                                                                  max_steps)
                 for i in indices]
 
@@ -166,7 +167,7 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, tol, init_scale, eps, prox,
     P = certified = None
     if qsr is not None:
         Ps = np.stack([r["P"] for r in results])
-        certified = jnp.asarray(_sdp.certified(A, B, C, D, qsr, Ps) & ~_sdp.failed(code0))
+        certified = jnp.asarray(_lmi.certified(A, B, C, D, qsr, Ps) & ~_outcome.failed(code0))
         P = jnp.asarray(Ps, dtype)
     reasons = np.asarray([r["reason"] for r in results], np.int32)
     res = FitResult(
@@ -178,14 +179,15 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, tol, init_scale, eps, prox,
         converged=jnp.asarray(reasons == _CONVERGED),
         steps=jnp.asarray([r["steps"] for r in results], jnp.int32),
         wall_time=jnp.asarray(wall, dtype),
-        stop_reason=_sdp.item(reasons),
+        result=_outcome.item(reasons),
     )
     return raise_if_failed(res) if throw else res
 
 
 def fit_ico(
     key, windows: Windows, qsr: QSR, *, num_inits: int = 8, max_steps: int = 150,
-    tol: float = 1e-3, init_scale: float = INIT_SCALE, eps: float = 1e-6, prox: float = 1e-4,
+    atol: float = 1e-3, rtol: float = 0.0, init_scale: float = INIT_SCALE, eps: float = 1e-6,
+    prox: float = 1e-4,
     window_cone: str = "stacked", callback: Callable | None = None, throw: bool = True,
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers by iterative convex overbounding (paper Alg. 1).
@@ -250,7 +252,7 @@ def fit_ico(
     $s = \\sqrt{J(0)}$, the root of the zero controller's loss (`J(0)` of the data as
     given), so its data, the proximal
     weight and the Young weight are unit-free; scaling $x_0$, $y$ and $u$ by any $c > 0$
-    gives the same iterates. `loss_history`, `final_loss`, `tol` and the callback's loss are
+    gives the same iterates. `loss_history`, `final_loss`, `atol` and the callback's loss are
     in the user's units.
 
     **Safeguards.** A small proximal term $\\frac{\\mu}{2}\\lVert\\delta\\theta\\rVert^2$ (`prox`)
@@ -259,10 +261,10 @@ def fit_ico(
     every solve the new iterate is re-evaluated in float64 (after rounding to the data's
     dtype): the step is accepted only if the true loss did not increase and the exact KYP
     check (paper Lemma 2) holds with the returned $P$; otherwise the previous, certified
-    iterate is kept and that run stops (`stop_reason` names the reason).
+    iterate is kept and that run stops (`result` names the reason).
 
-    Stops after `max_steps` iterations or when $|\\Delta J| <$ `tol`. Initialisations are
-    solved in parallel threads (one Clarabel solver each), see `DISSIL_JAX_THREADS`.
+    Stops after `max_steps` iterations or when $|\\Delta J| <$ `atol` $+$ `rtol` $|J_0|$.
+    Initialisations are solved in parallel threads (one Clarabel solver each), see `DISSIL_JAX_THREADS`.
 
     **Arguments:**
 
@@ -274,7 +276,8 @@ def fit_ico(
       part is linearised at the current iterate, so every iterate stays certified).
     - `num_inits`: number of random initialisations.
     - `max_steps`: maximum number of ICO iterations (paper: 150).
-    - `tol`: stop when $|\\Delta J| <$ `tol` (paper: 1e-3 linear, 1e-5 nonlinear).
+    - `atol`, `rtol`: stop when $|\\Delta J| <$ `atol` $+$ `rtol` $|J_0|$ (the paper's tol
+      is `atol`: 1e-3 linear, 1e-5 nonlinear).
     - `init_scale`: standard deviation of the random initial entries (default 1, the
       paper's N(0, 1) draw, which is then projected as in paper Alg. 1).
     - `eps`: margin of the dissipativity LMI (never more than the current iterate has).
@@ -283,7 +286,7 @@ def fit_ico(
     - `callback`: optional `callback(init_index, step, K, P, loss)` called for the initial
       point (step 0) and every accepted iterate, from worker threads.
     - `throw`: raise a `ValueError` when a run stopped early (an SDP failure or a refused
-      step, see `FitResult.stop_reason`). With `throw=False` the result is returned; every
+      step, see `FitResult.result`). With `throw=False` the result is returned; every
       run, including one that stopped early, carries its last certified iterate.
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult] with `P` and `certified` filled in.
@@ -295,14 +298,15 @@ def fit_ico(
     """
     if qsr is None:
         raise ValueError("`qsr` is None; use `dj.fit_ico_nc` for unconstrained ICO.")
-    return _fit(key, windows, qsr, num_inits=num_inits, max_steps=max_steps, tol=tol,
-                init_scale=init_scale, eps=eps, prox=prox, window_cone=window_cone,
-                callback=callback, throw=throw)
+    return _fit(key, windows, qsr, num_inits=num_inits, max_steps=max_steps, atol=atol,
+                rtol=rtol, init_scale=init_scale, eps=eps, prox=prox,
+                window_cone=window_cone, callback=callback, throw=throw)
 
 
 def fit_ico_nc(
-    key, windows: Windows, *, num_inits: int = 8, max_steps: int = 150, tol: float = 1e-3,
-    init_scale: float = INIT_SCALE, prox: float = 1e-4, window_cone: str = "stacked",
+    key, windows: Windows, *, num_inits: int = 8, max_steps: int = 150, atol: float = 1e-3,
+    rtol: float = 0.0, init_scale: float = INIT_SCALE, prox: float = 1e-4,
+    window_cone: str = "stacked",
     callback: Callable | None = None, throw: bool = True,
 ) -> FitResult:
     """ICO without the dissipativity constraint (the paper's ICO-NC baseline).
@@ -312,6 +316,7 @@ def fit_ico_nc(
     `certified = None` (no stability guarantee). `callback` receives `P = None`; `throw`
     as in `fit_ico`.
     """
-    return _fit(key, windows, None, num_inits=num_inits, max_steps=max_steps, tol=tol,
+    return _fit(key, windows, None, num_inits=num_inits, max_steps=max_steps, atol=atol,
+                rtol=rtol,
                 init_scale=init_scale, eps=1e-6, prox=prox, window_cone=window_cone,
                 callback=callback, throw=throw)

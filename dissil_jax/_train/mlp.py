@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from functools import partial
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -13,13 +13,13 @@ import jax.random as jr
 import optax
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from .. import _sdp
+from .. import _outcome
 from .._data import Windows
 from ._checks import check_fit_args
-from .result import FitResult, raise_if_failed
+from ._iterate import Method, iterate
+from .result import FitResult, fit_timed
 
-_CONVERGED, _MAX_STEPS, _NON_FINITE = (
-    _sdp.code(r) for r in ("converged", "max_steps", "non_finite"))
+_CONVERGED, _MAX_STEPS = _outcome.code("converged"), _outcome.code("max_steps")
 
 
 class MLPController(eqx.Module):
@@ -80,7 +80,7 @@ class MLPController(eqx.Module):
         return xhat, self.mlp(uhat)
 
 
-def _pairs(windows: Windows):
+def demonstration_pairs(windows: Windows):
     """Inputs $\\hat u = y$ `[N, h, p]` and targets $-u$ `[N, h, m]` of every window."""
     return windows.y, windows.target
 
@@ -94,55 +94,61 @@ def mlp_loss(model: MLPController, X, T) -> Float[Array, ""]:
     return jnp.mean(jnp.sum((pred - T) ** 2, axis=(-2, -1)))
 
 
-def _train_one(key, X, T, *, hidden, max_steps, learning_rate, tol):
+class _Adam(Method):
+    """Full-batch Adam on one MLP's parameters for the driver loop (`_iterate.py`); one lane
+    (shape `()`), vmapped over initialisations by `_train_batch`. The state carries the
+    gradient of the current parameters, so each step evaluates the loss once; like GD, a
+    run whose loss becomes non-finite returns that iterate."""
+
+    keep_non_finite: ClassVar[bool] = True
+    params: Any
+    static: Any = eqx.field(static=True)
+    X: Array
+    T: Array
+    opt: optax.GradientTransformation
+
+    def _value_and_grad(self, params):
+        return jax.value_and_grad(lambda q: mlp_loss(eqx.combine(q, self.static), self.X,
+                                                     self.T))(params)
+
+    def init(self):
+        J, g = self._value_and_grad(self.params)
+        return (self.params, g, self.opt.init(self.params)), J, jnp.asarray(_MAX_STEPS)
+
+    def step(self, state, active):
+        params, g, opt_state = state
+        updates, opt_state = self.opt.update(g, opt_state, params)
+        params = optax.apply_updates(params, updates)
+        J, g = self._value_and_grad(params)
+        return (params, g, opt_state), J, jnp.asarray(_CONVERGED)
+
+
+def _train_one(key, X, T, *, hidden, max_steps, learning_rate, atol, rtol):
     """Train one MLP (pure; vmapped over `key` by `fit_mlp`).
 
-    At most `max_steps + 1` gradient evaluations in a `lax.while_loop`: at step k the loss
-    $J_k$ of the current parameters is recorded, the run stops when
-    $|J_k - J_{k-1}| <$ `tol`, and otherwise takes an Adam step (the last evaluation only
-    records). Vmapped, the loop runs until every run has stopped, finished runs frozen.
+    At most `max_steps + 1` gradient evaluations: $J_0$, then one per Adam step, until
+    $|J_k - J_{k-1}| <$ `atol` $+$ `rtol` $|J_0|$. Vmapped, the loop runs until every run
+    has stopped, finished runs frozen.
     """
     model = MLPController(X.shape[-1], T.shape[-1], hidden, key=key, dtype=X.dtype)
     params, static = eqx.partition(model, eqx.is_inexact_array)
-    opt = optax.adam(learning_rate)
-    loss = lambda q: mlp_loss(eqx.combine(q, static), X, T)
-    value_and_grad = jax.value_and_grad(loss)
-
-    def body(carry):
-        k, params, opt_state, prev, done, steps, reason, hist = carry
-        J, g = value_and_grad(params)
-        hist = hist.at[k].set(jnp.where(done, jnp.nan, J))
-        small = ~done & (jnp.abs(J - prev) < tol)
-        finite = jnp.isfinite(J)
-        stop = done | small | (k == max_steps) | ~finite
-        code = jnp.where(~finite, _NON_FINITE, jnp.where(small, _CONVERGED, _MAX_STEPS))
-        reason = jnp.where(done, reason, jnp.where(stop, code, reason))
-        updates, new_state = opt.update(g, opt_state, params)
-        new_params = optax.apply_updates(params, updates)
-        keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(stop, b, a), new, old)
-        params, opt_state = keep(new_params, params), keep(new_state, opt_state)
-        final = jnp.where(done, prev, J)
-        return (k + 1, params, opt_state, final, done | stop,
-                steps + (~stop).astype(jnp.int32), reason, hist)
-
-    init = (jnp.asarray(0, jnp.int32), params, opt.init(params),
-            jnp.asarray(jnp.inf, X.dtype), jnp.asarray(False), jnp.asarray(0, jnp.int32),
-            jnp.asarray(_MAX_STEPS, jnp.int32), jnp.full(max_steps + 1, jnp.nan, X.dtype))
-    _, params, _, J, _, steps, reason, hist = jax.lax.while_loop(
-        lambda c: ~c[4], body, init)  # c[4]: done
+    (params, _, _), hist, J, steps, reason = iterate(
+        _Adam(params, static, X, T, optax.adam(learning_rate)), max_steps=max_steps,
+        atol=atol, rtol=rtol)
     return eqx.combine(params, static), hist, J, reason == _CONVERGED, steps, reason
 
 
 @partial(eqx.filter_jit)
-def _train_batch(keys, X, T, hidden, max_steps, learning_rate, tol):
+def _train_batch(keys, X, T, hidden, max_steps, learning_rate, atol, rtol):
     fn = partial(_train_one, hidden=hidden, max_steps=max_steps, learning_rate=learning_rate,
-                 tol=tol)
+                 atol=atol, rtol=rtol)
     return eqx.filter_vmap(fn, in_axes=(0, None, None))(keys, X, T)
 
 
 def fit_mlp(
     key, windows: Windows, *, hidden: Sequence[int] = (150, 150), num_inits: int = 8,
-    max_steps: int = 2000, learning_rate: float = 1e-3, tol: float = 1e-7, throw: bool = True,
+    max_steps: int = 2000, learning_rate: float = 1e-3, atol: float = 1e-7, rtol: float = 0.0,
+    throw: bool = True,
 ) -> FitResult:
     """Train the paper's NN baseline (NN + GD): a static ReLU MLP on the demonstration pairs.
 
@@ -153,7 +159,8 @@ def fit_mlp(
     (the same normalisation as [`imitation_loss`][dissil_jax.imitation_loss]) is minimised by
     full-batch Adam (`optax.adam`, a gradient method; the paper says "gradient descent"
     without details). Initialisations are vmapped (`eqx.filter_vmap`) and the loop is one
-    compiled `lax.while_loop`; each run stops when $|\\Delta J| <$ `tol` or after `max_steps`.
+    compiled `lax.while_loop`; each run stops when $|\\Delta J| <$ `atol` $+$ `rtol` $|J_0|$
+    or after `max_steps`.
     The controller ignores $\\hat x$ (memoryless), so `windows.x0` is unused.
 
     **Arguments:**
@@ -162,25 +169,27 @@ def fit_mlp(
     - `windows`: demonstration windows (any horizon).
     - `hidden`: hidden-layer widths, all equal; `len(hidden) + 1` weight matrices (paper:
       three, `(150, 150)` linear and `(25, 25)` nonlinear).
-    - `num_inits`, `max_steps`, `learning_rate`, `tol`: as for the other trainers.
+    - `num_inits`, `max_steps`, `atol`, `rtol`: as for the other trainers.
+    - `learning_rate`: Adam's step size on the raw parameters (the data are not normalised,
+      unlike the LTI trainers').
     - `throw`: raise a `ValueError` if a run's loss became non-finite (as `dj.fit_gd`).
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult] whose `controllers` is an
     [`MLPController`][dissil_jax.MLPController] with a leading `[num_inits]` axis; `P` and
     `certified` are None.
     """
-    check_fit_args(windows, None, num_inits, max_steps, learning_rate=learning_rate, tol=tol)
+    check_fit_args(windows, None, num_inits, max_steps, learning_rate=learning_rate, atol=atol,
+                   rtol=rtol)
     hidden = tuple(int(h) for h in hidden)
-    start = time.perf_counter()
-    X, T = _pairs(windows)
+    X, T = demonstration_pairs(windows)
     keys = jr.split(key, num_inits)
-    model, hist, J, converged, steps, reason = _train_batch(
-        keys, X, T, hidden, int(max_steps), float(learning_rate), float(tol))
-    J = jax.block_until_ready(J)
-    wall = time.perf_counter() - start
-    res = FitResult(
-        controllers=model, P=None, certified=None, loss_history=hist, final_loss=J,
-        converged=converged, steps=steps, wall_time=jnp.asarray(wall, X.dtype),
-        stop_reason=_sdp.item(reason),
-    )
-    return raise_if_failed(res) if throw else res
+
+    def run():
+        model, hist, J, converged, steps, reason = _train_batch(
+            keys, X, T, hidden, int(max_steps), float(learning_rate), float(atol), float(rtol))
+        return FitResult(
+            controllers=model, P=None, certified=None, loss_history=hist, final_loss=J,
+            converged=converged, steps=steps, wall_time=jnp.asarray(jnp.nan, X.dtype),
+            result=_outcome.item(reason))
+
+    return fit_timed(run, (), X.dtype, lambda res: res, throw)

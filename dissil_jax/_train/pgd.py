@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import time
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -10,28 +10,20 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .. import _sdp
+from .. import _lmi, _outcome
 from .._data import Windows
 from .._projection import project
 from .._rollout import imitation_loss
 from .._supply import QSR
-from ._checks import check_fit_args, check_n_state
+from ._checks import check_fit_args, check_n_state, check_optimizer
 from ._init import INIT_SCALE, init_controllers
+from ._iterate import Method, iterate
 from ._scale import loss_scale, scaled
-from .result import FitResult, raise_if_failed
+from .result import FitResult, fit_timed, raise_if_failed
 
-_CONVERGED, _MAX_STEPS, _NON_FINITE = (
-    _sdp.code(r) for r in ("converged", "max_steps", "non_finite"))
+_CONVERGED, _MAX_STEPS = _outcome.code("converged"), _outcome.code("max_steps")
 
 _batched_loss = jax.vmap(jax.value_and_grad(imitation_loss), in_axes=(0, None))
-
-
-def _where(mask, new, old):
-    """Per-initialisation select on pytrees whose leaves have the init axis first."""
-    return jax.tree.map(
-        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - mask.ndim)), a, b),
-        new, old,
-    )
 
 
 def paper_rule(learning_rate, decay) -> optax.GradientTransformation:
@@ -68,73 +60,58 @@ def optimizer_metric(opt_state, K):
     return jax.tree.map(lambda w: jnp.maximum(w, floor), W)
 
 
-def _loop(K0, P0, code0, windows, opt, *, qsr, max_steps, tol, eps, method="clarabel"):
-    """The jit-compatible training loop over a batch of initialisations.
+class _PGD(Method):
+    """Projected gradient steps (GD when `qsr` is None) for the driver loop (`_iterate.py`).
 
-    Pure: vmappable over the optimiser's hyperparameters and over the initial controllers.
     Each initialisation has its own optimiser state (the optimiser is vmapped over the
     batch, so a transformation such as `optax.clip_by_global_norm` never couples two
     runs); the state carries across steps and each update is followed by the projection
-    (projected Adam, projected SGD, ...). Runs whose initial projection failed
-    (`code0` a failure) take no step.
+    (projected Adam, projected SGD, ...). Runs whose initial projection failed take no
+    step.
     """
-    num_inits = K0.A.shape[0]
-    loss0, _ = _batched_loss(K0, windows)
-    hist = jnp.full((num_inits, max_steps + 1), jnp.nan, loss0.dtype).at[:, 0].set(loss0)
-    ok0 = ~_sdp.failed(code0)
-    carry = dict(
-        step=jnp.zeros((), jnp.int32), K=K0, P=P0, opt=jax.vmap(opt.init)(K0), loss=loss0, hist=hist,
-        done=~ok0, steps=jnp.zeros(num_inits, jnp.int32),
-        reason=jnp.where(ok0, _MAX_STEPS, code0).astype(jnp.int32),
-    )
 
-    def cond(c):
-        return (c["step"] < max_steps) & jnp.any(~c["done"])
+    K0: Any
+    P0: Any
+    code0: Any
+    windows: Windows
+    opt: optax.GradientTransformation
+    qsr: QSR | None
+    eps: float
+    method: str
 
-    def body(c):
-        active = ~c["done"]
-        _, grads = _batched_loss(c["K"], windows)
-        updates, opt_state = jax.vmap(opt.update)(grads, c["opt"], c["K"])
-        K_new = optax.apply_updates(c["K"], updates)
-        P_new, failed = c["P"], jnp.zeros(num_inits, bool)
-        code = jnp.full(num_inits, _CONVERGED, jnp.int32)
-        if qsr is not None:
+    @property
+    def keep_non_finite(self) -> bool:  # GD returns its diverged iterate
+        return self.qsr is None
+
+    def init(self):
+        loss0, _ = _batched_loss(self.K0, self.windows)
+        return (self.K0, self.P0, jax.vmap(self.opt.init)(self.K0)), loss0, self.code0
+
+    def step(self, state, active):
+        K, P, opt_state = state
+        _, grads = _batched_loss(K, self.windows)
+        updates, opt_state = jax.vmap(self.opt.update)(grads, opt_state, K)
+        K_new, P_new = optax.apply_updates(K, updates), P
+        code = jnp.full(active.shape, _CONVERGED, jnp.int32)
+        if self.qsr is not None:
             # An indefinite Q's positive part is linearised at the certified iterate (K_ref),
             # once per step (refine=1; the next step re-linearises). No effect for Q <= 0.
-            proj = project(K_new, qsr, c["P"], throw=False, active=active, eps=eps,
-                           metric=optimizer_metric(opt_state, K_new), K_ref=c["K"], refine=1,
-                           method=method)
-            failed = _sdp.failed(proj.result._value)
-            code = jnp.where(failed, proj.result._value, code)
+            proj = project(K_new, self.qsr, P, throw=False, active=active, eps=self.eps,
+                           metric=optimizer_metric(opt_state, K_new), K_ref=K, refine=1,
+                           method=self.method)
+            codes = _outcome.codes(proj.result)
+            code = jnp.where(_outcome.failed(codes), codes, code)
             K_new, P_new = proj
-        loss_new, _ = _batched_loss(K_new, windows)
-        finite = jnp.isfinite(loss_new)
-        code = jnp.where(failed | finite, code, _NON_FINITE)
-        # A constrained run never returns a failed solve's uncertified target, nor an
-        # iterate whose loss is not finite: it keeps its last certified, finite iterate.
-        keep = ~active | (failed | ~finite if qsr is not None else failed)
-        K_new = _where(keep, c["K"], K_new)
-        if qsr is not None:
-            P_new = jnp.where(keep[:, None, None], c["P"], P_new)
-        loss_new = jnp.where(keep, c["loss"], loss_new)
-        stop = active & ((jnp.abs(loss_new - c["loss"]) < tol) | failed | ~finite)
-        hist = c["hist"].at[:, c["step"] + 1].set(jnp.where(active, loss_new, jnp.nan))
-        return dict(
-            step=c["step"] + 1, K=K_new, P=P_new, opt=opt_state, loss=loss_new, hist=hist,
-            done=c["done"] | stop, steps=c["steps"] + active.astype(jnp.int32),
-            reason=jnp.where(stop, code, c["reason"]).astype(jnp.int32),
-        )
-
-    c = jax.lax.while_loop(cond, body, carry)
-    return c["K"], c["P"], c["hist"], c["loss"], c["steps"], c["reason"]
+        loss, _ = _batched_loss(K_new, self.windows)
+        return (K_new, P_new, opt_state), loss, code
 
 
 def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_inits,
-         n_state, max_steps, tol, eps, method="clarabel") -> FitResult:
+         n_state, max_steps, atol, rtol, eps, method="clarabel") -> FitResult:
     """`pgd_run` without argument checks or `throw` (traceable; `qsr` and `optimizer` static).
 
     Trains on the windows divided by the data scale (`_scale.py`), so that steps do not
-    depend on units; losses and `tol` are converted from and to the user's units.
+    depend on units; losses and `atol` are converted from and to the user's units.
     """
     s2 = loss_scale(windows)
     K0 = init_controllers(key, num_inits, windows, init_scale, n_state=n_state)
@@ -142,17 +119,17 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
         P0, code0 = None, jnp.full(num_inits, _MAX_STEPS, jnp.int32)
     else:
         K0, P0 = proj = project(K0, qsr, throw=False, eps=eps, method=method)
-        code0 = proj.result._value
+        code0 = _outcome.codes(proj.result)
     opt = paper_rule(learning_rate, decay) if optimizer is None else optimizer
-    K, P, hist, loss, steps, reason = _loop(
-        K0, P0, code0, scaled(windows, s2), opt, qsr=qsr, max_steps=max_steps, tol=tol / s2,
-        eps=eps, method=method)
+    pgd = _PGD(K0, P0, code0, scaled(windows, s2), opt, qsr, eps, method)
+    (K, P, _), hist, loss, steps, reason = iterate(
+        pgd, max_steps=max_steps, atol=atol / s2, rtol=rtol)
     hist, loss = hist * s2, loss * s2
     return FitResult(
         controllers=K, P=P,
-        certified=None if qsr is None else ~_sdp.failed(code0),
+        certified=None if qsr is None else ~_outcome.failed(code0),
         loss_history=hist, final_loss=loss, converged=reason == _CONVERGED, steps=steps,
-        wall_time=jnp.asarray(jnp.nan, hist.dtype), stop_reason=_sdp.item(reason),
+        wall_time=jnp.asarray(jnp.nan, hist.dtype), result=_outcome.item(reason),
     )
 
 
@@ -171,33 +148,28 @@ GD_LEARNING_RATE = 0.1
 GD_INIT_SCALE = 0.3
 
 
-def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, decay, tol,
-             init_scale, n_state):
+def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, decay, atol,
+             rtol, init_scale, n_state):
     """Check the arguments; returns `(optimizer, learning_rate, decay, n_state)`.
 
     `optimizer` is None for the paper's rule, whose (possibly traced) `learning_rate` and
     `decay` are then used, with the defaults filled in.
     """
-    if optimizer is not None:
-        if learning_rate is not None or decay is not None:
-            raise ValueError("pass either `optimizer` or `learning_rate`/`decay` (the paper's "
-                             "decaying-step rule), not both.")
-        if not isinstance(optimizer, optax.GradientTransformation):
-            raise ValueError(f"`optimizer` must be an `optax.GradientTransformation`, got "
-                             f"{type(optimizer).__name__}.")
+    if check_optimizer(optimizer, "the paper's decaying-step rule", learning_rate=learning_rate,
+                       decay=decay):
         learning_rate = decay = 0.0  # unused
     learning_rate = LEARNING_RATE if learning_rate is None else learning_rate
     decay = DECAY if decay is None else decay
     check_fit_args(windows, qsr, num_inits, max_steps, learning_rate=learning_rate, decay=decay,
-                   tol=tol, init_scale=init_scale)
+                   atol=atol, rtol=rtol, init_scale=init_scale)
     return optimizer, learning_rate, decay, check_n_state(windows, n_state)
 
 
 def pgd_run(
     key, windows: Windows, qsr: QSR | None, *, optimizer=None, learning_rate=None, decay=None,
     init_scale=INIT_SCALE, num_inits: int = 8, n_state: int | None = None,
-    max_steps: int = 150, tol: float = 1e-3, eps: float = 1e-6, throw: bool = True,
-    method: str = "auto",
+    max_steps: int = 150, atol: float = 1e-3, rtol: float = 0.0, eps: float = 1e-6,
+    throw: bool = True, method: str = "auto",
 ) -> FitResult:
     """The pure, traceable PGD run behind [`fit_pgd`][dissil_jax.fit_pgd].
 
@@ -217,43 +189,42 @@ def pgd_run(
     """
     optimizer, learning_rate, decay, n_state = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
-        decay=decay, tol=tol, init_scale=init_scale, n_state=n_state)
+        decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state)
     res = _run(key, windows, qsr, learning_rate, decay, init_scale, optimizer=optimizer,
-               num_inits=num_inits, n_state=n_state, max_steps=max_steps, tol=tol, eps=eps,
-               method=method)
+               num_inits=num_inits, n_state=n_state, max_steps=max_steps, atol=atol,
+               rtol=rtol, eps=eps, method=method)
     return raise_if_failed(res) if throw else res
 
 
 def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_inits,
-         n_state, max_steps, tol, eps, throw, method="clarabel"):
+         n_state, max_steps, atol, rtol, eps, throw, method="clarabel"):
     """`pgd_run`, compiled once per static configuration, timed and certified as a batch."""
     optimizer, learning_rate, decay, n_state = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
-        decay=decay, tol=tol, init_scale=init_scale, n_state=n_state)
-    start = time.perf_counter()
-    dtype = windows.y.dtype
-    res = _run_jit(key, windows, qsr, *(jnp.asarray(v, dtype) for v in
-                                        (learning_rate, decay, init_scale)),
-                   optimizer=optimizer, num_inits=int(num_inits), n_state=n_state,
-                   max_steps=int(max_steps), tol=float(tol), eps=float(eps), method=method)
-    jax.block_until_ready(res)
-    certified = res.certified
-    if qsr is not None:
+        decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state)
+
+    def certify(res):
+        if qsr is None:
+            return res
         # The exact float64 check of every returned (controller, P) pair, as one batch.
         K = res.controllers
-        certified = jnp.asarray(np.asarray(res.certified) & _sdp.certified(
-            K.A, K.B, K.C, K.D, qsr, res.P))
-    res = eqx.tree_at(lambda r: (r.certified, r.wall_time), res,
-                      (certified, jnp.asarray(time.perf_counter() - start, dtype)),
-                      is_leaf=lambda x: x is None)
-    return raise_if_failed(res) if throw else res
+        ok = np.asarray(res.certified) & _lmi.certified(K.A, K.B, K.C, K.D, qsr, res.P)
+        return eqx.tree_at(lambda r: r.certified, res, jnp.asarray(ok))
+
+    return fit_timed(
+        lambda *h: _run_jit(key, windows, qsr, *h, optimizer=optimizer,
+                            num_inits=int(num_inits), n_state=n_state,
+                            max_steps=int(max_steps), atol=float(atol), rtol=float(rtol),
+                            eps=float(eps), method=method),
+        (learning_rate, decay, init_scale), windows.y.dtype, certify, throw)
 
 
 def fit_pgd(
     key, windows: Windows, qsr: QSR, *, optimizer=None, learning_rate: float | None = None,
     decay: float | None = None, num_inits: int = 8, n_state: int | None = None,
-    max_steps: int = 150, tol: float = 1e-3, init_scale: float = INIT_SCALE,
-    eps: float = 1e-6, throw: bool = True, method: str = "auto",
+    max_steps: int = 150, atol: float = 1e-3, rtol: float = 0.0,
+    init_scale: float = INIT_SCALE, eps: float = 1e-6, throw: bool = True,
+    method: str = "auto",
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers by projected gradient descent (paper Alg. 2).
 
@@ -268,7 +239,8 @@ def fit_pgd(
     $\\Delta_i = -\\eta_0\\rho^{\\,i}\\nabla J_s(K_i)$ (the default), or the update of any
     optax optimiser, whose state carries across steps (projected Adam, projected
     momentum, ...).
-    The run stops when $|J(K_{i+1}) - J(K_i)| <$ `tol` or after `max_steps`. All
+    The run stops when $|J(K_{i+1}) - J(K_i)| <$ `atol` $+$ `rtol` $|J(K_0)|$ or after
+    `max_steps`. All
     initialisations run in one compiled `lax.while_loop`; each step sends the whole batch
     to the host once, where Clarabel solves it on a thread pool.
 
@@ -277,7 +249,7 @@ def fit_pgd(
     $s$, the root mean power of their initial states and inputs,
     $s^2 = \\frac1N\\sum_i(\\lVert x_0^{(i)}\\rVert^2 + \\sum_k\\lVert y^{(i)}_k\\rVert^2)$.
     Scaling $x_0$, $y$ and $u$ by any $c > 0$ leaves every step unchanged; `loss_history`,
-    `final_loss` and `tol` are in the user's units ($J = s^2 J_s$).
+    `final_loss` and `atol` are in the user's units ($J = s^2 J_s$).
 
     **Arguments:**
 
@@ -297,12 +269,14 @@ def fit_pgd(
     - `num_inits`: number of random initialisations.
     - `n_state`: the controller order $\\hat n$; required when `windows.x0` is None (the
       controller starts at rest), otherwise it must equal `windows.n_state`.
-    - `max_steps` (paper: 150), `tol` (paper: 1e-3 linear, 1e-5 nonlinear; `0.0` runs
-      every step), `init_scale` $\\sigma$ (default 1: the paper's N(0, 1) draw, see
+    - `max_steps` (paper: 150), `atol` and `rtol`: the stopping rule
+      $|\\Delta J| <$ `atol` $+$ `rtol` $|J_0|$ ($J_0$ the run's initial loss; the paper's
+      $|\\Delta J| <$ tol is `atol` = tol, `rtol` = 0: 1e-3 linear, 1e-5 nonlinear; both
+      `0.0` run every step), `init_scale` $\\sigma$ (default 1: the paper's N(0, 1) draw, see
       below), `eps` (LMI strictness margin).
-    - `throw`: raise a `ValueError` when a run ends in failure (`stop_reason` other than
+    - `throw`: raise a `ValueError` when a run ends in failure (`result` other than
       `converged` or `max_steps`: a failed projection, or a non-finite loss). With
-      `throw=False` the result is returned and `stop_reason` says what happened; a failed
+      `throw=False` the result is returned and `result` says what happened; a failed
       run keeps its last certified iterate.
     - `method`: $\\Pi$'s solver, as `project`'s `method`. `"first_order"`: ADMM in JAX
       (Frobenius projections only, so not with an adaptive optimiser's metric), every
@@ -327,14 +301,15 @@ def fit_pgd(
         raise ValueError("`qsr` is required for PGD; use `dj.fit_gd` for the unconstrained run.")
     return _fit(key, windows, qsr, optimizer=optimizer, learning_rate=learning_rate,
                 decay=decay, init_scale=init_scale, num_inits=num_inits, n_state=n_state,
-                max_steps=max_steps, tol=tol, eps=eps, throw=throw, method=method)
+                max_steps=max_steps, atol=atol, rtol=rtol, eps=eps, throw=throw,
+                method=method)
 
 
 def fit_gd(
     key, windows: Windows, *, optimizer=None, learning_rate: float | None = None,
     decay: float | None = None, num_inits: int = 8, n_state: int | None = None,
-    max_steps: int = 150, tol: float = 1e-3, init_scale: float = GD_INIT_SCALE,
-    throw: bool = True,
+    max_steps: int = 150, atol: float = 1e-3, rtol: float = 0.0,
+    init_scale: float = GD_INIT_SCALE, throw: bool = True,
 ) -> FitResult:
     """Plain gradient descent on the imitation loss: [`fit_pgd`][dissil_jax.fit_pgd] without $\\Pi$.
 
@@ -354,4 +329,4 @@ def fit_gd(
         optimizer = optax.adam(GD_LEARNING_RATE)
     return _fit(key, windows, None, optimizer=optimizer, learning_rate=learning_rate,
                 decay=decay, init_scale=init_scale, num_inits=num_inits, n_state=n_state,
-                max_steps=max_steps, tol=tol, eps=0.0, throw=throw)
+                max_steps=max_steps, atol=atol, rtol=rtol, eps=0.0, throw=throw)

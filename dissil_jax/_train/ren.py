@@ -1,7 +1,7 @@
 """Training certified REN controllers through their direct parameterisation (`_ren_map.py`).
 
-The loop is one `init`/`step`/`terminate` triple around a `lax.while_loop`, so it can become
-one instance of a shared driver loop.
+Training is the driver loop of every gradient trainer (`_iterate.py`) with the LTI direct
+map's method (`direct.MapDescent`) given the REN map's loss.
 """
 
 from __future__ import annotations
@@ -14,21 +14,21 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .. import _sdp
+from .. import _outcome
 from .._data import Windows
 from .._direct_map import MARGIN, check_margin
 from .._indefinite import is_indefinite
 from .._ren_certify import certified_batch, certify_ren
 from .._ren_controller import check_activation, ren_imitation_loss
-from .._ren_map import RENParams, init_ren_params, ren_map
+from .._ren_map import init_ren_params, ren_map
 from .._supply import QSR
 from ._checks import check_fit_args, check_n_state
+from ._iterate import iterate
 from ._scale import loss_scale, scaled
-from .direct import default_hyperparameters
+from .direct import MapDescent, default_hyperparameters
 from .result import FitResult, raise_if_failed
 
-_CONVERGED, _MAX_STEPS, _NON_FINITE, _NOT_CERTIFIED = (
-    _sdp.code(r) for r in ("converged", "max_steps", "non_finite", "not_certified"))
+_CONVERGED, _NOT_CERTIFIED = (_outcome.code(r) for r in ("converged", "not_certified"))
 
 
 class RENFitResult(FitResult):
@@ -40,56 +40,12 @@ class RENFitResult(FitResult):
     multiplier: jax.Array | None = None
 
 
-def _where(mask, new, old):
-    return jax.tree.map(
-        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b), new, old)
-
-
 def _batched_loss(qsr, width, activation, margin, input_share=0.0):
     def loss(theta, windows):
         K, P, lam = ren_map(theta, qsr, width, activation, margin, input_share)
         return ren_imitation_loss(K, windows), (K, P, lam)
 
     return jax.vmap(jax.value_and_grad(loss, has_aux=True), in_axes=(0, None))
-
-
-def init(theta0: RENParams, windows, opt, loss_fn, max_steps: int) -> dict:
-    """The loop's state before step 0: the initial loss, gradient and controllers."""
-    (loss, aux), grad = loss_fn(theta0, windows)
-    num = loss.shape[0]
-    hist = jnp.full((num, max_steps + 1), jnp.nan, loss.dtype).at[:, 0].set(loss)
-    finite = jnp.isfinite(loss)
-    return dict(k=jnp.zeros((), jnp.int32), theta=theta0, grad=grad, aux=aux,
-                opt=opt.init(theta0), loss=loss, hist=hist, done=~finite,
-                steps=jnp.zeros(num, jnp.int32),
-                reason=jnp.where(finite, _MAX_STEPS, _NON_FINITE).astype(jnp.int32))
-
-
-def step(c: dict, windows, opt, loss_fn, tol) -> dict:
-    """One Adam (or `optimizer`) step for every active initialisation; a step whose loss or
-    gradient is not finite is refused and stops that run at its last finite iterate."""
-    active = ~c["done"]
-    updates, opt_state = opt.update(c["grad"], c["opt"], c["theta"])
-    theta = optax.apply_updates(c["theta"], updates)
-    (loss, aux), grad = loss_fn(theta, windows)
-    finite = jnp.isfinite(loss)
-    for g in jax.tree.leaves(grad):
-        finite &= jnp.all(jnp.isfinite(g), axis=tuple(range(1, g.ndim)))
-    take = active & finite
-    theta, grad, aux = _where(take, (theta, grad, aux), (c["theta"], c["grad"], c["aux"]))
-    new_loss = jnp.where(take, loss, c["loss"])
-    stop = active & (~finite | (jnp.abs(new_loss - c["loss"]) < tol))
-    k = c["k"] + 1
-    return dict(k=k, theta=theta, grad=grad, aux=aux, opt=opt_state, loss=new_loss,
-                hist=c["hist"].at[:, k].set(jnp.where(take, loss, jnp.nan)),
-                done=c["done"] | stop, steps=c["steps"] + take.astype(jnp.int32),
-                reason=jnp.where(stop, jnp.where(finite, _CONVERGED, _NON_FINITE),
-                                 c["reason"]).astype(jnp.int32))
-
-
-def terminate(c: dict, max_steps: int):
-    """Stop when every run is done or after `max_steps` steps."""
-    return (c["k"] >= max_steps) | jnp.all(c["done"])
 
 
 def to_user_units(K, lam, s):
@@ -106,7 +62,7 @@ def to_user_units(K, lam, s):
 
 
 def _run(key, windows, qsr, learning_rate, init_scale, *, width, activation, optimizer,
-         num_inits, n_state, max_steps, tol, margin, input_share):
+         num_inits, n_state, max_steps, atol, rtol, margin, input_share):
     # Train in normalised units (`_scale.py`), as the LTI trainers do; the neurons stay in
     # those units, so the result is mapped back exactly for any activation (`to_user_units`).
     s2 = loss_scale(windows)
@@ -114,16 +70,17 @@ def _run(key, windows, qsr, learning_rate, init_scale, *, width, activation, opt
     theta0 = init_ren_params(key, num_inits, n_state, width, windows.n_in, windows.n_out,
                              init_scale, windows.y.dtype)
     opt = optax.adam(learning_rate) if optimizer is None else optimizer
-    loss_fn = _batched_loss(qsr, width, activation, margin, input_share)
-    c = init(theta0, data, opt, loss_fn, max_steps)
-    c = jax.lax.while_loop(lambda c: ~terminate(c, max_steps),
-                           lambda c: step(c, data, opt, loss_fn, tol / s2), c)
-    K, P, lam = c["aux"]
+    # The driver loop of every gradient trainer, with the LTI direct map's method and the
+    # REN map's loss in place of the LTI one.
+    (_, _, (K, P, lam), _), hist, loss, steps, reason = iterate(
+        MapDescent(theta0, data, opt, _batched_loss(qsr, width, activation, margin,
+                                                    input_share)),
+        max_steps=max_steps, atol=atol / s2, rtol=rtol)
     K, lam = to_user_units(K, lam, s2**0.5)
     return RENFitResult(
-        controllers=K, P=P, certified=None, loss_history=c["hist"] * s2,
-        final_loss=c["loss"] * s2, converged=c["reason"] == _CONVERGED, steps=c["steps"],
-        wall_time=jnp.asarray(jnp.nan, c["hist"].dtype), stop_reason=_sdp.item(c["reason"]),
+        controllers=K, P=P, certified=None, loss_history=hist * s2, final_loss=loss * s2,
+        converged=reason == _CONVERGED, steps=steps,
+        wall_time=jnp.asarray(jnp.nan, hist.dtype), result=_outcome.item(reason),
         projected=None, multiplier=lam)
 
 
@@ -136,7 +93,7 @@ def _certify_all(res: RENFitResult, qsr: QSR) -> RENFitResult:
     K, P, lam = res.controllers, np.array(res.P, np.float64), np.array(res.multiplier,
                                                                           np.float64)
     ok = certified_batch(K, qsr, P, lam)
-    reason = np.asarray(res.stop_reason._value).copy()
+    reason = np.asarray(_outcome.codes(res.result)).copy()
     for i in np.nonzero(~ok)[0]:
         cert = certify_ren(jax.tree.map(lambda a: a[i], K), qsr)
         if cert.holds:
@@ -144,16 +101,16 @@ def _certify_all(res: RENFitResult, qsr: QSR) -> RENFitResult:
         else:
             reason[i] = _NOT_CERTIFIED
     dtype = res.P.dtype
-    return eqx.tree_at(lambda r: (r.P, r.multiplier, r.certified, r.stop_reason), res,
+    return eqx.tree_at(lambda r: (r.P, r.multiplier, r.certified, r.result), res,
                        (jnp.asarray(P, dtype), jnp.asarray(lam, dtype), jnp.asarray(ok),
-                        _sdp.item(reason)), is_leaf=lambda x: x is None)
+                        _outcome.item(reason)), is_leaf=lambda x: x is None)
 
 
 def fit_ren(
     key, windows: Windows, qsr: QSR, *, width: int = 16, activation="tanh",
     optimizer=None, learning_rate: float | None = None, init_scale: float | None = None,
-    num_inits: int = 8, n_state: int | None = None, max_steps: int = 150, tol: float = 0.0,
-    margin: float = MARGIN, input_share: float = 0.0, throw: bool = True,
+    num_inits: int = 8, n_state: int | None = None, max_steps: int = 150, atol: float = 0.0,
+    rtol: float = 0.0, margin: float = MARGIN, input_share: float = 0.0, throw: bool = True,
 ) -> RENFitResult:
     """Learn $(Q,S,R)$-dissipative REN controllers (nonlinear, dynamic) from demonstrations.
 
@@ -164,8 +121,9 @@ def fit_ren(
     gradient descent on the imitation loss
     ([`ren_imitation_loss`][dissil_jax.ren_imitation_loss]) in one compiled
     `lax.while_loop`, vmapped over `num_inits` initialisations; it stops after `max_steps`
-    or when $|\\Delta J| <$ `tol` (default 0: all steps, as the experiments run
-    [`fit_direct`][dissil_jax.fit_direct]).
+    or when $|J_k - J_{k-1}| <$ `atol` $+$ `rtol`$\\,|J_0|$ (default 0: all steps, as the
+    experiments run [`fit_direct`][dissil_jax.fit_direct]); the driver loop of every
+    gradient trainer, with the REN map in place of the LTI one.
 
     **Certified at the end:** each returned `(K, P, multiplier)` is checked in float64 by
     eigenvalues ([`certify_ren`][dissil_jax.certify_ren] with the pair given); a pair that
@@ -174,7 +132,7 @@ def fit_ren(
 
     **Arguments:**
 
-    - `key`, `windows`, `qsr` ($Q\\preceq0$), `num_inits`, `n_state`, `max_steps`, `tol`,
+    - `key`, `windows`, `qsr` ($Q\\preceq0$), `num_inits`, `n_state`, `max_steps`, `atol`, `rtol`,
       `optimizer`, `learning_rate`, `init_scale`, `margin`, `throw`: as in
       [`fit_direct`][dissil_jax.fit_direct]; the default step and initial scale are
       `fit_direct`'s at order $\\hat n + q$.
@@ -205,7 +163,7 @@ def fit_ren(
         raise ValueError(f"`optimizer` must be an `optax.GradientTransformation`, got "
                          f"{type(optimizer).__name__}.")
     given = dict(learning_rate=learning_rate, init_scale=init_scale)
-    check_fit_args(windows, qsr, num_inits, max_steps, tol=tol,
+    check_fit_args(windows, qsr, num_inits, max_steps, atol=atol, rtol=rtol,
                    **{k: v for k, v in given.items() if v is not None})
     if is_indefinite(qsr):
         raise ValueError("`qsr.Q` has a positive eigenvalue: the REN map covers Q negative "
@@ -225,7 +183,7 @@ def fit_ren(
     res = _run_jit(key, windows, qsr, jnp.asarray(learning_rate, dtype),
                    jnp.asarray(init_scale, dtype), width=int(width), activation=activation,
                    optimizer=optimizer, num_inits=int(num_inits), n_state=n_state,
-                   max_steps=int(max_steps), tol=float(tol), margin=margin,
+                   max_steps=int(max_steps), atol=float(atol), rtol=float(rtol), margin=margin,
                    input_share=float(input_share))
     jax.block_until_ready(res)
     res = _certify_all(res, qsr)
@@ -235,5 +193,5 @@ def fit_ren(
         raise ValueError(f"{int((~np.asarray(res.certified)).sum())} of {num_inits} REN "
                          "controllers failed the float64 certificate check and its SDP "
                          "fallback; pass `throw=False` to inspect them (`certified`, "
-                         "`stop_reason`), or raise `margin`.")
+                         "`result`), or raise `margin`.")
     return raise_if_failed(res) if throw else res

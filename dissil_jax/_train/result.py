@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+import time
+from typing import Any
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from .. import _sdp
+from .. import _outcome
+from .._outcome import Outcome
 
 
 class FitResult(eqx.Module):
@@ -25,25 +28,25 @@ class FitResult(eqx.Module):
     - `loss_history`: `[num_inits, max_steps + 1]`; column 0 is the initial controller's
       loss, column k the loss after step k, NaN after a controller stopped.
     - `final_loss`: `[num_inits]` loss of the returned controller.
-    - `converged`: `[num_inits]` True when the stopping rule $|\\Delta J| <$ `tol` fired.
+    - `converged`: `[num_inits]` True when the stopping rule fired (`result` is
+      `converged`).
     - `steps`: `[num_inits]` number of steps taken.
     - `wall_time`: total training wall time in seconds (NaN inside a traced sweep).
-    - `stop_reason`: `[num_inits]` [`Outcome`][dissil_jax.Outcome], why each run stopped
-      (decode with [`stop_reasons`][dissil_jax.FitResult.stop_reasons]): `converged`
-      ($|\\Delta J| <$ `tol`), `max_steps`, `non_finite` (the loss became NaN or infinite;
-      the constrained trainers keep their last finite, certified iterate), `infeasible`,
-      `solver_failed` or `not_certified` (a projection or an ICO SDP failed; the last
-      certified iterate is kept), `loss_increased` (ICO's float64 guard refused a step).
-      Compare with `res.stop_reason == dj.Outcome.converged`.
+    - `result`: `[num_inits]` [`Outcome`][dissil_jax.Outcome], how each run ended
+      (decode with [`result_names`][dissil_jax.FitResult.result_names]): `converged`
+      (the stopping rule of the trainer's `atol`/`rtol`), `max_steps`, `non_finite` (the loss
+      became NaN or infinite; the constrained trainers keep their last finite, certified
+      iterate), `infeasible`, `solver_failed` or `not_certified` (a projection or an ICO SDP
+      failed; the last certified iterate is kept), `loss_increased` (ICO's float64 guard
+      refused a step). Compare with `res.result == dj.Outcome.converged`. (Called
+      `stop_reason` before; that name remains a read-only alias.)
     - `projected`: `[num_inits]` bool or None. Only
       [`fit_direct`][dissil_jax.fit_direct] sets it: True where the direct map's controller
       failed the final float64 check and was replaced by its projection
       ([`project`][dissil_jax.project]); None for the other trainers.
     """
 
-    STOP_REASONS: ClassVar[tuple[str, ...]] = _sdp.NAMES
-
-    controllers: Any
+    controllers: Any  # LTIController or MLPController, batched
     P: Float[Array, "inits n n"] | None
     certified: Bool[Array, " inits"] | None
     loss_history: Float[Array, "inits steps"]
@@ -51,8 +54,13 @@ class FitResult(eqx.Module):
     converged: Bool[Array, " inits"]
     steps: Int[Array, " inits"]
     wall_time: Float[Array, ""]
-    stop_reason: Any = None
+    result: Outcome | None = None
     projected: Bool[Array, " inits"] | None = None
+
+    @property
+    def stop_reason(self) -> Outcome | None:
+        """The former name of `result`."""
+        return self.result
 
     @property
     def initial_loss(self) -> Float[Array, " inits"]:
@@ -74,19 +82,13 @@ class FitResult(eqx.Module):
         i = int(jnp.nanargmin(self.final_loss))
         return jax.tree.map(lambda x: x[i], self.controllers)
 
-    def stop_reasons(self) -> list:
-        """`stop_reason` decoded into `Outcome` names (nested lists for sweeps)."""
-        if self.stop_reason is None:
-            raise ValueError("this FitResult has no `stop_reason` (built by hand?).")
-        names = np.asarray(self.STOP_REASONS, dtype=object)
-        return names[np.asarray(_codes(self.stop_reason))].tolist()
+    def result_names(self) -> list:
+        """`result` decoded into `Outcome` names (nested lists for sweeps)."""
+        if self.result is None:
+            raise ValueError("this FitResult has no `result` (`stop_reason`; built by hand?).")
+        return list(_outcome.names(self.result))
 
-
-def _codes(reason):
-    return reason._value if isinstance(reason, _sdp.Outcome) else reason
-
-
-_FINE = (_sdp.code("converged"), _sdp.code("max_steps"))
+    stop_reasons = result_names  # the former name
 
 
 def raise_if_failed(res: FitResult) -> FitResult:
@@ -95,24 +97,34 @@ def raise_if_failed(res: FitResult) -> FitResult:
     Eagerly a `ValueError` that counts the reasons; under `jit` an `EquinoxRuntimeError`
     with the message of the worst outcome.
     """
-    codes = _codes(res.stop_reason)
-    bad = (codes != _FINE[0]) & (codes != _FINE[1])
+    codes = _outcome.codes(res.result)
+    bad = ~_outcome.is_in(codes, _outcome.FINE)
     if isinstance(codes, jax.core.Tracer):
-        worst = _sdp.item(jnp.max(jnp.where(bad, codes, -1)))
         return eqx.tree_at(lambda r: r.final_loss, res,
-                           worst.error_if(res.final_loss, jnp.any(bad)))
+                           _outcome.worst(codes, bad).error_if(res.final_loss, jnp.any(bad)))
     bad = np.asarray(bad)
     if bad.any():
-        names = np.asarray(res.stop_reasons(), dtype=object)[bad]
+        names = np.asarray(_outcome.names(codes), dtype=object)[bad]
         counts = {n: int((names == n).sum()) for n in sorted(set(names))}
         # One explanation (and its fix) per kind of failure, and what the failed runs kept:
         # only the constrained trainers have certified iterates to fall back on.
-        why = "; ".join(f"{n}: {_sdp.Outcome[getattr(_sdp.Outcome, n)].rstrip('.')}"
-                        for n in counts)
+        why = "; ".join(f"{n}: {_outcome.message(n).rstrip('.')}" for n in counts)
         kept = ("its last certified, finite iterate" if res.certified is not None
                 else "its last finite iterate")
         raise ValueError(
             f"{int(bad.sum())} of {bad.size} runs ended in failure {counts}. {why}. Each "
             f"failed run kept {kept}; pass `throw=False` to get the result and inspect "
-            "`stop_reason`.")
+            "`result`.")
     return res
+
+
+def fit_timed(run, hyper, dtype, finish, throw: bool) -> FitResult:
+    """The host side shared by the `fit_*` trainers: `run(*hyper)` (the compiled run, its
+    hyperparameters cast to the data's `dtype`), then `finish` (the float64 check), the wall
+    time, and `throw`."""
+    start = time.perf_counter()
+    res = jax.block_until_ready(run(*(jnp.asarray(v, dtype) for v in hyper)))
+    res = finish(res)
+    res = eqx.tree_at(lambda r: r.wall_time, res,
+                      jnp.asarray(time.perf_counter() - start, dtype))
+    return raise_if_failed(res) if throw else res

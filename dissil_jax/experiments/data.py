@@ -23,6 +23,7 @@ import jax.random as jr
 from jaxtyping import PRNGKeyArray
 
 from .._data import Windows
+from .._validate import check_int
 from .simulate import (
     CONTROL_NOISE,
     PLANT_NOISE,
@@ -35,10 +36,7 @@ from .simulate import (
 REGIMES = ("initial", "sliding")
 
 
-def _check_positive_int(name: str, value) -> int:
-    if int(value) != value or value < 1:
-        raise ValueError(f"`{name}` must be a positive integer, got {value!r}.")
-    return int(value)
+_check_positive_int = check_int
 
 
 def _check_traj(traj) -> None:

@@ -241,7 +241,7 @@ def _is_lti_plant(plant) -> bool:
     return isinstance(plant, LinearPlant)
 
 
-def _quantiles(values: np.ndarray, qs) -> np.ndarray:
+def quantiles(values: np.ndarray, qs) -> np.ndarray:
     """Linear-interpolation quantiles in which $+\\infty$ absorbs (numpy gives NaN there)."""
     v = np.sort(np.asarray(values, np.float64))
     out = []
@@ -281,7 +281,7 @@ def summarize(evaluation: Evaluation, fit=None) -> Summary:
     """Aggregate an [`Evaluation`][dissil_jax.experiments.Evaluation] (and optionally the
     `FitResult` that produced the controllers) into a [`Summary`][dissil_jax.experiments.Summary]."""
     mse, stable = np.asarray(evaluation.mse), np.asarray(evaluation.stable, bool)
-    q = _quantiles(mse, (0.0, 0.25, 0.5, 0.75, 1.0))
+    q = quantiles(mse, (0.0, 0.25, 0.5, 0.75, 1.0))
     if fit is not None:
         pcc = float(np.nanmean(np.asarray(fit.percent_change_cost)))
         wall = float(np.asarray(fit.wall_time))

@@ -21,7 +21,7 @@ import numpy as np
 
 from .._supply import QSR
 from .data import REGIMES, demonstration_windows
-from .metrics import _quantiles as _q, evaluate
+from .metrics import evaluate, quantiles as _q
 from .simulate import equilibrium_horizon
 
 METHODS = ("ico", "ico_nc", "pgd", "gd", "mlp", "direct", "ren")
@@ -116,7 +116,7 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
 
     # The experiments record every outcome (a diverged GD run counts as unstable), so no
     # trainer raises on a run that ended early.
-    common = dict(num_inits=inits, max_steps=spec.max_steps, tol=spec.tol, throw=False)
+    common = dict(num_inits=inits, max_steps=spec.max_steps, atol=spec.tol, throw=False)
     if method == "pgd":
         return dj.fit_pgd(key, windows, spec.qsr, learning_rate=spec.pgd_learning_rate,
                           decay=spec.pgd_decay, init_scale=spec.init_scale, **common)
@@ -130,20 +130,20 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
     if method == "direct":
         return dj.fit_direct(key, windows, spec.qsr, learning_rate=spec.direct_learning_rate,
                              init_scale=spec.direct_init_scale,
-                             **dict(common, tol=spec.direct_tol))
+                             **dict(common, atol=spec.direct_tol))
     if method == "ren":
         return dj.fit_ren(key, windows, spec.qsr, width=spec.ren_width,
                           activation=spec.ren_activation,
                           learning_rate=spec.ren_learning_rate,
                           init_scale=spec.ren_init_scale, input_share=spec.ren_input_share,
-                          **dict(common, tol=0.0))
+                          **dict(common, atol=0.0))
     if method == "mlp":
-        return dj.fit_mlp(key, windows, hidden=spec.hidden, num_inits=inits, tol=spec.tol,
+        return dj.fit_mlp(key, windows, hidden=spec.hidden, num_inits=inits, atol=spec.tol,
                           throw=False)
     raise ValueError(f"`method` must be one of {METHODS}, got {method!r}.")
 
 
-def _quantiles(values: np.ndarray) -> dict:
+def quantiles(values: np.ndarray) -> dict:
     mn, q1, med, q3, mx = _q(values, (0.0, 0.25, 0.5, 0.75, 1.0))
     return dict(mse_min=mn, mse_q1=q1, mse_median=med, mse_q3=q3, mse_max=mx)
 
@@ -168,7 +168,7 @@ def training_data(spec: ExampleSpec, plant_index: int, seed: int, data: str, seg
 
 
 @functools.cache
-def _test_setup(spec: ExampleSpec, plant_index: int, seed: int):
+def evaluation_setup(spec: ExampleSpec, plant_index: int, seed: int):
     """Test states, the expert's equilibrium horizon and the test length of one plant
     (they depend on the seed and the plant only: computed once per process)."""
     plant, expert, windows, (_, k_test, k_noise) = training_data(spec, plant_index, seed,
@@ -194,14 +194,14 @@ def run_config(example: str, data: str, method: str, segments: int, *, inits: in
         res = fit(method, k_fit, windows, spec, inits)
         jax.block_until_ready(res.final_loss)
         train_time += time.perf_counter() - t
-        x0, T, steps = _test_setup(spec, i, seed)
+        x0, T, steps = evaluation_setup(spec, i, seed)
         ev = evaluate(k_noise, plant, expert, res.controllers, x0, steps)
         horizons.append((T, steps))
         mse.append(np.asarray(ev.mse))
         stable.append(np.asarray(ev.stable, bool))
         bounded.append(np.asarray(ev.bounded, bool))
         pcc.append(np.asarray(res.percent_change_cost))
-        reasons += res.stop_reasons()
+        reasons += res.result_names()
         if res.certified is not None:
             certified.append(np.asarray(res.certified, bool))
     mse, stable, bounded = np.concatenate(mse), np.concatenate(stable), np.concatenate(bounded)
@@ -217,7 +217,7 @@ def run_config(example: str, data: str, method: str, segments: int, *, inits: in
         percent_change_cost=_finite_mean(np.concatenate(pcc)),
         train_time_s=train_time / n_ctrl,
         certified=None if not certified else bool(np.concatenate(certified).all()),
-        **{k: float(v) for k, v in _quantiles(mse).items()},
+        **{k: float(v) for k, v in quantiles(mse).items()},
         stop_reasons=dict(sorted(Counter(reasons).items())),
     )
     return record

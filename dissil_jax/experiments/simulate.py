@@ -26,6 +26,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._controller import LTIController
 from .._linalg import solve
+from .._validate import check_int
 
 PLANT_NOISE = 0.04
 CONTROL_NOISE = 0.02
@@ -61,9 +62,7 @@ def _check_sigma(name: str, value) -> float:
 
 
 def _check_steps(steps) -> int:
-    if int(steps) != steps or steps < 1:
-        raise ValueError(f"`steps` must be a positive integer, got {steps!r}.")
-    return int(steps)
+    return check_int("steps", steps)
 
 
 def _check_x0(x0, n_state: int) -> Array:
@@ -93,8 +92,7 @@ def sample_noise(
     """
     sw, se = _check_sigma("plant_noise", plant_noise), _check_sigma("control_noise", control_noise)
     steps = _check_steps(steps)
-    if int(num) != num or num < 1:
-        raise ValueError(f"`num` must be a positive integer, got {num!r}.")
+    check_int("num", num)
     dtype = dtype or plant.A.dtype
     kw, ke = jr.split(key)
     return Noise(sw * jr.normal(kw, (num, steps, plant.n_state), dtype),

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from .._linalg import spd_solve
+from .._validate import check_int
 
 # Step sizes tried in parallel by the backtracking line search (vectorised, so the
 # Newton loop stays one `while_loop` under vmap).
@@ -65,10 +66,8 @@ class NMPCExpert(eqx.Module):
     def __check_init__(self):
         if not hasattr(self.plant, "step"):
             raise ValueError(f"`plant` must have a `step(x, u)` method, got {type(self.plant)}.")
-        if int(self.horizon) != self.horizon or self.horizon < 1:
-            raise ValueError(f"`horizon` must be a positive integer, got {self.horizon!r}.")
-        if int(self.max_iter) != self.max_iter or self.max_iter < 1:
-            raise ValueError(f"`max_iter` must be a positive integer, got {self.max_iter!r}.")
+        check_int("horizon", self.horizon)
+        check_int("max_iter", self.max_iter)
         if self.r <= 0:
             raise ValueError(f"`r` must be positive (it makes the problem well posed), got {self.r}.")
         if self.q < 0 or self.q_terminal < 0:

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
+from .._validate import check_int
 from ._plants import LinearPlant
 
 
@@ -103,8 +104,7 @@ def mass_spring_chain(
     """
     import control
 
-    if int(n_masses) != n_masses or n_masses < 1:
-        raise ValueError(f"`n_masses` must be a positive integer, got {n_masses!r}.")
+    n_masses = check_int("n_masses", n_masses)
     if not np.isfinite(dt) or dt <= 0:
         raise ValueError(f"`dt` must be a positive sampling time, got {dt!r}.")
     for name, (lo, hi) in (("k_range", k_range), ("c_range", c_range), ("phi_range", phi_range)):

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
+
+from .._validate import check_abcd
 
 
 def _matrix(name: str, value) -> Array:
@@ -22,15 +25,7 @@ def _matrix(name: str, value) -> Array:
     return arr
 
 
-def _check_abcd(A, B, C, D) -> None:
-    n, m, p = A.shape[0], B.shape[1], C.shape[0]
-    expected = {"A": (n, n), "B": (n, m), "C": (p, n), "D": (p, m)}
-    for name, M in zip("ABCD", (A, B, C, D)):
-        if M.shape != expected[name]:
-            raise ValueError(
-                f"`{name}` has shape {M.shape}; with A {A.shape}, B {B.shape}, C {C.shape} "
-                f"it must be {expected[name]}."
-            )
+_check_abcd = check_abcd
 
 
 class _ABCDPlant(eqx.Module):
@@ -135,13 +130,3 @@ class SectorPlant(_ABCDPlant):
 def paper_nonlinear_plant() -> SectorPlant:
     """The paper's nonlinear benchmark (paper eq. 20): $x^+ = 0.5x + 0.4\\sin x + u$, $y = x - 2u$."""
     return SectorPlant(0.5, 1.0, 1.0, -2.0, 0.4)
-
-
-def check_plant(plant) -> None:
-    """Raise a ValueError naming `plant` when it lacks the plant interface."""
-    for attr in ("step", "output", "n_state", "n_in", "n_out"):
-        if not hasattr(plant, attr):
-            raise ValueError(
-                f"`plant` must provide `{attr}` (use `dj.LinearPlant` or `dj.SectorPlant`), "
-                f"got {type(plant).__name__}."
-            )

@@ -1,0 +1,130 @@
+"""How a computation ended: the [`Outcome`][dissil_jax.Outcome] enumeration and its codes.
+
+A leaf module (it imports nothing from the package). Host code (Clarabel callbacks, numpy
+loops) and jitted loops carry outcomes as int32 *codes*, this module's own numbering
+`code(name)`; results carry `Outcome` items. The two meet only here, through equinox's
+public enumeration interface: items are built with `Outcome.where` and read back with `==`,
+so nothing depends on how equinox stores an item.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+class Outcome(eqx.Enumeration):
+    """How a projection, a certificate, an SDP step or a training run ended.
+
+    Every result type has it in its `result` field. Projections report `solved`,
+    `unchanged`, `skipped` or one of the three failures (`infeasible`, `solver_failed`,
+    `not_certified`); trainers report why each run stopped: `converged`, `max_steps`,
+    `non_finite`, or the failure that ended it; certificates report `solved` when the
+    certificate holds. A failure never comes with an uncertified controller: the
+    projection returns its (flagged) target, the trainers their last certified iterate.
+    """
+
+    converged = "converged: |ΔJ| < atol + rtol |J_0|"
+    max_steps = "stopped at max_steps"
+    non_finite = (
+        "the loss became NaN or infinite: the steps were too large for this problem; pass "
+        "a smaller `learning_rate` (or an `optimizer` with a bounded step, such as "
+        "`optax.adam`) or a smaller `init_scale`"
+    )
+    solver_failed = (
+        "Clarabel failed to solve the SDP (max iterations or numerical trouble), usually for "
+        "a target far outside the dissipative set; pass a smaller `init_scale` or step, or a "
+        "larger `eps`"
+    )
+    loss_increased = "ICO's float64 re-evaluation found the loss increased; the step was refused"
+    not_certified = (
+        "the solver's point failed the exact float64 KYP check even with an enlarged margin "
+        "(no controller is returned without a certificate); pass a larger `eps`"
+    )
+    solved = "solved and verified by the exact float64 check"
+    unchanged = "the target was already certified by P_ref and is returned as is"
+    skipped = "inactive (e.g. a converged trainer lane); returned as is"
+    infeasible = (
+        "the SDP is infeasible: `qsr` admits no strictly dissipative controller of these "
+        "sizes near the reference P. Check the supply rate (e.g. R and S signs), or pass a "
+        "different `P_ref`."
+    )
+    no_multiplier = (
+        "no multiplier alpha > 0 makes the matrix of the QSR stability theorem (paper "
+        "Theorem 1) negative definite: the loop is not certified"
+    )
+
+
+#: The item names in code order: `NAMES[code(name)] == name`.
+NAMES: tuple[str, ...] = (
+    "converged", "max_steps", "non_finite", "solver_failed", "loss_increased",
+    "not_certified", "solved", "unchanged", "skipped", "infeasible", "no_multiplier")
+if len(Outcome) != len(NAMES) or not all(isinstance(getattr(Outcome, n), Outcome) for n in NAMES):
+    raise ImportError("`_outcome.NAMES` must list every `Outcome` item once.")
+_ITEMS = tuple(getattr(Outcome, n) for n in NAMES)
+_FAILURES = ("infeasible", "solver_failed", "not_certified")
+#: The trainers' normal ends; anything else is a failure for `throw=True`.
+FINE = ("converged", "max_steps")
+
+
+def code(name: str) -> int:
+    """The int32 code of the `Outcome` item called `name`."""
+    return NAMES.index(name)
+
+
+def item(codes) -> Outcome:
+    """Integer codes (any shape, numpy or JAX, traced or not) as an `Outcome` item."""
+    codes = jnp.asarray(codes, jnp.int32)
+
+    def one(c):
+        out = _ITEMS[0]
+        for i in range(1, len(_ITEMS)):
+            out = Outcome.where(c == i, _ITEMS[i], out)
+        return out
+
+    for _ in range(codes.ndim):  # `Outcome.where` takes a scalar predicate
+        one = jax.vmap(one)
+    return one(codes)
+
+
+def codes(outcome):
+    """The integer codes of an `Outcome` item (batched like it); integer input passes through.
+
+    A JAX array when `outcome` is an item, so it may be traced.
+    """
+    if not isinstance(outcome, Outcome):
+        return outcome
+    out = jnp.zeros(jnp.shape(outcome == _ITEMS[0]), jnp.int32)
+    for i, it in enumerate(_ITEMS):
+        out = jnp.where(outcome == it, i, out)
+    return out
+
+
+def names(outcome) -> list | str:
+    """An `Outcome` item (or codes) decoded into item names (nested lists when batched)."""
+    return np.asarray(NAMES, dtype=object)[np.asarray(codes(outcome))].tolist()
+
+
+def is_in(codes_, names_) -> np.ndarray | jax.Array:
+    """Elementwise: is the code one of `names_`? (numpy or JAX codes)"""
+    out = codes_ == code(names_[0])
+    for n in names_[1:]:
+        out = out | (codes_ == code(n))
+    return out
+
+
+def failed(codes_):
+    """Elementwise: is this code one of the SDP failures? (numpy or JAX codes)"""
+    return is_in(codes_, _FAILURES)
+
+
+def worst(codes_, bad) -> Outcome:
+    """The item of the highest code where `bad` (traceable), for `error_if`."""
+    return item(jnp.max(jnp.where(bad, codes_, -1)))
+
+
+def message(name: str) -> str:
+    """The sentence of the item called `name`."""
+    return Outcome[getattr(Outcome, name)]

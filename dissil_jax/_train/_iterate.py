@@ -1,0 +1,118 @@
+"""The one driver loop of the gradient trainers (PGD, GD, the direct map, the MLP).
+
+A trainer is a `Method`: an `eqx.Module` holding its data (windows, optimiser,
+supply rate, ...) with two methods, and `iterate` runs it:
+
+- `init() -> (state, J_0, code_0)`: the initial iterate, evaluated. `state` is any pytree
+  whose leaves have the lanes' shape in front (the initialisations: `[num_inits]`, or `()`
+  for a method vmapped by its caller, like the MLP); `J_0` the loss per lane; `code_0` an
+  [`Outcome`][dissil_jax.Outcome] code per lane (`_outcome.code`): `max_steps` for a lane
+  that may start, a failure (e.g. a failed initial projection) for one that takes no step.
+- `step(state, active) -> (state, J, code)`: one step of every lane from `state`, evaluated.
+  `active` (bool per lane) says which lanes are still running (a method may use it to skip
+  work, e.g. the projection); `code` is `converged` where the step succeeded and the
+  failure otherwise (a failed projection). A method reports a non-finite gradient as a
+  NaN `J`.
+- `select(accept, new, old)` (optional): the next state from the lanes that accept the
+  step; by default a per-lane `jnp.where` on every leaf (override it for state shared by
+  all lanes, like the direct map's one optimiser state).
+- `keep_non_finite` (class attribute): True for the unconstrained methods (GD, the MLP),
+  which return the iterate whose loss became non-finite; False for the constrained ones,
+  which keep their last finite, certified iterate.
+
+The driver (`terminate` included) does the bookkeeping once: the loss history (column 0
+is $J_0$, column $k$ the loss after step $k$, NaN once a lane stopped), the number of
+steps, the last accepted iterate and the stopping rule: a lane stops after step $k$ when
+
+$$|J_k - J_{k-1}| < \\text{atol} + \\text{rtol}\\,|J_0|$$
+
+(`converged`), when a step fails or its loss is not finite (that code), or after
+`max_steps` (`max_steps`). All lanes run in one `lax.while_loop` until every lane stopped;
+stopped lanes are frozen. A new trainer (e.g. a nonlinear controller) is one more
+`Method`.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .. import _outcome
+
+_CONVERGED, _MAX_STEPS, _NON_FINITE = (
+    _outcome.code(r) for r in ("converged", "max_steps", "non_finite"))
+
+
+def where(mask, new, old):
+    """Per-lane select on pytrees whose leaves have the lanes' axes first."""
+    return jax.tree.map(
+        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - mask.ndim)), a, b),
+        new, old)
+
+
+class Method(eqx.Module):
+    """A trainer for `iterate`: `init`, `step`, `select`, `keep_non_finite` (module doc)."""
+
+    keep_non_finite: ClassVar[bool] = False
+
+    @abc.abstractmethod
+    def init(self) -> tuple[Any, jax.Array, jax.Array]:
+        """`(state, J_0, code_0)`."""
+
+    @abc.abstractmethod
+    def step(self, state, active) -> tuple[Any, jax.Array, jax.Array]:
+        """`(state, J, code)` after one step of every lane."""
+
+    def select(self, accept, new, old):
+        """The next state: `new` on the lanes that `accept` the step, `old` elsewhere."""
+        return where(accept, new, old)
+
+
+def terminate(loss, prev, loss0, ok, *, atol, rtol):
+    """Per lane: the stopping rule $|J_k - J_{k-1}| <$ `atol` $+$ `rtol` $|J_0|$, or a
+    failed step (`ok` False)."""
+    return ~ok | (jnp.abs(loss - prev) < atol + rtol * jnp.abs(loss0))
+
+
+def iterate(method: Method, *, max_steps: int, atol, rtol):
+    """Run `method` for at most `max_steps` steps per lane (module docstring).
+
+    **Returns:** `(state, loss_history, final_loss, steps, code)`: the last accepted state,
+    `[*lanes, max_steps + 1]` losses, the loss of the returned iterate, the steps taken and
+    the `Outcome` code of how each lane ended.
+    """
+    state0, loss0, code0 = method.init()
+    finite0 = jnp.isfinite(loss0)
+    start = ~_outcome.failed(code0) & finite0
+    code0 = jnp.where(finite0 | _outcome.failed(code0), code0, _NON_FINITE)
+    hist = jnp.full(loss0.shape + (max_steps + 1,), jnp.nan, loss0.dtype).at[..., 0].set(loss0)
+    carry = dict(k=jnp.zeros((), jnp.int32), state=state0, loss=loss0, hist=hist, done=~start,
+                 steps=jnp.zeros(loss0.shape, jnp.int32),
+                 code=jnp.where(start, _MAX_STEPS, code0).astype(jnp.int32))
+
+    def cond(c):
+        return (c["k"] < max_steps) & jnp.any(~c["done"])
+
+    def body(c):
+        active = ~c["done"]
+        state, loss, code = method.step(c["state"], active)
+        failed = code != _CONVERGED
+        finite = jnp.isfinite(loss)
+        code = jnp.where(failed | finite, code, _NON_FINITE)
+        accept = active & ~failed & (finite | method.keep_non_finite)
+        state = method.select(accept, state, c["state"])
+        loss = jnp.where(accept, loss, c["loss"])
+        ok = ~failed & finite
+        stop = active & terminate(loss, c["loss"], loss0, ok, atol=atol, rtol=rtol)
+        return dict(
+            k=c["k"] + 1, state=state, loss=loss,
+            hist=c["hist"].at[..., c["k"] + 1].set(jnp.where(active, loss, jnp.nan)),
+            done=c["done"] | stop, steps=c["steps"] + active.astype(jnp.int32),
+            code=jnp.where(stop, code, c["code"]).astype(jnp.int32))
+
+    c = jax.lax.while_loop(cond, body, carry)
+    return c["state"], c["hist"], c["loss"], c["steps"], c["code"]

@@ -1,0 +1,38 @@
+"""Argument checks shared across the package (a leaf module: it imports nothing from it)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def check_int(name: str, value, *, minimum: int = 1) -> int:
+    """`value` as an `int`, or a `ValueError` naming `name`.
+
+    Accepts Python and numpy integers and integral floats (`3.0`) of at least `minimum`
+    (1: "a positive integer", 0: "a non-negative integer"); rejects bools, arrays and
+    anything else.
+    """
+    kind = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
+    if minimum == 0:
+        kind = "a non-negative integer"
+    try:
+        ok = (not isinstance(value, bool) and np.ndim(value) == 0 and int(value) == value
+              and value >= minimum)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise ValueError(f"`{name}` must be {kind}, got {value!r}.")
+    return int(value)
+
+
+def check_abcd(A, B, C, D, *, what: str = "") -> None:
+    """The shapes of a state-space quadruple $(A, B, C, D)$ with shared leading batch axes;
+    a `ValueError` naming the first wrong matrix (as `` `{what}B` ``) otherwise."""
+    batch = A.shape[:-2]
+    n, m, p = A.shape[-1], B.shape[-1], C.shape[-2]
+    expected = {"A": (n, n), "B": (n, m), "C": (p, n), "D": (p, m)}
+    for name, M in zip("ABCD", (A, B, C, D)):
+        if M.shape[:-2] != batch or M.shape[-2:] != expected[name]:
+            raise ValueError(
+                f"`{what}{name}` has shape {M.shape}; with A {A.shape}, B {B.shape}, "
+                f"C {C.shape} it must be {batch + expected[name]}.")
