@@ -93,7 +93,7 @@ def stop_table(out) -> str:
 
 
 def _grid():
-    from dissil_jax._train.direct import default_hyperparameters
+    from dissil_jax.internal import default_hyperparameters
 
     def direct(factor):
         # fit_direct's default step scales with the width n + p; a factor on it

@@ -28,16 +28,10 @@ import numpy as np  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
+from bench_direct import timed  # noqa: E402  (compile once, then time a second run)
+
 import dissil_jax as dj  # noqa: E402
 from dissil_jax.experiments.protocol import example_spec, fit, run_config, training_data  # noqa: E402,E501
-
-
-def timed(run):
-    run()  # compile
-    t = time.perf_counter()
-    res = run()
-    jax.block_until_ready(res.final_loss)
-    return res, time.perf_counter() - t
 
 
 def main(quick=False, inits=100, loop=False):

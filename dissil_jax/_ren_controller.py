@@ -13,6 +13,7 @@ from jaxtyping import Array, Float
 
 from ._controller import LTIController
 from ._data import Windows
+from ._rollout import scan_outputs
 
 #: The activations known to be slope-restricted in $[0, 1]$ with $\sigma(0) = 0$.
 ACTIVATIONS: dict[str, Callable] = {"relu": jax.nn.relu, "tanh": jnp.tanh}
@@ -230,15 +231,7 @@ def ren_rollout(K: RENController, x0: Float[Array, " n"] | None, u_in: Float[Arr
 
     **Returns:** the outputs $\\hat y_0..\\hat y_{h-1}$ (`[h, m]`).
     """
-    u_in = jnp.asarray(u_in)
-    if x0 is None:
-        x0 = jnp.zeros((K.n_state,), jnp.result_type(K.A.dtype, u_in.dtype))
-    x0 = jnp.asarray(x0)
-    if x0.shape != (K.n_state,):
-        raise ValueError(f"`x0` must have shape ({K.n_state},) (the controller's state size), "
-                         f"got {x0.shape}.")
-    _, y = jax.lax.scan(lambda x, u: K(x, u), x0, u_in)
-    return y
+    return scan_outputs(K, x0, u_in)
 
 
 def ren_predict(K: RENController, windows: Windows) -> Float[Array, "N h m"]:

@@ -69,6 +69,13 @@ def rollout(
 
     **Returns:** the outputs $\\hat y_0..\\hat y_{h-1}$ (`[h, m]`). Unbatched; vmap for batches.
     """
+    return scan_outputs(K, x0, u_in)
+
+
+def scan_outputs(K, x0, u_in):
+    """`rollout` for any controller module with `n_state`, a state matrix `A` and
+    `K(x, u) -> (x_next, y)` (the LTI controller and the REN): the outputs of a `lax.scan`
+    from `x0`, or from rest when it is None."""
     u_in = jnp.asarray(u_in)
     if x0 is None:
         x0 = jnp.zeros((K.n_state,), jnp.result_type(K.A.dtype, u_in.dtype))
@@ -76,12 +83,7 @@ def rollout(
     if x0.shape != (K.n_state,):
         raise ValueError(f"`x0` must have shape ({K.n_state},) (the controller's state size), "
                          f"got {x0.shape}.")
-
-    def step(x, u):
-        x_next, y = K(x, u)
-        return x_next, y
-
-    _, y = jax.lax.scan(step, x0, u_in)
+    _, y = jax.lax.scan(lambda x, u: K(x, u), x0, u_in)
     return y
 
 

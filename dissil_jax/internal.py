@@ -6,7 +6,8 @@ layout can change behind this one list (as lineax's `internal`).
 
 Modules, for monkeypatching in tests and for benchmarks that time one layer alone:
 `certify_fast`, `direct`, `direct_map`, `ico`, `ico_sdp`, `linalg`, `lmi`, `mlp`, `outcome`,
-`pgd`, `projection`, `projection_fo`, `rollout`, `sdp`; and the functions and constants in
+`pgd`, `projection`, `projection_fo`, `ren_certify`, `ren_map`, `ren_train`, `rollout`,
+`sdp`; and the functions and constants in
 `__all__`.
 """
 
@@ -18,13 +19,15 @@ from . import (
     _outcome as outcome,
     _projection as projection,
     _projection_fo as projection_fo,
+    _ren_certify as ren_certify,
+    _ren_map as ren_map,
     _rollout as rollout,
     _sdp as sdp,
 )
 from ._lmi import ConvexifiedLMI, certified, kyp_certified, kyp_margin, kyp_scale, smat
 from ._projection import solver_stats
 from ._sdp import single_threaded_blas
-from ._train import _ico_sdp as ico_sdp, direct, ico, mlp, pgd
+from ._train import _ico_sdp as ico_sdp, direct, ico, mlp, pgd, ren as ren_train
 from ._train._checks import check_n_state
 from ._train._ico_blocks import Iterate
 from ._train._ico_layout import svec_len
@@ -32,18 +35,20 @@ from ._train._ico_sdp import ICOProblem
 from ._train._ico_solver import ICOSolver
 from ._train._ico_windows import stacked_factor
 from ._train._init import INIT_SCALE, init_controllers
+from ._train._iterate import Method, iterate
 from ._train._scale import loss_scale, scaled
-from ._train.direct import _run as direct_run_unchecked, default_hyperparameters
+from ._train.direct import MapDescent, _run as direct_run_unchecked, default_hyperparameters
 from ._train.mlp import demonstration_pairs
 from ._train.pgd import METRIC_FLOOR, optimizer_metric
 from .experiments._paper import FIGURES, TABLES
 
 __all__ = [
-    "FIGURES", "TABLES", "INIT_SCALE", "METRIC_FLOOR", "ConvexifiedLMI", "ICOProblem", "ICOSolver", "Iterate",
-    "certified", "certify_fast", "check_n_state", "default_hyperparameters",
-    "demonstration_pairs", "direct", "direct_map", "direct_run_unchecked", "ico", "ico_sdp",
-    "init_controllers", "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi",
-    "loss_scale", "mlp", "optimizer_metric", "outcome", "pgd", "projection", "projection_fo",
-    "rollout", "scaled", "sdp", "single_threaded_blas", "smat", "solver_stats",
-    "stacked_factor", "svec_len",
+    "ConvexifiedLMI", "FIGURES", "ICOProblem", "ICOSolver", "INIT_SCALE", "Iterate",
+    "METRIC_FLOOR", "MapDescent", "Method", "TABLES", "certified", "certify_fast",
+    "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct",
+    "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "init_controllers", "iterate",
+    "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "mlp",
+    "optimizer_metric", "outcome", "pgd", "projection", "projection_fo", "ren_certify",
+    "ren_map", "ren_train", "rollout", "scaled", "sdp", "single_threaded_blas", "smat",
+    "solver_stats", "stacked_factor", "svec_len",
 ]

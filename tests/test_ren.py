@@ -10,10 +10,14 @@ import pytest
 from helpers import expert_windows, supply_from_definition
 
 import dissil_jax as dj
-from dissil_jax import _direct_map as dm
-from dissil_jax._ren_certify import ren_lmi
-from dissil_jax._ren_map import init_ren_params, ren_map
-from dissil_jax._train import ren as ren_train
+from dissil_jax.internal import (
+    MapDescent,
+    direct_map as dm,
+    iterate,
+    ren_certify,
+    ren_map as rm,
+    ren_train,
+)
 
 I2 = np.eye(2)
 #: Supply rates with Q <= 0 of every kind (m = p = 2).
@@ -134,7 +138,7 @@ def test_lmi_is_the_s_procedure_form_of_the_definition():
     K = _random_ren(rng)
     qsr = SUPPLY_RATES["strict"]
     P, lam = np.array([[2.0, 0.3], [0.3, 1.0]]), np.array([0.5, 1.5, 2.0])
-    M = ren_lmi(K, qsr, P, lam)
+    M = ren_certify.ren_lmi(K, qsr, P, lam)
     A, B1, B2, C1, D11, D12, C2, D21, D22 = (np.asarray(X) for X in K.matrices)
     for _ in range(20):
         x, w, u = rng.standard_normal(2), rng.standard_normal(3), rng.standard_normal(2)
@@ -181,9 +185,9 @@ def _worst_dissipation(K, qsr, P, horizon=6, steps=300, seed=0):
 @pytest.mark.parametrize("name", ["strict", "passive", "gain"])
 def test_certificate_holds_along_random_and_worst_case_inputs(name):
     qsr = SUPPLY_RATES[name]
-    theta = jax.tree.map(lambda a: a[0], init_ren_params(jr.PRNGKey(1), 1, 2, 3, 2, 2, 0.7,
+    theta = jax.tree.map(lambda a: a[0], rm.init_ren_params(jr.PRNGKey(1), 1, 2, 3, 2, 2, 0.7,
                                                          jnp.float64))
-    K, _, _ = ren_map(theta, qsr, 3, "relu")
+    K, _, _ = rm.ren_map(theta, qsr, 3, "relu")
     cert = dj.certify_ren(K, qsr)
     assert cert.holds and cert.status == "optimal"
     # random sequences: the storage decrease at every step of the nonlinear system
@@ -220,24 +224,24 @@ def test_a_non_dissipative_ren_is_rejected():
 @pytest.mark.parametrize("name", list(SUPPLY_RATES))
 def test_map_values_are_certified_for_every_q(name):
     qsr = SUPPLY_RATES[name]
-    theta = init_ren_params(jr.PRNGKey(2), 6, 2, 4, 2, 2, 1.0, jnp.float64)
-    K, P, lam = jax.vmap(lambda t: ren_map(t, qsr, 4, "tanh", input_share=0.5))(theta)
+    theta = rm.init_ren_params(jr.PRNGKey(2), 6, 2, 4, 2, 2, 1.0, jnp.float64)
+    K, P, lam = jax.vmap(lambda t: rm.ren_map(t, qsr, 4, "tanh", input_share=0.5))(theta)
     cert = dj.certify_ren(K, qsr, P=P, multiplier=lam)
     assert cert.holds.all() and (np.asarray(lam) > 0).all()
     assert np.abs(np.asarray(K.D12)).min() > 0  # the neurons' direct input is in use
     assert (np.asarray(K.D11)[:, np.triu_indices(4)[0], np.triu_indices(4)[1]] == 0).all()
     # the map's bound M_REN <= -eps diag(M, Phi0) implies at least eps * lambda_min(P)
     for i in range(6):
-        M = ren_lmi(jax.tree.map(lambda a: a[i], K), qsr, P[i], lam[i])
+        M = ren_certify.ren_lmi(jax.tree.map(lambda a: a[i], K), qsr, P[i], lam[i])
         assert np.linalg.eigvalsh(M)[-1] < -0.5 * dm.MARGIN * min(
             1.0, np.linalg.eigvalsh(np.asarray(P[i]))[0])
 
 
 def test_width_zero_reproduces_the_lti_direct_map():
     qsr = SUPPLY_RATES["rank_deficient"]
-    theta = jax.tree.map(lambda a: a[0], init_ren_params(jr.PRNGKey(3), 1, 3, 0, 2, 2, 0.5,
+    theta = jax.tree.map(lambda a: a[0], rm.init_ren_params(jr.PRNGKey(3), 1, 3, 0, 2, 2, 0.5,
                                                          jnp.float64))
-    K, P, lam = ren_map(theta, qsr, 0, input_share=0.0)
+    K, P, lam = rm.ren_map(theta, qsr, 0, input_share=0.0)
     K_lti, P_lti = dm.direct_map(theta.lti, qsr)
     assert lam.shape == (0,)
     # [A B] = G_P^{-1} (G_P [A B]): one triangular product and solve, round-off only
@@ -274,15 +278,14 @@ def test_fit_ren_is_certified_independently(name):
 def test_batched_training_equals_python_loop():
     qsr = SISO["strict"]
     w = expert_windows(2, 1, 1, 1, N=8)
-    theta0 = init_ren_params(jr.PRNGKey(5), 3, 1, 3, 1, 1, 0.5, jnp.float64)
+    theta0 = rm.init_ren_params(jr.PRNGKey(5), 3, 1, 3, 1, 1, 0.5, jnp.float64)
     opt = optax.adam(0.05)
     loss_fn = ren_train._batched_loss(qsr, 3, "tanh", dm.MARGIN)
 
     def run(theta):
-        c = ren_train.init(theta, w, opt, loss_fn, 15)
-        c = jax.lax.while_loop(lambda c: ~ren_train.terminate(c, 15),
-                               lambda c: ren_train.step(c, w, opt, loss_fn, 0.0), c)
-        return c["hist"], c["aux"][1]
+        state, hist, *_ = iterate(MapDescent(theta, w, opt, loss_fn), max_steps=15, atol=0.0,
+                                  rtol=0.0)
+        return hist, state[2][1]
 
     hist, P = jax.jit(run)(theta0)
     for i in range(3):
@@ -303,8 +306,8 @@ def test_failed_end_check_gets_an_sdp_certificate(monkeypatch):
 
 
 def test_input_share_zero_gives_no_direct_input():
-    theta = init_ren_params(jr.PRNGKey(7), 2, 1, 3, 2, 2, 1.0, jnp.float64)
-    K, P, lam = jax.vmap(lambda t: ren_map(t, SUPPLY_RATES["passive"], 3, input_share=0.0))(
+    theta = rm.init_ren_params(jr.PRNGKey(7), 2, 1, 3, 2, 2, 1.0, jnp.float64)
+    K, P, lam = jax.vmap(lambda t: rm.ren_map(t, SUPPLY_RATES["passive"], 3, input_share=0.0))(
         theta)
     assert not np.asarray(K.D12).any()
     assert dj.certify_ren(K, SUPPLY_RATES["passive"], P=P, multiplier=lam).holds.all()
