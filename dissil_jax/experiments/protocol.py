@@ -14,6 +14,7 @@ import dataclasses
 import functools
 import time
 from collections import Counter
+from typing import Any
 
 import jax
 import jax.random as jr
@@ -116,7 +117,7 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
 
     # The experiments record every outcome (a diverged GD run counts as unstable), so no
     # trainer raises on a run that ended early.
-    common = dict(num_inits=inits, max_steps=spec.max_steps, atol=spec.tol, throw=False)
+    common: dict[str, Any] = dict(num_inits=inits, max_steps=spec.max_steps, atol=spec.tol, throw=False)
     if method == "pgd":
         return dj.fit_pgd(key, windows, spec.qsr, learning_rate=spec.pgd_learning_rate,
                           decay=spec.pgd_decay, init_scale=spec.init_scale, **common)

@@ -7,6 +7,7 @@ and supply rates are float64 host computations, the demonstrations are simulated
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 from ...experts import nmpc_expert
 from ...systems import paper_nonlinear_plant
@@ -21,13 +22,13 @@ from ._build import (
 from ._record import Problem
 
 
-def _static(plant, **kw):
+def _static(plant, **kw) -> dict[str, Any]:
     expert, exact = static_expert(plant, **kw)
     return dict(plant=plant, expert=expert, expert_controller=exact,
                 expert_kind="nonlinear" if kw.get("saturation") else "static")
 
 
-def _observer(plant):
+def _observer(plant) -> dict[str, Any]:
     expert, exact = observer(plant)
     return dict(plant=plant, expert=expert, expert_controller=exact, expert_kind="observer")
 
