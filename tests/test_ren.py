@@ -51,6 +51,7 @@ def _np_step(K, x, u):
     return A @ x + B1 @ w + B2 @ u, C2 @ x + D21 @ w + D22 @ u, v, w
 
 
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 @pytest.mark.parametrize("activation", ["relu", "tanh"])
 def test_step_and_rollout_match_the_definition(activation):
     rng = np.random.default_rng(0)
@@ -64,6 +65,7 @@ def test_step_and_rollout_match_the_definition(activation):
     np.testing.assert_allclose(dj.ren_rollout(K, x0, u), np.array(ys), rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 def test_predict_and_loss_vmapped_equal_python_loops():
     rng = np.random.default_rng(1)
     Ks = [_random_ren(rng) for _ in range(3)]
@@ -131,6 +133,7 @@ def test_bad_input_names_the_argument():
 
 # -- the certificate against the definition -------------------------------------------------
 
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 def test_lmi_is_the_s_procedure_form_of_the_definition():
     """xi' M xi = V(x+) - V(x) - s(u, y) + 2 w'L(v - w) for free (x, w, u), evaluated by
     running the linear part one step (no library code in the reference)."""
@@ -182,6 +185,7 @@ def _worst_dissipation(K, qsr, P, horizon=6, steps=300, seed=0):
     return best
 
 
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 @pytest.mark.parametrize("name", ["strict", "passive", "gain"])
 def test_certificate_holds_along_random_and_worst_case_inputs(name):
     qsr = SUPPLY_RATES[name]
@@ -206,6 +210,7 @@ def test_certificate_holds_along_random_and_worst_case_inputs(name):
     assert _worst_dissipation(K, qsr, P) <= 1e-9
 
 
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 def test_a_non_dissipative_ren_is_rejected():
     """A REN with a large feedthrough and an active network violates a small gain bound; the
     SDP finds no certificate, and optimised inputs show the violation on the system."""
@@ -221,6 +226,7 @@ def test_a_non_dissipative_ren_is_rejected():
 
 # -- the direct map ------------------------------------------------------------------------
 
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 @pytest.mark.parametrize("name", list(SUPPLY_RATES))
 def test_map_values_are_certified_for_every_q(name):
     qsr = SUPPLY_RATES[name]
@@ -237,6 +243,7 @@ def test_map_values_are_certified_for_every_q(name):
             1.0, np.linalg.eigvalsh(np.asarray(P[i]))[0])
 
 
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 def test_width_zero_reproduces_the_lti_direct_map():
     qsr = SUPPLY_RATES["rank_deficient"]
     theta = jax.tree.map(lambda a: a[0], rm.init_ren_params(jr.PRNGKey(3), 1, 3, 0, 2, 2, 0.5,

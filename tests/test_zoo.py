@@ -91,6 +91,7 @@ def test_problems_are_deterministic():
         assert not np.allclose(np.asarray(x), np.asarray(z))
 
 
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 @pytest.mark.parametrize("name", NAMES)
 def test_plant_satisfies_its_supply_rate(problems, name):
     p = problems[name]
@@ -126,6 +127,7 @@ def test_plant_satisfies_its_supply_rate(problems, name):
     assert np.linalg.eigvalsh(Q2)[-1] <= 1e-12  # Q <= 0: fit_direct applies everywhere
 
 
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 @pytest.mark.parametrize("name", NAMES)
 def test_evaluate_zero_controller(problems, name):
     p = problems[name]
@@ -161,6 +163,7 @@ def _expert_loop_matrix(p):
 
 @pytest.mark.parametrize("name", [n for n in NAMES if n in (
     "chain5_siso_io", "cone_siso_tiny", "chain8_siso_io", "chain3_paper", "gain_2x2_io")])
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 def test_evaluate_expert(problems, name):
     p = problems[name]
     rep = zoo.evaluate(p, lambda t: p.expert_controller)
@@ -187,6 +190,7 @@ def _loop_predict(K, W, n_state):
     return np.asarray(out)
 
 
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 @pytest.mark.parametrize("name", ["chain4_4x4_io", "cone_3x2"])
 def test_imitation_error_against_loops(problems, name):
     p = problems[name]
