@@ -38,11 +38,27 @@ def method(trainer: str, *, num_inits: int, **kw):
 
 
 def run_full(trainer: str, problem, *, num_inits: int, max_steps: int, **kw):
-    """One run without early stop (`atol=0`): the FitResult and the zoo's report."""
+    """One run without early stop (`atol = rtol = 0`), returning the last iterate where the
+    trainer can return another (`keep="last"`): the FitResult and the zoo's report."""
+    out = {}
+    if trainer in ("pgd", "direct"):
+        kw = dict(keep="last", **kw)
+
+    def m(t):
+        out["res"] = method(trainer, num_inits=num_inits, max_steps=max_steps, atol=0.0,
+                            rtol=0.0, **kw)(t)
+        return out["res"]
+
+    rep = zoo.evaluate(problem, m)
+    return out["res"], rep
+
+
+def run_defaults(trainer: str, problem, *, num_inits: int):
+    """One run with the trainer's defaults (its stopping rule and returned iterate)."""
     out = {}
 
     def m(t):
-        out["res"] = method(trainer, num_inits=num_inits, max_steps=max_steps, atol=0.0, **kw)(t)
+        out["res"] = method(trainer, num_inits=num_inits)(t)
         return out["res"]
 
     rep = zoo.evaluate(problem, m)

@@ -92,6 +92,14 @@ def stop_table(out) -> str:
     return "\n".join(lines)
 
 
+def _r1(p) -> float:
+    return min(1.0, p.n_state ** -0.5)
+
+
+def _r2(p) -> float:
+    return min(1.0, (p.n_state * max(1, p.facts.horizon - 1)) ** -0.5)
+
+
 def _grid():
     from dissil_jax.internal import default_hyperparameters
 
@@ -113,7 +121,17 @@ def _grid():
         "mlp": {"default (1e-3)": const(), "lr 1e-2": const(learning_rate=1e-2),
                 "lr 3e-3": const(learning_rate=3e-3)},
         "pgd": {"default": const(), "init 0.3": const(init_scale=0.3),
-                "adam 0.1": const(optimizer=optax.adam(0.1))},
+                "adam 0.1": const(optimizer=optax.adam(0.1)),
+                # candidate defaults: Adam (fit_gd's) and initial scales that follow the
+                # order n and window length h: r1 = min(1, 1/sqrt(n)), r2 = min(1,
+                # 1/sqrt(n (h - 1)))
+                "adam 0.1, init 0.3": const(optimizer=optax.adam(0.1), init_scale=0.3),
+                "adam 0.1, init r1": lambda p: dict(optimizer=optax.adam(0.1),
+                                                    init_scale=_r1(p)),
+                "adam 0.1, init r2": lambda p: dict(optimizer=optax.adam(0.1),
+                                                    init_scale=_r2(p)),
+                "init r1": lambda p: dict(init_scale=_r1(p)),
+                "init r2": lambda p: dict(init_scale=_r2(p))},
         "ico": {"default": const(), "init 0.3": const(init_scale=0.3)},
     }
 

@@ -92,6 +92,10 @@ def compare(example, inits, quick):
             pgd_wall = wall
         rows.append(row({"pgd": "PGD", "ico": "ICO", "direct": "Direct"}[method], res[method],
                         wall, pgd_wall, spec))
+    # the library's defaults (step, initial scale, budget, relative stopping rule)
+    res["defaults"], wall = timed(lambda: dj.fit_direct(k_fit, w, spec.qsr, num_inits=inits,
+                                                        throw=False))
+    rows.append(row("Direct, library defaults", res["defaults"], wall, pgd_wall, spec))
     kw = dict(num_inits=inits, learning_rate=spec.direct_learning_rate, atol=spec.direct_tol,
               init_scale=spec.direct_init_scale, throw=False)
     r, wall = timed(lambda: dj.fit_direct(k_fit, _f32(w), spec.qsr, **kw))
@@ -111,8 +115,9 @@ def compare(example, inits, quick):
         print(f"| {r['method']} | {r['wall']:.3g} | {r['ratio']:.3g} | {r['loss']:.3g} | "
               f"{r['mse']:.3g} | {r['before']:.0f} | {r['after']:.0f} |")
     ico = float(np.median(res["ico"].final_loss))
-    print(f"\nDirect's median training loss / ICO's: "
-          f"{float(np.median(res['direct'].final_loss)) / ico:.2f}")
+    for m in ("direct", "defaults"):
+        print(f"\n{'Direct' if m == 'direct' else 'Direct with defaults'}: median training "
+              f"loss / ICO's {float(np.median(res[m].final_loss)) / ico:.2f}")
     if not quick:
         sweeps(spec, w, k_fit, inits)
 

@@ -19,13 +19,32 @@ class Windows(eqx.Module):
 
     **Input-output logs alone.** When the plant state was not recorded, pass `x0=None`:
     the controller then starts every window **at rest**, $\\hat x_0 = 0$, whatever its
-    order $\\hat n$. This is exact when each window is the beginning of a run from rest
-    (a logged experiment started at equilibrium); for windows cut from the middle of a
-    trajectory it neglects the unknown initial state, whose effect $\\mathcal O\\hat x_0$
-    (see [`observability_toeplitz`][dissil_jax.observability_toeplitz]) the loss then
-    charges to the controller. With `x0=None`, `x0` stays None, `n_state` is None (the
-    controller order is a free choice: the trainers take it as `n_state=`) and the number
-    of windows comes from `y`.
+    order $\\hat n$. What must be at rest is the *demonstrator's* internal state, not the
+    plant's: the controller sees only $y$, so a window is imitated exactly from rest when
+    the expert that produced it started from its own rest state. A static output-feedback
+    expert ($u = -Ky$) is always at rest; an observer-based or other dynamic expert is at
+    rest at the start of a log in which its state was zero, even if the plant was not at
+    equilibrium then. (A state-feedback expert acts on the plant state, which is then the
+    demonstrator's state: from rest is exact only when the plant started at rest.) For
+    windows cut from the middle of a dynamic expert's run, starting
+    at rest neglects the expert's unknown state, whose effect $\\mathcal O\\hat x_0$ (see
+    [`observability_toeplitz`][dissil_jax.observability_toeplitz]) the loss then charges
+    to the controller.
+
+    **Window length from rest.** From rest, an $h$-step window shows the controller's
+    response $\\hat y_k = Dy_k + \\sum_{j<k} CA^{k-1-j}By_j$, so the loss determines
+    only $D$ and the Markov parameters $CB, CAB, \\dots, CA^{h-2}B$; the rest of an
+    order-$\\hat n$ controller is not fitted but still acts in closed loop. A generic
+    order-$\\hat n$ response with $p$ inputs and $m$ outputs is fixed by $D$ and its first
+    $\\lceil\\hat n/m\\rceil + \\lceil\\hat n/p\\rceil$ Markov parameters (the Hankel matrix
+    built from them then has rank $\\hat n$, and a realisation follows from it and its
+    shift), so use
+
+    $$h \\ge \\lceil\\hat n/m\\rceil + \\lceil\\hat n/p\\rceil + 1
+    \\qquad (h \\ge 2\\hat n + 1 \\text{ for one input and one output}).$$
+
+    With `x0=None`, `x0` stays None, `n_state` is None (the controller order is a free
+    choice: the trainers take it as `n_state=`) and the number of windows comes from `y`.
 
     **The sign convention lives here.** The loop is negative feedback, $u = \\hat r - \\hat y$,
     so a controller that imitates the expert must output $\\hat y_k = -u_k$; `target`

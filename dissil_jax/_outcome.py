@@ -23,7 +23,7 @@ class Outcome(eqx.Enumeration):
     `not_certified`); trainers report why each run stopped: `converged`, `max_steps`,
     `non_finite`, or the failure that ended it; certificates report `solved` when the
     certificate holds. A failure never comes with an uncertified controller: the
-    projection returns its (flagged) target, the trainers their last certified iterate.
+    projection returns its (flagged) target, the certified trainers their best certified iterate.
     """
 
     converged = "converged: |ΔJ| < atol + rtol |J_0|"

@@ -2,6 +2,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from helpers import independent_kyp_ok, index, random_windows, through_solves
 
@@ -256,8 +257,39 @@ def test_solver_failure_mid_run_keeps_the_last_certified_iterate(getkey, monkeyp
     assert float(res.loss_history[0, k]) == float(res.loss_history[0, k - 1])
     assert float(res.final_loss[0]) == pytest.approx(float(ref.loss_history[0, k - 1]),
                                                      rel=1e-12)
-    assert bool(res.certified[0])
+    assert bool(res.certified[0]) and int(res.kept_step[0]) == k - 1
     assert independent_kyp_ok(index(res.controllers, 0), QSR, res.P[0])
+
+
+@pytest.mark.parametrize("trainer", ["pgd", "direct", "gd"])
+def test_best_iterate_is_kept(getkey, trainer):
+    """A step too long for the problem makes the loss go up and down. The certified
+    trainers return their iterate of lowest loss and say which step it was; the
+    unconstrained baseline returns its last iterate."""
+    w = random_windows(getkey(), N=12, n=2, gain=0.6)
+    kw = dict(num_inits=4, max_steps=12, atol=0.0, throw=False)
+    if trainer == "pgd":  # the paper's rule without decay, far above its default step
+        res = dj.fit_pgd(getkey(), w, QSR, learning_rate=8.0, decay=1.0, **kw)
+    elif trainer == "direct":
+        res = dj.fit_direct(getkey(), w, QSR, learning_rate=3.0, **kw)
+    else:
+        res = dj.fit_gd(getkey(), w, optimizer=optax.sgd(6.0), **kw)
+    hist = np.asarray(res.loss_history)
+    last = np.array([h[int(s)] for h, s in zip(hist, np.asarray(res.steps))])
+    # the premise: some run ended above its best loss (else the test shows nothing)
+    assert np.any(last > np.nanmin(hist, axis=1) * (1 + 1e-9))
+    kept = np.asarray(res.kept_step)
+    for i in range(4):
+        K = index(res.controllers, i)
+        if trainer == "gd":
+            assert kept[i] == int(res.steps[i])
+            assert float(res.final_loss[i]) == pytest.approx(last[i], rel=1e-12, nan_ok=True)
+            continue
+        assert kept[i] == int(np.nanargmin(hist[i]))
+        assert float(res.final_loss[i]) == pytest.approx(np.nanmin(hist[i]), rel=1e-12)
+        # the returned controller is the one that had that loss, and it is certified
+        assert paper_loss(K, w) == pytest.approx(float(res.final_loss[i]), rel=1e-9)
+        assert bool(res.certified[i]) and independent_kyp_ok(K, QSR, res.P[i])
 
 
 def test_failed_initial_projection(getkey, monkeypatch):
@@ -297,7 +329,7 @@ def test_non_finite_loss_under_a_constraint_keeps_the_last_finite_iterate(getkey
     assert res.result_names() == ["non_finite"] and int(res.steps[0]) == 3
     assert float(res.final_loss[0]) == pytest.approx(hist[2], rel=1e-12)
     assert float(res.loss_history[0, 3]) == pytest.approx(hist[2], rel=1e-12)
-    assert bool(res.certified[0])
+    assert bool(res.certified[0]) and int(res.kept_step[0]) == 2
     assert independent_kyp_ok(index(res.controllers, 0), QSR, res.P[0])
     assert paper_loss(index(res.controllers, 0), w) == pytest.approx(hist[2], rel=1e-10)
     with pytest.raises(ValueError, match="non_finite"):

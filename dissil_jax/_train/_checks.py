@@ -35,6 +35,14 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
             raise ValueError(f"`{name}` must be finite and non-negative, got {v!r}.")
 
 
+def check_keep(keep) -> str:
+    """The trainers' `keep`: which iterate of each run they return."""
+    if keep not in ("best", "last"):
+        raise ValueError(f"`keep` must be 'best' (the iterate of lowest loss) or 'last' (the "
+                         f"final iterate, as in the paper's Algorithm 2), got {keep!r}.")
+    return keep
+
+
 def check_optimizer(optimizer, rule: str, **step_args) -> bool:
     """True when an `optimizer` is given; then none of `step_args` (the default rule's
     hyperparameters, named after `rule`) may be set, and it must be an optax transformation."""

@@ -17,12 +17,15 @@ supply rate, ...) with two methods, and `iterate` runs it:
   step; by default a per-lane `jnp.where` on every leaf (override it for state shared by
   all lanes, like the direct map's one optimiser state).
 - `keep_non_finite` (class attribute): True for the unconstrained methods (GD, the MLP),
-  which return the iterate whose loss became non-finite; False for the constrained ones,
-  which keep their last finite, certified iterate.
+  which return their last iterate, the one whose loss became non-finite if it did (the
+  paper's baselines); False for the constrained ones (PGD, the direct maps), which return
+  their *best* iterate: the accepted one of lowest loss, every accepted iterate being
+  finite and certified.
 
 The driver (`terminate` included) does the bookkeeping once: the loss history (column 0
 is $J_0$, column $k$ the loss after step $k$, NaN once a lane stopped), the number of
-steps, the last accepted iterate and the stopping rule: a lane stops after step $k$ when
+steps, the returned iterate (best or last, as above) with the step it came from, and the
+stopping rule: a lane stops after step $k$ when
 
 $$|J_k - J_{k-1}| < \\text{atol} + \\text{rtol}\\,|J_0|$$
 
@@ -42,6 +45,14 @@ import jax
 import jax.numpy as jnp
 
 from .. import _outcome
+
+#: The trainers' default stopping rule: `atol = 0` and these `rtol`, relative to the run's
+#: initial loss, so that when a run stops does not depend on the data's units. Chosen on
+#: the tuning half of `dissil_jax.experiments.zoo` (`benchmarks/bench_defaults.py`, table
+#: `benchmarks/results/defaults_stop.md`): the largest `rtol` whose stopped loss is within
+#: about 1 % of the full budget's on the median problem and within 10 % on the worst. The
+#: unconstrained baselines (GD, the MLP) descend more slowly and need a ten times smaller one.
+RTOL, RTOL_UNCONSTRAINED = 1e-6, 1e-7
 
 _CONVERGED, _MAX_STEPS, _NON_FINITE = (
     _outcome.code(r) for r in ("converged", "max_steps", "non_finite"))
@@ -78,13 +89,20 @@ def terminate(loss, prev, loss0, ok, *, atol, rtol):
     return ~ok | (jnp.abs(loss - prev) < atol + rtol * jnp.abs(loss0))
 
 
-def iterate(method: Method, *, max_steps: int, atol, rtol):
+def iterate(method: Method, *, max_steps: int, atol, rtol, keep: str = "best"):
     """Run `method` for at most `max_steps` steps per lane (module docstring).
 
-    **Returns:** `(state, loss_history, final_loss, steps, code)`: the last accepted state,
-    `[*lanes, max_steps + 1]` losses, the loss of the returned iterate, the steps taken and
-    the `Outcome` code of how each lane ended.
+    `keep="last"` returns the last accepted state of every method (the paper's Algorithm 2
+    outputs its last iterate).
+
+    **Returns:** `(state, loss_history, final_loss, steps, code, kept_step)`: the returned
+    state (the best accepted one, or the last for `keep="last"` and `keep_non_finite`
+    methods),
+    `[*lanes, max_steps + 1]` losses, the loss of the returned iterate, the steps taken, the
+    `Outcome` code of how each lane ended and the step the returned state came from (0: the
+    initial iterate).
     """
+    keep_best = keep == "best" and not method.keep_non_finite
     state0, loss0, code0 = method.init()
     finite0 = jnp.isfinite(loss0)
     start = ~_outcome.failed(code0) & finite0
@@ -92,7 +110,10 @@ def iterate(method: Method, *, max_steps: int, atol, rtol):
     hist = jnp.full(loss0.shape + (max_steps + 1,), jnp.nan, loss0.dtype).at[..., 0].set(loss0)
     carry = dict(k=jnp.zeros((), jnp.int32), state=state0, loss=loss0, hist=hist, done=~start,
                  steps=jnp.zeros(loss0.shape, jnp.int32),
-                 code=jnp.where(start, _MAX_STEPS, code0).astype(jnp.int32))
+                 code=jnp.where(start, _MAX_STEPS, code0).astype(jnp.int32),
+                 at=jnp.zeros(loss0.shape, jnp.int32))
+    if keep_best:
+        carry.update(best=state0, best_loss=loss0)
 
     def cond(c):
         return (c["k"] < max_steps) & jnp.any(~c["done"])
@@ -108,11 +129,22 @@ def iterate(method: Method, *, max_steps: int, atol, rtol):
         loss = jnp.where(accept, loss, c["loss"])
         ok = ~failed & finite
         stop = active & terminate(loss, c["loss"], loss0, ok, atol=atol, rtol=rtol)
-        return dict(
+        new = dict(
             k=c["k"] + 1, state=state, loss=loss,
             hist=c["hist"].at[..., c["k"] + 1].set(jnp.where(active, loss, jnp.nan)),
             done=c["done"] | stop, steps=c["steps"] + active.astype(jnp.int32),
             code=jnp.where(stop, code, c["code"]).astype(jnp.int32))
+        if keep_best:
+            # Accepted iterates are finite and certified here; keep the one of lowest loss.
+            better = accept & (loss < c["best_loss"])
+            new.update(best=method.select(better, state, c["best"]),
+                       best_loss=jnp.where(better, loss, c["best_loss"]),
+                       at=jnp.where(better, c["k"] + 1, c["at"]))
+        else:
+            new.update(at=jnp.where(accept, c["k"] + 1, c["at"]))
+        return new
 
     c = jax.lax.while_loop(cond, body, carry)
-    return c["state"], c["hist"], c["loss"], c["steps"], c["code"]
+    if keep_best:
+        return c["best"], c["hist"], c["best_loss"], c["steps"], c["code"], c["at"]
+    return c["state"], c["hist"], c["loss"], c["steps"], c["code"], c["at"]

@@ -18,8 +18,8 @@ from .._indefinite import is_indefinite
 from .._projection import project
 from .._rollout import imitation_loss
 from .._supply import QSR
-from ._checks import check_fit_args, check_n_state, check_optimizer
-from ._iterate import Method, iterate, where
+from ._checks import check_fit_args, check_keep, check_n_state, check_optimizer
+from ._iterate import RTOL, Method, iterate, where
 from ._scale import loss_scale, scaled
 from .result import FitResult, fit_timed, raise_if_failed
 
@@ -70,7 +70,7 @@ class MapDescent(Method):
     Pure JAX (no callback), so the run can be jitted, vmapped over the optimiser's
     hyperparameters and sharded. The state carries the gradient of the current iterate, so
     each step evaluates the map, the loss and its gradient once; a non-finite gradient
-    counts as a non-finite loss, and the run keeps its last finite iterate.
+    counts as a non-finite loss; the driver returns the best finite iterate.
     """
 
     theta0: Any
@@ -104,21 +104,21 @@ class MapDescent(Method):
 
 
 def _run(key, windows, qsr, learning_rate, init_scale, *, optimizer, num_inits, n_state,
-         max_steps, atol, rtol, margin) -> FitResult:
+         max_steps, atol, rtol, margin, keep="best") -> FitResult:
     """`direct_run` without argument checks or `throw` (traceable; `qsr`, `optimizer` static)."""
     s2 = loss_scale(windows)
     dtype = windows.y.dtype
     theta0 = init_params(key, num_inits, n_state, windows.n_in, windows.n_out, init_scale,
                          dtype)
     opt = optax.adam(learning_rate) if optimizer is None else optimizer
-    (_, _, (K, P), _), hist, loss, steps, reason = iterate(
+    (_, _, (K, P), _), hist, loss, steps, reason, kept = iterate(
         MapDescent(theta0, scaled(windows, s2), opt, _loss_fn(qsr, margin)),
-        max_steps=max_steps, atol=atol / s2, rtol=rtol)
+        max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
     return FitResult(
         controllers=K, P=P, certified=None,
         loss_history=hist * s2, final_loss=loss * s2, converged=reason == _CONVERGED,
         steps=steps, wall_time=jnp.asarray(jnp.nan, hist.dtype),
-        result=_outcome.item(reason), projected=jnp.zeros(num_inits, bool))
+        result=_outcome.item(reason), projected=jnp.zeros(num_inits, bool), kept_step=kept)
 
 
 _run_jit = eqx.filter_jit(_run)
@@ -152,8 +152,8 @@ def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, at
 def direct_run(
     key, windows: Windows, qsr: QSR, *, optimizer=None, learning_rate=None,
     init_scale=None, num_inits: int = 8, n_state: int | None = None,
-    max_steps: int = 150, atol: float = 1e-3, rtol: float = 0.0, margin: float = MARGIN,
-    throw: bool = True,
+    max_steps: int = 150, atol: float = 0.0, rtol: float = RTOL, margin: float = MARGIN,
+    throw: bool = True, keep: str = "best",
 ) -> FitResult:
     """The pure, traceable run behind [`fit_direct`][dissil_jax.fit_direct].
 
@@ -180,7 +180,7 @@ def direct_run(
         atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, margin=margin)
     res = _run(key, windows, qsr, learning_rate, init_scale, optimizer=optimizer,
                num_inits=num_inits, n_state=n_state, max_steps=max_steps, atol=atol,
-               rtol=rtol, margin=margin)
+               rtol=rtol, margin=margin, keep=check_keep(keep))
     return raise_if_failed(res) if throw else res
 
 
@@ -224,9 +224,9 @@ def certify_or_project(res: FitResult, qsr: QSR, windows: Windows, *, eps: float
 
 def fit_direct(
     key, windows: Windows, qsr: QSR, *, optimizer=None, learning_rate: float | None = None,
-    num_inits: int = 8, n_state: int | None = None, max_steps: int = 150, atol: float = 1e-3,
-    rtol: float = 0.0, init_scale: float | None = None, margin: float = MARGIN,
-    fallback_eps: float = 1e-6, throw: bool = True,
+    num_inits: int = 8, n_state: int | None = None, max_steps: int = 150, atol: float = 0.0,
+    rtol: float = RTOL, init_scale: float | None = None, margin: float = MARGIN,
+    fallback_eps: float = 1e-6, throw: bool = True, keep: str = "best",
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers without projections, through a direct map.
 
@@ -277,6 +277,8 @@ def fit_direct(
       [`project`][dissil_jax.project]; called `eps` before).
     - `throw`: raise a `ValueError` when a run ends in failure (a non-finite loss, or a
       failed fallback projection); with `throw=False` see `result`.
+    - `keep`: `"best"` (default) returns each run's iterate of lowest loss, `"last"` its
+      final iterate (`kept_step` records which step), as in `fit_pgd`.
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult] with `certified` from the float64
     check and `projected` (bool per initialisation).
@@ -293,6 +295,6 @@ def fit_direct(
         lambda *h: _run_jit(key, windows, qsr, *h, optimizer=optimizer,
                             num_inits=int(num_inits), n_state=n_state,
                             max_steps=int(max_steps), atol=float(atol), rtol=float(rtol),
-                            margin=margin),
+                            margin=margin, keep=check_keep(keep)),
         (learning_rate, init_scale), windows.y.dtype,
         lambda res: certify_or_project(res, qsr, windows, eps=float(fallback_eps)), throw)

@@ -18,6 +18,7 @@ from ._checks import check_fit_args
 from ._ico_sdp import ICOProblem
 from ._ico_solver import ICOSolver
 from ._init import INIT_SCALE, init_controllers
+from ._iterate import RTOL
 from ._scale import loss_scale, scaled
 from .result import FitResult, raise_if_failed
 
@@ -180,13 +181,15 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
         steps=jnp.asarray([r["steps"] for r in results], jnp.int32),
         wall_time=jnp.asarray(wall, dtype),
         result=_outcome.item(reasons),
+        # Every accepted step lowers the loss (the guard above), so the last is the best.
+        kept_step=jnp.asarray([r["steps"] for r in results], jnp.int32),
     )
     return raise_if_failed(res) if throw else res
 
 
 def fit_ico(
     key, windows: Windows, qsr: QSR, *, num_inits: int = 8, max_steps: int = 150,
-    atol: float = 1e-3, rtol: float = 0.0, init_scale: float = INIT_SCALE, eps: float = 1e-6,
+    atol: float = 0.0, rtol: float = RTOL, init_scale: float = INIT_SCALE, eps: float = 1e-6,
     prox: float = 1e-4,
     window_cone: str = "stacked", callback: Callable | None = None, throw: bool = True,
 ) -> FitResult:
@@ -276,8 +279,9 @@ def fit_ico(
       part is linearised at the current iterate, so every iterate stays certified).
     - `num_inits`: number of random initialisations.
     - `max_steps`: maximum number of ICO iterations (paper: 150).
-    - `atol`, `rtol`: stop when $|\\Delta J| <$ `atol` $+$ `rtol` $|J_0|$ (the paper's tol
-      is `atol`: 1e-3 linear, 1e-5 nonlinear).
+    - `atol`, `rtol`: stop when $|\\Delta J| <$ `atol` $+$ `rtol` $|J_0|$; default `atol` = 0,
+      `rtol` = 1e-6 as in [`fit_pgd`][dissil_jax.fit_pgd] (the paper's tol is `atol`, with
+      `rtol` = 0: 1e-3 linear, 1e-5 nonlinear).
     - `init_scale`: standard deviation of the random initial entries (default 1, the
       paper's N(0, 1) draw, which is then projected as in paper Alg. 1).
     - `eps`: margin of the dissipativity LMI (never more than the current iterate has).
@@ -287,7 +291,7 @@ def fit_ico(
       point (step 0) and every accepted iterate, from worker threads.
     - `throw`: raise a `ValueError` when a run stopped early (an SDP failure or a refused
       step, see `FitResult.result`). With `throw=False` the result is returned; every
-      run, including one that stopped early, carries its last certified iterate.
+      run, including one that stopped early, carries its best (and last accepted) certified iterate.
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult] with `P` and `certified` filled in.
 
@@ -304,8 +308,8 @@ def fit_ico(
 
 
 def fit_ico_nc(
-    key, windows: Windows, *, num_inits: int = 8, max_steps: int = 150, atol: float = 1e-3,
-    rtol: float = 0.0, init_scale: float = INIT_SCALE, prox: float = 1e-4,
+    key, windows: Windows, *, num_inits: int = 8, max_steps: int = 150, atol: float = 0.0,
+    rtol: float = RTOL, init_scale: float = INIT_SCALE, prox: float = 1e-4,
     window_cone: str = "stacked",
     callback: Callable | None = None, throw: bool = True,
 ) -> FitResult:

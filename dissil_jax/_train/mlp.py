@@ -16,7 +16,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 from .. import _outcome
 from .._data import Windows
 from ._checks import check_fit_args
-from ._iterate import Method, iterate
+from ._iterate import RTOL_UNCONSTRAINED, Method, iterate
 from .result import FitResult, fit_timed
 
 _CONVERGED, _MAX_STEPS = _outcome.code("converged"), _outcome.code("max_steps")
@@ -132,10 +132,10 @@ def _train_one(key, X, T, *, hidden, max_steps, learning_rate, atol, rtol):
     """
     model = MLPController(X.shape[-1], T.shape[-1], hidden, key=key, dtype=X.dtype)
     params, static = eqx.partition(model, eqx.is_inexact_array)
-    (params, _, _), hist, J, steps, reason = iterate(
+    (params, _, _), hist, J, steps, reason, kept = iterate(
         _Adam(params, static, X, T, optax.adam(learning_rate)), max_steps=max_steps,
         atol=atol, rtol=rtol)
-    return eqx.combine(params, static), hist, J, reason == _CONVERGED, steps, reason
+    return eqx.combine(params, static), hist, J, reason == _CONVERGED, steps, reason, kept
 
 
 @partial(eqx.filter_jit)
@@ -147,7 +147,7 @@ def _train_batch(keys, X, T, hidden, max_steps, learning_rate, atol, rtol):
 
 def fit_mlp(
     key, windows: Windows, *, hidden: Sequence[int] = (150, 150), num_inits: int = 8,
-    max_steps: int = 2000, learning_rate: float = 1e-3, atol: float = 1e-7, rtol: float = 0.0,
+    max_steps: int = 2000, learning_rate: float = 1e-3, atol: float = 0.0, rtol: float = RTOL_UNCONSTRAINED,
     throw: bool = True,
 ) -> FitResult:
     """Train the paper's NN baseline (NN + GD): a static ReLU MLP on the demonstration pairs.
@@ -169,7 +169,9 @@ def fit_mlp(
     - `windows`: demonstration windows (any horizon).
     - `hidden`: hidden-layer widths, all equal; `len(hidden) + 1` weight matrices (paper:
       three, `(150, 150)` linear and `(25, 25)` nonlinear).
-    - `num_inits`, `max_steps`, `atol`, `rtol`: as for the other trainers.
+    - `num_inits`, `max_steps`, `atol`, `rtol`: as for the other trainers (default
+      `atol` = 0, `rtol` = 1e-7: the unconstrained baselines' relative rule, see
+      [`fit_pgd`][dissil_jax.fit_pgd]).
     - `learning_rate`: Adam's step size on the raw parameters (the data are not normalised,
       unlike the LTI trainers').
     - `throw`: raise a `ValueError` if a run's loss became non-finite (as `dj.fit_gd`).
@@ -185,11 +187,11 @@ def fit_mlp(
     keys = jr.split(key, num_inits)
 
     def run():
-        model, hist, J, converged, steps, reason = _train_batch(
+        model, hist, J, converged, steps, reason, kept = _train_batch(
             keys, X, T, hidden, int(max_steps), float(learning_rate), float(atol), float(rtol))
         return FitResult(
             controllers=model, P=None, certified=None, loss_history=hist, final_loss=J,
             converged=converged, steps=steps, wall_time=jnp.asarray(jnp.nan, X.dtype),
-            result=_outcome.item(reason))
+            result=_outcome.item(reason), kept_step=kept)
 
     return fit_timed(run, (), X.dtype, lambda res: res, throw)

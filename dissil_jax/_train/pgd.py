@@ -15,9 +15,9 @@ from .._data import Windows
 from .._projection import project
 from .._rollout import imitation_loss
 from .._supply import QSR
-from ._checks import check_fit_args, check_n_state, check_optimizer
+from ._checks import check_fit_args, check_keep, check_n_state, check_optimizer
 from ._init import INIT_SCALE, init_controllers
-from ._iterate import Method, iterate
+from ._iterate import RTOL, RTOL_UNCONSTRAINED, Method, iterate
 from ._scale import loss_scale, scaled
 from .result import FitResult, fit_timed, raise_if_failed
 
@@ -107,7 +107,7 @@ class _PGD(Method):
 
 
 def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_inits,
-         n_state, max_steps, atol, rtol, eps, method="clarabel") -> FitResult:
+         n_state, max_steps, atol, rtol, eps, method="clarabel", keep="best") -> FitResult:
     """`pgd_run` without argument checks or `throw` (traceable; `qsr` and `optimizer` static).
 
     Trains on the windows divided by the data scale (`_scale.py`), so that steps do not
@@ -122,15 +122,15 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
         code0 = _outcome.codes(proj.result)
     opt = paper_rule(learning_rate, decay) if optimizer is None else optimizer
     pgd = _PGD(K0, P0, code0, scaled(windows, s2), opt, qsr, eps, method)
-    (K, P, _), hist, loss, steps, reason = iterate(
-        pgd, max_steps=max_steps, atol=atol / s2, rtol=rtol)
+    (K, P, _), hist, loss, steps, reason, kept = iterate(
+        pgd, max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
     hist, loss = hist * s2, loss * s2
     return FitResult(
         controllers=K, P=P,
         certified=None if qsr is None else ~_outcome.failed(code0),
         loss_history=hist, final_loss=loss, converged=reason == _CONVERGED, steps=steps,
         wall_time=jnp.asarray(jnp.nan, hist.dtype), result=_outcome.item(reason),
-    )
+        kept_step=kept)
 
 
 _run_jit = eqx.filter_jit(_run)
@@ -168,8 +168,8 @@ def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, de
 def pgd_run(
     key, windows: Windows, qsr: QSR | None, *, optimizer=None, learning_rate=None, decay=None,
     init_scale=INIT_SCALE, num_inits: int = 8, n_state: int | None = None,
-    max_steps: int = 150, atol: float = 1e-3, rtol: float = 0.0, eps: float = 1e-6,
-    throw: bool = True, method: str = "auto",
+    max_steps: int = 150, atol: float = 0.0, rtol: float = RTOL, eps: float = 1e-6,
+    throw: bool = True, method: str = "auto", keep: str = "best",
 ) -> FitResult:
     """The pure, traceable PGD run behind [`fit_pgd`][dissil_jax.fit_pgd].
 
@@ -178,7 +178,7 @@ def pgd_run(
     hyperparameter sweep); `qsr` is static (hashable). `qsr=None` gives plain gradient
     descent. `wall_time` is NaN and `certified` comes from the projection's own float64
     check (a failed initial projection leaves that initialisation with `certified=False`
-    and zero steps). `throw` and `method` as in `fit_pgd`; under `jit` `throw` raises an
+    and zero steps). `throw`, `method` and `keep` as in `fit_pgd`; under `jit` `throw` raises an
     `EquinoxRuntimeError`.
 
     ```python
@@ -192,12 +192,12 @@ def pgd_run(
         decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state)
     res = _run(key, windows, qsr, learning_rate, decay, init_scale, optimizer=optimizer,
                num_inits=num_inits, n_state=n_state, max_steps=max_steps, atol=atol,
-               rtol=rtol, eps=eps, method=method)
+               rtol=rtol, eps=eps, method=method, keep=check_keep(keep))
     return raise_if_failed(res) if throw else res
 
 
 def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_inits,
-         n_state, max_steps, atol, rtol, eps, throw, method="clarabel"):
+         n_state, max_steps, atol, rtol, eps, throw, method="clarabel", keep="best"):
     """`pgd_run`, compiled once per static configuration, timed and certified as a batch."""
     optimizer, learning_rate, decay, n_state = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
@@ -215,16 +215,16 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
         lambda *h: _run_jit(key, windows, qsr, *h, optimizer=optimizer,
                             num_inits=int(num_inits), n_state=n_state,
                             max_steps=int(max_steps), atol=float(atol), rtol=float(rtol),
-                            eps=float(eps), method=method),
+                            eps=float(eps), method=method, keep=check_keep(keep)),
         (learning_rate, decay, init_scale), windows.y.dtype, certify, throw)
 
 
 def fit_pgd(
     key, windows: Windows, qsr: QSR, *, optimizer=None, learning_rate: float | None = None,
     decay: float | None = None, num_inits: int = 8, n_state: int | None = None,
-    max_steps: int = 150, atol: float = 1e-3, rtol: float = 0.0,
+    max_steps: int = 150, atol: float = 0.0, rtol: float = RTOL,
     init_scale: float = INIT_SCALE, eps: float = 1e-6, throw: bool = True,
-    method: str = "auto",
+    method: str = "auto", keep: str = "best",
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers by projected gradient descent (paper Alg. 2).
 
@@ -270,14 +270,22 @@ def fit_pgd(
     - `n_state`: the controller order $\\hat n$; required when `windows.x0` is None (the
       controller starts at rest), otherwise it must equal `windows.n_state`.
     - `max_steps` (paper: 150), `atol` and `rtol`: the stopping rule
-      $|\\Delta J| <$ `atol` $+$ `rtol` $|J_0|$ ($J_0$ the run's initial loss; the paper's
+      $|\\Delta J| <$ `atol` $+$ `rtol` $|J_0|$ ($J_0$ the run's initial loss). The
+      default, `atol` = 0 and `rtol` = 1e-6, does not depend on the data's units; it was
+      chosen on the tuning half of `dissil_jax.experiments.zoo` (the largest `rtol` that
+      stops within about 1 % of the full budget's loss, `benchmarks/bench_defaults.py`;
+      `fit_gd` and `fit_mlp` use 1e-7). The paper's
       $|\\Delta J| <$ tol is `atol` = tol, `rtol` = 0: 1e-3 linear, 1e-5 nonlinear; both
       `0.0` run every step), `init_scale` $\\sigma$ (default 1: the paper's N(0, 1) draw, see
       below), `eps` (LMI strictness margin).
     - `throw`: raise a `ValueError` when a run ends in failure (`result` other than
       `converged` or `max_steps`: a failed projection, or a non-finite loss). With
       `throw=False` the result is returned and `result` says what happened; a failed
-      run keeps its last certified iterate.
+      run keeps its best certified iterate (`kept_step` says which).
+    - `keep`: which iterate each run returns: `"best"` (default), the certified iterate of
+      lowest loss, or `"last"`, the final one, as the paper's Algorithm 2 outputs
+      $\\mathcal C_{i+1}$ (the reproduction uses it). They differ when a step raised the
+      loss; `kept_step` records the step of the returned iterate.
     - `method`: $\\Pi$'s solver, as `project`'s `method`. `"first_order"`: ADMM in JAX
       (Frobenius projections only, so not with an adaptive optimiser's metric), every
       result still checked in float64 on the host, Clarabel where the check fails;
@@ -302,13 +310,13 @@ def fit_pgd(
     return _fit(key, windows, qsr, optimizer=optimizer, learning_rate=learning_rate,
                 decay=decay, init_scale=init_scale, num_inits=num_inits, n_state=n_state,
                 max_steps=max_steps, atol=atol, rtol=rtol, eps=eps, throw=throw,
-                method=method)
+                method=method, keep=keep)
 
 
 def fit_gd(
     key, windows: Windows, *, optimizer=None, learning_rate: float | None = None,
     decay: float | None = None, num_inits: int = 8, n_state: int | None = None,
-    max_steps: int = 150, atol: float = 1e-3, rtol: float = 0.0,
+    max_steps: int = 150, atol: float = 0.0, rtol: float = RTOL_UNCONSTRAINED,
     init_scale: float = GD_INIT_SCALE, throw: bool = True,
 ) -> FitResult:
     """Plain gradient descent on the imitation loss: [`fit_pgd`][dissil_jax.fit_pgd] without $\\Pi$.

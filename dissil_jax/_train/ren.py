@@ -22,8 +22,8 @@ from .._ren_certify import certified_batch, certify_ren
 from .._ren_controller import check_activation, ren_imitation_loss
 from .._ren_map import init_ren_params, ren_map
 from .._supply import QSR
-from ._checks import check_fit_args, check_n_state
-from ._iterate import iterate
+from ._checks import check_fit_args, check_keep, check_n_state
+from ._iterate import RTOL, iterate
 from ._scale import loss_scale, scaled
 from .direct import MapDescent, default_hyperparameters
 from .result import FitResult, raise_if_failed
@@ -62,7 +62,7 @@ def to_user_units(K, lam, s):
 
 
 def _run(key, windows, qsr, learning_rate, init_scale, *, width, activation, optimizer,
-         num_inits, n_state, max_steps, atol, rtol, margin, input_share):
+         num_inits, n_state, max_steps, atol, rtol, margin, input_share, keep="best"):
     # Train in normalised units (`_scale.py`), as the LTI trainers do; the neurons stay in
     # those units, so the result is mapped back exactly for any activation (`to_user_units`).
     s2 = loss_scale(windows)
@@ -72,16 +72,16 @@ def _run(key, windows, qsr, learning_rate, init_scale, *, width, activation, opt
     opt = optax.adam(learning_rate) if optimizer is None else optimizer
     # The driver loop of every gradient trainer, with the LTI direct map's method and the
     # REN map's loss in place of the LTI one.
-    (_, _, (K, P, lam), _), hist, loss, steps, reason = iterate(
+    (_, _, (K, P, lam), _), hist, loss, steps, reason, kept = iterate(
         MapDescent(theta0, data, opt, _batched_loss(qsr, width, activation, margin,
                                                     input_share)),
-        max_steps=max_steps, atol=atol / s2, rtol=rtol)
+        max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
     K, lam = to_user_units(K, lam, s2**0.5)
     return RENFitResult(
         controllers=K, P=P, certified=None, loss_history=hist * s2, final_loss=loss * s2,
         converged=reason == _CONVERGED, steps=steps,
         wall_time=jnp.asarray(jnp.nan, hist.dtype), result=_outcome.item(reason),
-        projected=None, multiplier=lam)
+        projected=None, multiplier=lam, kept_step=kept)
 
 
 _run_jit = eqx.filter_jit(_run)
@@ -110,7 +110,8 @@ def fit_ren(
     key, windows: Windows, qsr: QSR, *, width: int = 16, activation="tanh",
     optimizer=None, learning_rate: float | None = None, init_scale: float | None = None,
     num_inits: int = 8, n_state: int | None = None, max_steps: int = 150, atol: float = 0.0,
-    rtol: float = 0.0, margin: float = MARGIN, input_share: float = 0.0, throw: bool = True,
+    rtol: float = RTOL, margin: float = MARGIN, input_share: float = 0.0, throw: bool = True,
+    keep: str = "best",
 ) -> RENFitResult:
     """Learn $(Q,S,R)$-dissipative REN controllers (nonlinear, dynamic) from demonstrations.
 
@@ -121,8 +122,8 @@ def fit_ren(
     gradient descent on the imitation loss
     ([`ren_imitation_loss`][dissil_jax.ren_imitation_loss]) in one compiled
     `lax.while_loop`, vmapped over `num_inits` initialisations; it stops after `max_steps`
-    or when $|J_k - J_{k-1}| <$ `atol` $+$ `rtol`$\\,|J_0|$ (default 0: all steps, as the
-    experiments run [`fit_direct`][dissil_jax.fit_direct]); the driver loop of every
+    or when $|J_k - J_{k-1}| <$ `atol` $+$ `rtol`$\\,|J_0|$ (defaults as in
+    [`fit_direct`][dissil_jax.fit_direct]); the driver loop of every
     gradient trainer, with the REN map in place of the LTI one.
 
     **Certified at the end:** each returned `(K, P, multiplier)` is checked in float64 by
@@ -133,7 +134,7 @@ def fit_ren(
     **Arguments:**
 
     - `key`, `windows`, `qsr` ($Q\\preceq0$), `num_inits`, `n_state`, `max_steps`, `atol`, `rtol`,
-      `optimizer`, `learning_rate`, `init_scale`, `margin`, `throw`: as in
+      `optimizer`, `learning_rate`, `init_scale`, `margin`, `throw`, `keep`: as in
       [`fit_direct`][dissil_jax.fit_direct]; the default step and initial scale are
       `fit_direct`'s at order $\\hat n + q$.
     - `width` $q\\ge0$: the number of neurons (0 gives an LTI controller, as a REN).
@@ -184,7 +185,7 @@ def fit_ren(
                    jnp.asarray(init_scale, dtype), width=int(width), activation=activation,
                    optimizer=optimizer, num_inits=int(num_inits), n_state=n_state,
                    max_steps=int(max_steps), atol=float(atol), rtol=float(rtol), margin=margin,
-                   input_share=float(input_share))
+                   input_share=float(input_share), keep=check_keep(keep))
     jax.block_until_ready(res)
     res = _certify_all(res, qsr)
     res = eqx.tree_at(lambda r: r.wall_time, res, jnp.asarray(time.perf_counter() - start,

@@ -27,7 +27,13 @@ class FitResult(eqx.Module):
       (None for unconstrained methods).
     - `loss_history`: `[num_inits, max_steps + 1]`; column 0 is the initial controller's
       loss, column k the loss after step k, NaN after a controller stopped.
-    - `final_loss`: `[num_inits]` loss of the returned controller.
+    - `final_loss`: `[num_inits]` loss of the returned controller. The certified trainers
+      (`fit_pgd`, `fit_direct`, `fit_ico`, `fit_ren`) return each run's *best* iterate,
+      the certified one of lowest loss, which is not always the last (a noisy or too long
+      step can raise the loss); the unconstrained baselines (`fit_gd`, `fit_mlp`) return
+      their last iterate, as the paper's baselines do.
+    - `kept_step`: `[num_inits]` the step the returned controller came from (0: the
+      initial controller; equal to `steps` when the last iterate was kept).
     - `converged`: `[num_inits]` True when the stopping rule fired (`result` is
       `converged`).
     - `steps`: `[num_inits]` number of steps taken.
@@ -35,9 +41,8 @@ class FitResult(eqx.Module):
     - `result`: `[num_inits]` [`Outcome`][dissil_jax.Outcome], how each run ended
       (decode with [`result_names`][dissil_jax.FitResult.result_names]): `converged`
       (the stopping rule of the trainer's `atol`/`rtol`), `max_steps`, `non_finite` (the loss
-      became NaN or infinite; the constrained trainers keep their last finite, certified
-      iterate), `infeasible`, `solver_failed` or `not_certified` (a projection or an ICO SDP
-      failed; the last certified iterate is kept), `loss_increased` (ICO's float64 guard
+      became NaN or infinite; the constrained trainers keep their best certified iterate), `infeasible`, `solver_failed` or `not_certified` (a projection or an ICO SDP
+      failed; the best certified iterate is kept), `loss_increased` (ICO's float64 guard
       refused a step). Compare with `res.result == dj.Outcome.converged`. (Called
       `stop_reason` before; that name remains a read-only alias.)
     - `projected`: `[num_inits]` bool or None. Only
@@ -56,6 +61,7 @@ class FitResult(eqx.Module):
     wall_time: Float[Array, ""]
     result: Outcome | None = None
     projected: Bool[Array, " inits"] | None = None
+    kept_step: Int[Array, " inits"] | None = None
 
     @property
     def stop_reason(self) -> Outcome | None:
@@ -109,11 +115,13 @@ def raise_if_failed(res: FitResult) -> FitResult:
         # One explanation (and its fix) per kind of failure, and what the failed runs kept:
         # only the constrained trainers have certified iterates to fall back on.
         why = "; ".join(f"{n}: {_outcome.message(n).rstrip('.')}" for n in counts)
-        kept = ("its last certified, finite iterate" if res.certified is not None
-                else "its last finite iterate")
+        # The certified trainers (they have a storage P) keep each run's best iterate; the
+        # unconstrained baselines return the iterate at which they stopped.
+        kept = ("kept its best certified iterate (`kept_step`)" if res.P is not None
+                else "returns the iterate at which it stopped")
         raise ValueError(
             f"{int(bad.sum())} of {bad.size} runs ended in failure {counts}. {why}. Each "
-            f"failed run kept {kept}; pass `throw=False` to get the result and inspect "
+            f"failed run {kept}; pass `throw=False` to get the result and inspect "
             "`result`.")
     return res
 

@@ -117,10 +117,14 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
 
     # The experiments record every outcome (a diverged GD run counts as unstable), so no
     # trainer raises on a run that ended early.
-    common: dict[str, Any] = dict(num_inits=inits, max_steps=spec.max_steps, atol=spec.tol, throw=False)
+    # The paper's stopping rule is absolute (|dJ| < tol): `atol` = tol, `rtol` = 0.
+    common: dict[str, Any] = dict(num_inits=inits, max_steps=spec.max_steps, atol=spec.tol,
+                                  rtol=0.0, throw=False)
     if method == "pgd":
+        # The paper's Algorithm 2 outputs its last iterate, C_{i+1}.
         return dj.fit_pgd(key, windows, spec.qsr, learning_rate=spec.pgd_learning_rate,
-                          decay=spec.pgd_decay, init_scale=spec.init_scale, **common)
+                          decay=spec.pgd_decay, init_scale=spec.init_scale, keep="last",
+                          **common)
     if method == "gd":
         return dj.fit_gd(key, windows, learning_rate=spec.gd_learning_rate,
                          decay=spec.pgd_decay, init_scale=spec.init_scale, **common)
@@ -140,7 +144,7 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
                           **dict(common, atol=0.0))
     if method == "mlp":
         return dj.fit_mlp(key, windows, hidden=spec.hidden, num_inits=inits, atol=spec.tol,
-                          throw=False)
+                          rtol=0.0, throw=False)
     raise ValueError(f"`method` must be one of {METHODS}, got {method!r}.")
 
 

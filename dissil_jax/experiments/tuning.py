@@ -50,8 +50,8 @@ def learning_rate_sweep(example: str, method: str, learning_rates, *, segments: 
         def run(lr, windows=windows, k_fit=k_fit):
             return dj.pgd_run(k_fit, windows, qsr, learning_rate=lr, decay=spec.pgd_decay,
                               init_scale=spec.init_scale, num_inits=inits,
-                              max_steps=spec.max_steps, atol=spec.tol,
-                              throw=False).final_loss
+                              max_steps=spec.max_steps, atol=spec.tol, rtol=0.0,
+                              keep="last", throw=False).final_loss
 
         J = np.asarray(jax.jit(jax.vmap(run))(jnp.asarray(lrs, windows.y.dtype)))
         losses.append(np.where(np.isfinite(J), J, np.inf))
