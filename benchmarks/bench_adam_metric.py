@@ -42,7 +42,7 @@ def run(windows, qsr, rate, steps, metric):
     pgd.optimizer_metric = _METRIC if metric else (lambda *_: None)
     try:
         fn = jax.jit(lambda key: dj.pgd_run(key, windows, qsr, optimizer=optax.adam(rate),
-                                            max_steps=steps, atol=0.0, throw=False))
+                                            max_steps=steps, atol=0.0, rtol=0.0, throw=False))
         jax.block_until_ready(fn(jr.PRNGKey(2)))  # compile
         start = time.perf_counter()
         res = jax.block_until_ready(fn(jr.PRNGKey(1)))

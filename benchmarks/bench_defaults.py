@@ -216,7 +216,7 @@ def part_gd(names):
         cells = []
         for kw in rules.values():
             res = dj.fit_gd(jr.PRNGKey(0), p.train, n_state=p.n_state, num_inits=8,
-                            max_steps=150, atol=0.0, throw=False, **kw)
+                            max_steps=150, atol=0.0, rtol=0.0, throw=False, **kw)
             bad = int(sum(r == "non_finite" for r in res.result_names()))
             ratio = np.asarray(res.final_loss) / np.asarray(res.initial_loss)
             cells.append(f"{bad}/8 diverged" if bad else f"{np.median(ratio):.2e}")

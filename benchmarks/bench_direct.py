@@ -136,7 +136,7 @@ def sweeps(spec, w, key, inits):
         for lr in rates:
             ratios = [float(np.median(dj.fit_direct(d[3][0], d[2], spec.qsr, num_inits=inits,
                                                     learning_rate=lr, init_scale=scale,
-                                                    atol=0.0, throw=False).final_loss)) / j
+                                                    atol=0.0, rtol=0.0, throw=False).final_loss)) / j
                       for d, j in zip(data, ico)]
             cells.append(", ".join(f"{r:.2f}" for r in ratios))
         print(f"| {scale:g} | " + " | ".join(cells) + " |")
@@ -148,7 +148,7 @@ def sweeps(spec, w, key, inits):
     for margin in (1e-3, 1e-2, 3e-2):
         out = []
         for ww in (w, _f32(w)):
-            r = dj.fit_direct(key, ww, spec.qsr, num_inits=inits, atol=0.0, margin=margin,
+            r = dj.fit_direct(key, ww, spec.qsr, num_inits=inits, atol=0.0, rtol=0.0, margin=margin,
                               learning_rate=spec.direct_learning_rate,
                               init_scale=spec.direct_init_scale, throw=False)
             out.append((float(np.median(r.final_loss)), min_rel_margin(r, spec.qsr),

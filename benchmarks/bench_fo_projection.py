@@ -34,7 +34,7 @@ from dissil_jax.internal import projection_fo as _projection_fo  # noqa: E402
 
 def run(windows, method, steps):
     fn = jax.jit(lambda key: dj.pgd_run(key, windows, PASSIVE, num_inits=8, max_steps=steps,
-                                        atol=0.0, throw=False, method=method))
+                                        atol=0.0, rtol=0.0, throw=False, method=method))
     jax.block_until_ready(fn(jr.PRNGKey(0)))
     before = _projection_fo.FALLBACKS["rows"]
     t = time.perf_counter()

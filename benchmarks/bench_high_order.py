@@ -76,7 +76,7 @@ def defaults(steps=300):
         lr_new, s_new = default_hyperparameters(n, 2)
         rows = np.concatenate([grid, [[0.3, 0.5], [lr_new, s_new]]])
         run = jax.jit(jax.vmap(lambda lr, s: dj.direct_run(
-            jr.PRNGKey(1), w, PASSIVE, num_inits=8, max_steps=steps, atol=0.0,
+            jr.PRNGKey(1), w, PASSIVE, num_inits=8, max_steps=steps, atol=0.0, rtol=0.0,
             learning_rate=lr, init_scale=s, throw=False)))
         r = run(jnp.asarray(rows[:, 0]), jnp.asarray(rows[:, 1]))
         fin = np.median(np.asarray(r.final_loss), axis=1) / J0
@@ -144,7 +144,7 @@ n = {n}
 k = jr.split(jr.PRNGKey(0), 3)
 w = dj.Windows(jr.normal(k[0], (25, n)), jr.normal(k[1], (25, 10, 2)), jr.normal(k[2], (25, 10, 2)))
 run = jax.jit(lambda key: dj.direct_run(key, w, dj.QSR.passive(2), num_inits=8, max_steps=150,
-                                        atol=0.0, throw=False))
+                                        atol=0.0, rtol=0.0, throw=False))
 jax.block_until_ready(run(jr.PRNGKey(1)))
 t = time.perf_counter(); jax.block_until_ready(run(jr.PRNGKey(2)))
 print("RESULT", (time.perf_counter() - t) / 150)

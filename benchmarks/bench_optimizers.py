@@ -71,10 +71,10 @@ def run(name, kw, windows, qsr, steps, inits):
     if kw is None:
         if windows.horizon != 2:
             return None
-        res = dj.fit_ico(key, windows, qsr, num_inits=inits, max_steps=steps, atol=0.0,
+        res = dj.fit_ico(key, windows, qsr, num_inits=inits, max_steps=steps, atol=0.0, rtol=0.0,
                          throw=False)
     else:
-        res = dj.fit_pgd(key, windows, qsr, num_inits=inits, max_steps=steps, atol=0.0,
+        res = dj.fit_pgd(key, windows, qsr, num_inits=inits, max_steps=steps, atol=0.0, rtol=0.0,
                          throw=False, **kw)
     wall = (time.perf_counter() - t0) / inits
     hist = np.asarray(res.loss_history)

@@ -65,7 +65,7 @@ for name, qsr, n in cases:
     x0, y = rng.normal(size=(100, n)), rng.normal(size=(100, 2, m))
     w = dj.Windows(x0, y, -0.5 * y)
     fit = lambda: dj.fit_pgd(jax.random.PRNGKey(3), w, qsr, num_inits=8, max_steps=30,
-                             atol=0.0, throw=False)
+                             atol=0.0, rtol=0.0, throw=False)
     fit()
     t = time.perf_counter()
     res = fit()

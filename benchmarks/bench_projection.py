@@ -94,7 +94,7 @@ def bench_pgd(qsr, n, num_inits, steps, ref_inits, ref_steps):
     N, h = 25, 2
     w = dj.Windows(jax.random.normal(kx, (N, n)), jax.random.normal(ky, (N, h, qsr.n_in)),
                    -0.2 * jax.random.normal(ky, (N, h, qsr.n_out)))
-    kw = dict(max_steps=steps, atol=0.0, learning_rate=1e-2)
+    kw = dict(max_steps=steps, atol=0.0, rtol=0.0, learning_rate=1e-2)
     dj.fit_pgd(key, w, qsr, num_inits=num_inits, **kw)  # compile
     t0 = time.perf_counter()
     dj.fit_pgd(key, w, qsr, num_inits=num_inits, **kw)

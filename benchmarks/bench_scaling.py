@@ -127,14 +127,14 @@ def cell(path, n, m, qsr, state):
         if n > ICO_MAX_N:
             return None, f"ICO beyond n̂ = {ICO_MAX_N} not measured"
         stamps = []
-        res = dj.fit_ico(key, w, qsr, num_inits=1, max_steps=4, atol=0.0, throw=False,
+        res = dj.fit_ico(key, w, qsr, num_inits=1, max_steps=4, atol=0.0, rtol=0.0, throw=False,
                          callback=lambda *a: stamps.append(time.perf_counter()))
         if len(stamps) < 2:
             return None, f"no steps taken ({res.result_names()[0]})"
         t = float(np.median(np.diff(stamps)))  # per SDP iteration, setup excluded
         return t, (f"certified={bool(np.all(np.asarray(res.certified)))} "
                    f"{len(stamps) - 1} iterations")
-    fit = lambda s: dj.fit_direct(key, w, qsr, max_steps=s, atol=0.0, throw=False)
+    fit = lambda s: dj.fit_direct(key, w, qsr, max_steps=s, atol=0.0, rtol=0.0, throw=False)
     t, total, res = _per_step(fit, 50, 1050)
     if t is None:
         return None, f"no steps taken ({res.result_names()[0]})"

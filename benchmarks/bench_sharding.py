@@ -38,7 +38,7 @@ def child(quick: bool):
 
     def run(lr):
         return dj.pgd_run(jax.random.PRNGKey(1), windows, qsr, learning_rate=lr,
-                          num_inits=inits, max_steps=steps, atol=0.0, throw=False)
+                          num_inits=inits, max_steps=steps, atol=0.0, rtol=0.0, throw=False)
 
     forms = {"sweep": dj.sweep(run)}
     if jax.device_count() > 1:

@@ -122,7 +122,7 @@ def test_fit_direct_is_certified(getkey, name, dtype):
     m, p = qsr.S.shape
     w = expert_windows(3, 2, p, m, N=16)
     w = _f32(w) if dtype == "float32" else w
-    res = dj.fit_direct(getkey(), w, qsr, num_inits=4, max_steps=30, atol=0.0)
+    res = dj.fit_direct(getkey(), w, qsr, num_inits=4, max_steps=30, atol=0.0, rtol=0.0)
     K = res.controllers
     assert K.A.dtype == res.P.dtype == res.loss_history.dtype == jnp.dtype(dtype)
     assert bool(jnp.all(res.certified)) and not bool(jnp.any(res.projected))
@@ -141,7 +141,7 @@ def test_issue_failure_case_q_minus_1e4(dtype):
     spec = example_spec("linear")
     w = training_data(spec, 0, 0, "initial", 25)[2]
     w = _f32(w) if dtype == "float32" else w
-    kw = dict(num_inits=20, learning_rate=spec.direct_learning_rate, atol=0.0)
+    kw = dict(num_inits=20, learning_rate=spec.direct_learning_rate, atol=0.0, rtol=0.0)
     near = dj.fit_direct(jr.PRNGKey(0), w, dj.QSR(-1e-4 * I3, I3 / 2, 0 * I3), **kw)
     assert bool(jnp.all(near.certified)) and not bool(jnp.any(near.projected))
     med = float(jnp.median(near.final_loss))
@@ -157,7 +157,7 @@ def test_training_loss_within_2x_of_ico_small():
     qsr = SUPPLY_RATES["passive"]
     w, _ = realisable_windows(jr.PRNGKey(0), qsr, n_state=2, num_windows=25, noise=0.1)
     ico = dj.fit_ico(jr.PRNGKey(1), w, qsr, num_inits=4, atol=1e-3)
-    res = dj.fit_direct(jr.PRNGKey(1), w, qsr, num_inits=4, atol=0.0)
+    res = dj.fit_direct(jr.PRNGKey(1), w, qsr, num_inits=4, atol=0.0, rtol=0.0)
     assert float(jnp.median(res.final_loss)) <= 2 * float(jnp.median(ico.final_loss))
 
 
@@ -221,7 +221,7 @@ def test_the_run_is_pure_jax_and_differentiable(getkey):
     w = expert_windows(2, 2, 2, 2)
     key = getkey()
     final = jax.jit(lambda lr: jnp.mean(dj.direct_run(
-        key, w, qsr, learning_rate=lr, num_inits=2, max_steps=10, atol=0.0,
+        key, w, qsr, learning_rate=lr, num_inits=2, max_steps=10, atol=0.0, rtol=0.0,
         throw=False).final_loss))
     jaxpr = str(jax.make_jaxpr(final)(0.05))
     assert "callback" not in jaxpr and "while" in jaxpr
@@ -235,8 +235,8 @@ def test_unit_free(c):
     qsr = SUPPLY_RATES["passive"]
     wk = lambda s: realisable_windows(jr.PRNGKey(4), qsr, n_state=2, num_windows=30,
                                       noise=0.1, scale=s)[0]
-    ref = dj.fit_direct(jr.PRNGKey(0), wk(1.0), qsr, num_inits=3, max_steps=20, atol=0.0)
-    res = dj.fit_direct(jr.PRNGKey(0), wk(c), qsr, num_inits=3, max_steps=20, atol=0.0)
+    ref = dj.fit_direct(jr.PRNGKey(0), wk(1.0), qsr, num_inits=3, max_steps=20, atol=0.0, rtol=0.0)
+    res = dj.fit_direct(jr.PRNGKey(0), wk(c), qsr, num_inits=3, max_steps=20, atol=0.0, rtol=0.0)
     for a, b in zip(jax.tree.leaves(res.controllers), jax.tree.leaves(ref.controllers)):
         np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(res.loss_history, c**2 * ref.loss_history, rtol=1e-6)
@@ -266,7 +266,7 @@ def test_defaults_follow_the_order(getkey):
     w = dj.Windows(jr.normal(getkey(), (6, n)), jr.normal(getkey(), (6, 3, p)),
                    jr.normal(getkey(), (6, 3, p)))
     run = lambda **kw: dj.direct_run(jr.PRNGKey(0), w, dj.QSR.passive(p), num_inits=2,
-                                     max_steps=3, atol=0.0, **kw).loss_history
+                                     max_steps=3, atol=0.0, rtol=0.0, **kw).loss_history
     lr, s = direct.default_hyperparameters(n, p)
     np.testing.assert_array_equal(run(), run(learning_rate=lr, init_scale=s))
     assert not np.array_equal(run(), run(learning_rate=0.3, init_scale=0.5))
@@ -380,7 +380,7 @@ def test_nonlinear_example_criteria():
     assert rec["mse_median"] <= 0.02
     spec = example_spec("nonlinear")
     w = training_data(spec, 0, 0, "initial", 25)[2]
-    kw = dict(num_inits=100, max_steps=150, atol=0.0, learning_rate=spec.direct_learning_rate)
+    kw = dict(num_inits=100, max_steps=150, atol=0.0, rtol=0.0, learning_rate=spec.direct_learning_rate)
     dj.fit_direct(jr.PRNGKey(0), w, spec.qsr, **kw)  # compile
     res = dj.fit_direct(jr.PRNGKey(0), w, spec.qsr, **kw)
     assert bool(jnp.all(res.steps == 150)) and float(res.wall_time) < 1.0

@@ -259,9 +259,9 @@ def test_rejected_step_keeps_certified_iterate(getkey, monkeypatch):
     monkeypatch.setattr(ICOSolver, "solve", bad_solve)
     key = getkey()
     with pytest.raises(ValueError, match="loss_increased|not_certified"):
-        dj.fit_ico(key, windows, qsr, num_inits=1, max_steps=10, atol=0.0)
+        dj.fit_ico(key, windows, qsr, num_inits=1, max_steps=10, atol=0.0, rtol=0.0)
     calls.clear()
-    res = dj.fit_ico(key, windows, qsr, num_inits=1, max_steps=10, atol=0.0, throw=False)
+    res = dj.fit_ico(key, windows, qsr, num_inits=1, max_steps=10, atol=0.0, rtol=0.0, throw=False)
     assert int(res.steps[0]) == 1 and not bool(res.converged[0])
     assert res.result_names()[0] in ("loss_increased", "not_certified")
     assert bool(res.certified[0])
@@ -339,9 +339,9 @@ def test_fit_ico_with_per_window_cones(getkey, cone):
             iterates.append((i, step, K, P, loss))
 
     key = getkey()
-    res = dj.fit_ico(key, windows, qsr, num_inits=2, max_steps=4, atol=0.0, window_cone=cone,
+    res = dj.fit_ico(key, windows, qsr, num_inits=2, max_steps=4, atol=0.0, rtol=0.0, window_cone=cone,
                      callback=callback)
-    ref = dj.fit_ico(key, windows, qsr, num_inits=2, max_steps=4, atol=0.0)  # "stacked"
+    ref = dj.fit_ico(key, windows, qsr, num_inits=2, max_steps=4, atol=0.0, rtol=0.0)  # "stacked"
     assert res.result_names() == ["max_steps"] * 2 and bool(jnp.all(res.certified))
     assert len(iterates) == 2 * 5
     for i, step, K, P, loss in iterates:
@@ -376,7 +376,7 @@ def test_fit_ico_float32_controllers_are_certified_as_returned(getkey):
         with lock:
             last[i] = (step, K, P)
 
-    res = dj.fit_ico(getkey(), w32, qsr, num_inits=2, max_steps=6, atol=0.0, callback=callback)
+    res = dj.fit_ico(getkey(), w32, qsr, num_inits=2, max_steps=6, atol=0.0, rtol=0.0, callback=callback)
     assert res.controllers.A.dtype == jnp.float32 and res.P.dtype == jnp.float32
     assert np.all(np.asarray(res.steps) >= 1) and bool(jnp.all(res.certified))
     f32 = lambda M: np.asarray(M, np.float64).astype(np.float32).astype(np.float64)

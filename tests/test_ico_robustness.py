@@ -49,7 +49,7 @@ def test_failed_solve_recentres_on_the_certificate_once(monkeypatch, fail_every_
 
     monkeypatch.setattr(ICOSolver, "solve", flaky)
     monkeypatch.setattr(ico, "certify", counted)
-    res = dj.fit_ico(jr.PRNGKey(3), windows, qsr, num_inits=1, max_steps=5, atol=0.0,
+    res = dj.fit_ico(jr.PRNGKey(3), windows, qsr, num_inits=1, max_steps=5, atol=0.0, rtol=0.0,
                      throw=False)
     assert calls["certify"] == 1  # one re-centring, at the first failure only
     assert bool(res.certified[0])

@@ -30,7 +30,7 @@ def test_mlp_controller_is_memoryless(getkey):
 def test_fit_mlp_lowers_loss(getkey):
     windows = random_windows(getkey(), N=20, h=2, n=2, p=2, m=2)
     res = dj.fit_mlp(getkey(), windows, hidden=(16, 16), num_inits=3, max_steps=300,
-                     learning_rate=1e-2, atol=0.0)
+                     learning_rate=1e-2, atol=0.0, rtol=0.0)
     hist = np.asarray(res.loss_history)
     assert hist.shape == (3, 301)
     assert np.all(np.isfinite(hist))
@@ -132,7 +132,7 @@ def test_float32_training(getkey):
     w = random_windows(getkey(), N=12, h=2, n=1, p=2, m=2)
     w32 = dj.Windows(*(jnp.asarray(a, jnp.float32) for a in (w.x0, w.y, w.u)))
     res = dj.fit_mlp(getkey(), w32, hidden=(8, 8), num_inits=2, max_steps=100,
-                     learning_rate=1e-2, atol=0.0)
+                     learning_rate=1e-2, atol=0.0, rtol=0.0)
     assert res.loss_history.dtype == jnp.float32
     assert res.controllers.params.layers[0].weight.dtype == jnp.float32
     assert bool(jnp.all(res.final_loss < 0.5 * res.initial_loss))

@@ -292,7 +292,7 @@ def test_fit_pgd_learns_a_passive_expert_from_rest():
     with pytest.raises(ValueError, match="`n_state` is required"):
         dj.fit_pgd(jr.PRNGKey(2), windows, qsr, num_inits=2, max_steps=1)
     res = dj.fit_pgd(jr.PRNGKey(2), windows, qsr, n_state=3, num_inits=8, learning_rate=0.3,
-                     decay=0.99, max_steps=150, atol=0.0)
+                     decay=0.99, max_steps=150, atol=0.0, rtol=0.0)
     assert res.controllers.n_state == 3
     ratio = np.asarray(res.final_loss) / np.asarray(res.initial_loss)
     assert np.all(ratio <= 0.05), ratio

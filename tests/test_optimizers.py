@@ -46,7 +46,7 @@ def test_adam_1e2_learns(realisable):
     PGD tutorial). Projected in the Frobenius distance instead of Adam's own metric, runs
     drift along the boundary and end at up to 11 % (benchmarks/bench_adam_metric.py)."""
     res = dj.fit_pgd(jr.PRNGKey(1), realisable, QSR, optimizer=optax.adam(1e-2),
-                     max_steps=2000, atol=0.0)
+                     max_steps=2000, atol=0.0, rtol=0.0)
     ratio = np.asarray(res.final_loss / res.initial_loss)
     assert np.all(ratio <= 0.01), ratio
     _all_certified(res)
@@ -63,7 +63,7 @@ def test_optimizer_state_carries_across_steps(realisable, opt):
     P, with that run's own optimiser state threaded through (projected momentum)."""
     key, steps = jr.PRNGKey(2), 6
     res = dj.fit_pgd(key, realisable, QSR, optimizer=opt, num_inits=2, max_steps=steps,
-                     atol=0.0)
+                     atol=0.0, rtol=0.0)
     ws = scaled(realisable, loss_scale(realisable))
     grad = jax.jit(jax.grad(dj.imitation_loss))
     K0, P0 = dj.project(init_controllers(key, 2, realisable, 1.0), QSR)
@@ -85,11 +85,11 @@ def test_optimizer_state_carries_across_steps(realisable, opt):
 def test_vmapped_adam_sweep_equals_separate_runs(realisable):
     rates = jnp.asarray([1e-2, 1e-1])
     run = lambda lr: dj.pgd_run(jr.PRNGKey(3), realisable, QSR, optimizer=optax.adam(lr),
-                                num_inits=2, max_steps=5, atol=0.0).final_loss
+                                num_inits=2, max_steps=5, atol=0.0, rtol=0.0).final_loss
     swept = jax.jit(jax.vmap(run))(rates)
     for j, lr in enumerate([1e-2, 1e-1]):
         one = dj.fit_pgd(jr.PRNGKey(3), realisable, QSR, optimizer=optax.adam(lr),
-                         num_inits=2, max_steps=5, atol=0.0)
+                         num_inits=2, max_steps=5, atol=0.0, rtol=0.0)
         # a batched and a separate run: the solver's tolerance over 6 solves
         np.testing.assert_allclose(swept[j], one.final_loss, rtol=through_solves(6))
 

@@ -103,7 +103,7 @@ def test_initial_draw_is_standard_normal(getkey):
 
 def test_pgd_controllers_certified_and_loss_decreases(getkey):
     w = random_windows(getkey(), N=20, gain=0.25)
-    res = dj.fit_pgd(getkey(), w, QSR, num_inits=4, max_steps=60, learning_rate=0.05, atol=0.0)
+    res = dj.fit_pgd(getkey(), w, QSR, num_inits=4, max_steps=60, learning_rate=0.05, atol=0.0, rtol=0.0)
     assert res.controllers.batch_shape == (4,) and res.P.shape == (4, 1, 1)
     assert bool(jnp.all(res.certified))
     for i in range(4):
@@ -148,7 +148,7 @@ def test_learning_rate_sweep_with_vmap_equals_loop(getkey):
 
 def test_gd_has_no_certificate_and_fits_better(getkey):
     w = random_windows(getkey(), N=10, gain=0.8)  # gain 0.8 lies outside the controller cone
-    kw = dict(num_inits=2, max_steps=80, learning_rate=0.05, atol=0.0)
+    kw = dict(num_inits=2, max_steps=80, learning_rate=0.05, atol=0.0, rtol=0.0)
     gd = dj.fit_gd(getkey(), w, **kw)
     pg = dj.fit_pgd(getkey(), w, QSR, **kw)
     assert gd.P is None and gd.certified is None
@@ -158,14 +158,14 @@ def test_gd_has_no_certificate_and_fits_better(getkey):
 def test_stop_reasons(getkey):
     """Every stopping rule is reported: converged, max_steps and a diverging run."""
     w = random_windows(getkey(), N=10, gain=0.2)
-    capped = dj.fit_gd(getkey(), w, num_inits=2, max_steps=5, learning_rate=0.05, atol=0.0)
+    capped = dj.fit_gd(getkey(), w, num_inits=2, max_steps=5, learning_rate=0.05, atol=0.0, rtol=0.0)
     conv = dj.fit_gd(getkey(), w, num_inits=2, max_steps=500, learning_rate=0.05, atol=1e-3)
     assert conv.result_names() == ["converged"] * 2 and bool(jnp.all(conv.converged))
     assert bool(jnp.all(conv.steps < 500))
     assert capped.result_names() == ["max_steps"] * 2 and not bool(jnp.any(capped.converged))
     assert bool(jnp.all(capped.steps == 5))
     # Divergence: a huge learning rate on unconstrained GD drives the loss to inf/NaN.
-    diverging = dict(num_inits=2, max_steps=200, learning_rate=1e6, atol=0.0, init_scale=1.0)
+    diverging = dict(num_inits=2, max_steps=200, learning_rate=1e6, atol=0.0, rtol=0.0, init_scale=1.0)
     wb = random_windows(getkey(), N=10, gain=2.0)
     big = dj.fit_gd(getkey(), wb, throw=False, **diverging)
     assert big.result_names() == ["non_finite"] * 2
@@ -241,13 +241,13 @@ class _FailAfter:
 def test_solver_failure_mid_run_keeps_the_last_certified_iterate(getkey, monkeypatch):
     w = random_windows(getkey(), N=12, gain=0.6)  # gain outside the cone: every step projects
     key = getkey()
-    ref = dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, atol=0.0)
+    ref = dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, atol=0.0, rtol=0.0)
     fail = _FailAfter(monkeypatch, ok=4)
-    res = dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, atol=0.0,
+    res = dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, atol=0.0, rtol=0.0,
                      throw=False)
     assert fail.calls > 4
     with pytest.raises(ValueError, match="solver_failed"):
-        dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, atol=0.0)
+        dj.fit_pgd(key, w, QSR, num_inits=1, max_steps=6, learning_rate=0.05, atol=0.0, rtol=0.0)
     assert res.result_names() == ["solver_failed"] and not bool(res.converged[0])
     k = int(res.steps[0])
     assert 0 < k < 6
@@ -267,7 +267,7 @@ def test_best_iterate_is_kept(getkey, trainer):
     trainers return their iterate of lowest loss and say which step it was; the
     unconstrained baseline returns its last iterate."""
     w = random_windows(getkey(), N=12, n=2, gain=0.6)
-    kw = dict(num_inits=4, max_steps=12, atol=0.0, throw=False)
+    kw = dict(num_inits=4, max_steps=12, atol=0.0, rtol=0.0, throw=False)
     if trainer == "pgd":  # the paper's rule without decay, far above its default step
         res = dj.fit_pgd(getkey(), w, QSR, learning_rate=8.0, decay=1.0, **kw)
     elif trainer == "direct":
@@ -309,7 +309,7 @@ def test_non_finite_loss_under_a_constraint_keeps_the_last_finite_iterate(getkey
     reference run: the constrained run must keep its step-2 iterate, certified."""
     w = random_windows(getkey(), N=12, gain=0.6)
     key = getkey()
-    kw = dict(num_inits=1, max_steps=6, learning_rate=0.05, atol=0.0)
+    kw = dict(num_inits=1, max_steps=6, learning_rate=0.05, atol=0.0, rtol=0.0)
     ref = dj.fit_pgd(key, w, QSR, **kw)
     hist = np.asarray(ref.loss_history[0])
     assert np.all(np.diff(hist) < 0)
@@ -343,7 +343,7 @@ def test_float32_training(getkey, constrained):
     w = random_windows(getkey(), N=12, n=2, p=2, m=2, gain=0.3)
     w32 = dj.Windows(*(jnp.asarray(a, jnp.float32) for a in (w.x0, w.y, w.u)))
     qsr = dj.QSR.passive(2)
-    kw = dict(num_inits=3, max_steps=20, learning_rate=0.05, atol=0.0)
+    kw = dict(num_inits=3, max_steps=20, learning_rate=0.05, atol=0.0, rtol=0.0)
     res = dj.fit_pgd(getkey(), w32, qsr, **kw) if constrained else dj.fit_gd(getkey(), w32, **kw)
     assert res.controllers.A.dtype == jnp.float32 and res.loss_history.dtype == jnp.float32
     assert bool(jnp.all(res.final_loss < res.initial_loss))

@@ -120,7 +120,7 @@ def test_pgd_with_the_first_order_projection(getkey):
 
     w = expert_windows(0, 2, 1, 1)
     qsr = dj.QSR.passive(1)
-    res = dj.fit_pgd(getkey(), w, qsr, num_inits=3, max_steps=5, atol=0.0,
+    res = dj.fit_pgd(getkey(), w, qsr, num_inits=3, max_steps=5, atol=0.0, rtol=0.0,
                      method="first_order")
     assert bool(res.certified.all())
     for i in range(3):

@@ -100,7 +100,7 @@ k = jr.split(jr.PRNGKey(0), 3)
 w = dj.Windows(jr.normal(k[0], (25, n)), jr.normal(k[1], (25, 10, p)),
                jr.normal(k[2], (25, 10, p)))
 r = dj.fit_direct(jr.PRNGKey(1), w, dj.QSR.passive(p), num_inits=inits, learning_rate=0.03,
-                  max_steps=steps, atol=0.0, throw=False)
+                  max_steps=steps, atol=0.0, rtol=0.0, throw=False)
 print("OK", bool(r.certified.all()))
 """
 
