@@ -363,7 +363,7 @@ def test_protocol_uses_the_specs_direct_settings(getkey):
                                direct_learning_rate=0.123, direct_init_scale=0.7)
     w, key = expert_windows(10, 1, 1, 1), getkey()
     res = fit("direct", key, w, spec, 2)
-    ref = dj.fit_direct(key, w, spec.qsr, num_inits=2, max_steps=6, atol=1e-9,
+    ref = dj.fit_direct(key, w, spec.qsr, num_inits=2, max_steps=6, atol=1e-9, rtol=0.0,
                         learning_rate=0.123, init_scale=0.7)
     np.testing.assert_array_equal(res.loss_history, ref.loss_history)
 

@@ -201,7 +201,7 @@ def test_fit_ico_monotone_and_every_iterate_certified(getkey, n, p, m, qsr):
         with lock:
             iterates.append((i, step, K, P, loss))
 
-    res = dj.fit_ico(getkey(), windows, qsr, num_inits=3, max_steps=12, atol=1e-6,
+    res = dj.fit_ico(getkey(), windows, qsr, num_inits=3, max_steps=12, atol=1e-6, rtol=0.0,
                      init_scale=0.5, callback=callback)
     hist = np.asarray(res.loss_history)
     assert hist.shape == (3, 13)
@@ -311,10 +311,12 @@ def test_converged_flag_and_no_warning(getkey):
     windows = expert_windows(2, 1, 1, 1)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        res = dj.fit_ico_nc(getkey(), windows, num_inits=2, max_steps=50, atol=1e-4)
-        short = dj.fit_ico_nc(getkey(), windows, num_inits=2, max_steps=3, atol=1e-4)
+        # the absolute rule alone (rtol=0), which `_assert_stopping_rule` checks exactly
+        res = dj.fit_ico_nc(getkey(), windows, num_inits=2, max_steps=50, atol=1e-4, rtol=0.0)
+        short = dj.fit_ico_nc(getkey(), windows, num_inits=2, max_steps=3, atol=1e-4,
+                              rtol=0.0)
         ico = dj.fit_ico(getkey(), windows, dj.QSR.passive(1), num_inits=2, max_steps=40,
-                         atol=1e-3, init_scale=0.5)
+                         atol=1e-3, rtol=0.0, init_scale=0.5)
     assert bool(jnp.all(res.converged)) and res.result_names() == ["converged"] * 2
     assert np.all(np.asarray(res.steps) < 50)
     assert res.wall_time.shape == () and float(res.wall_time) > 0

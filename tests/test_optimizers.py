@@ -63,7 +63,7 @@ def test_optimizer_state_carries_across_steps(realisable, opt):
     P, with that run's own optimiser state threaded through (projected momentum)."""
     key, steps = jr.PRNGKey(2), 6
     res = dj.fit_pgd(key, realisable, QSR, optimizer=opt, num_inits=2, max_steps=steps,
-                     atol=0.0, rtol=0.0)
+                     atol=0.0, rtol=0.0, init_scale=1.0, keep="last")
     ws = scaled(realisable, loss_scale(realisable))
     grad = jax.jit(jax.grad(dj.imitation_loss))
     K0, P0 = dj.project(init_controllers(key, 2, realisable, 1.0), QSR)

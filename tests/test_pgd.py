@@ -75,7 +75,7 @@ def test_vmapped_training_equals_python_loop(getkey, constrained, size):
     qsr = (QSR if size == 1 else dj.QSR.passive(2)) if constrained else None
     key = getkey()
     kw = dict(num_inits=3, max_steps=12, learning_rate=0.05, decay=0.95, atol=1e-4,
-              init_scale=0.3)
+              rtol=0.0, init_scale=0.3)
     res = dj.fit_pgd(key, w, qsr, **kw) if qsr is not None else dj.fit_gd(key, w, **kw)
     K0 = init_controllers(key, 3, w, 0.3)
     P0 = None
@@ -119,17 +119,25 @@ def test_pgd_controllers_certified_and_loss_decreases(getkey):
 
 
 def test_no_retracing_across_calls(getkey, monkeypatch):
-    """New data, step sizes and an equal (not identical) supply rate reuse one compilation."""
-    traced = eqx.debug.assert_max_traces(pgd._run, max_traces=1)
-    monkeypatch.setattr(pgd, "_run_jit", eqx.filter_jit(traced))
+    """New data, step sizes and an equal (not identical) supply rate reuse one compilation,
+    with the default step (Adam) as with the paper's rule."""
     w1 = random_windows(getkey(), N=8)
     w2 = random_windows(getkey(), N=8, gain=0.1)
+
+    def count_traces():
+        traced = eqx.debug.assert_max_traces(pgd._run, max_traces=1)
+        monkeypatch.setattr(pgd, "_run_jit", eqx.filter_jit(traced))
+
+    count_traces()
     dj.fit_pgd(getkey(), w1, QSR, num_inits=2, max_steps=5)
-    dj.fit_pgd(getkey(), w2, QSR, num_inits=2, max_steps=5, learning_rate=0.01, decay=0.9)
+    dj.fit_pgd(getkey(), w2, QSR, num_inits=2, max_steps=5)
     dj.fit_pgd(getkey(), w1, dj.QSR(-29.867, 3.556, 0.601), num_inits=2, max_steps=5,
                init_scale=0.5)
     with pytest.raises(RuntimeError, match="traced"):  # the check itself can fail
         dj.fit_pgd(getkey(), w1, QSR, num_inits=3, max_steps=5)
+    count_traces()
+    dj.fit_pgd(getkey(), w1, QSR, num_inits=2, max_steps=5, learning_rate=1.0, decay=0.99)
+    dj.fit_pgd(getkey(), w2, QSR, num_inits=2, max_steps=5, learning_rate=0.01, decay=0.9)
 
 
 def test_learning_rate_sweep_with_vmap_equals_loop(getkey):
@@ -137,7 +145,7 @@ def test_learning_rate_sweep_with_vmap_equals_loop(getkey):
     key = getkey()
     lrs = [0.01, 0.05, 0.1]
     run = lambda lr: dj.pgd_run(key, w, QSR, learning_rate=lr, num_inits=2, max_steps=8,
-                                atol=1e-6, init_scale=0.3)
+                                atol=1e-6, rtol=0.0, init_scale=0.3)
     swept = jax.jit(jax.vmap(run))(jnp.asarray(lrs))
     assert swept.loss_history.shape == (3, 2, 9)
     K0, P0 = dj.project(init_controllers(key, 2, w, 0.3), QSR)

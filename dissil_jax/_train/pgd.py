@@ -153,11 +153,16 @@ ADAM_LEARNING_RATE = 0.1
 ADAM_INIT_SCALE = 0.3
 
 
+#: One instance, so that the compiled runs (the optimiser is a static argument) are reused
+#: across calls instead of retraced.
+_ADAM = optax.adam(ADAM_LEARNING_RATE)
+
+
 def default_rule(optimizer, learning_rate, decay):
     """`optax.adam(ADAM_LEARNING_RATE)` when no step argument is given, else `optimizer`
     (None: the paper's rule with the given `learning_rate`/`decay`)."""
     if optimizer is None and learning_rate is None and decay is None:
-        return optax.adam(ADAM_LEARNING_RATE)
+        return _ADAM
     return optimizer
 
 
