@@ -11,6 +11,10 @@ Parts (`--part`):
   entry the defaults) on both halves, without early stop; the defaults' median final loss
   and held-out imitation error against the best of the grid, per problem (the regret).
   Writes `benchmarks/results/defaults_regret.json` and `.md`.
+- `report`: every trainer with its true defaults (its relative stopping rule, its returned
+  iterate) and 8 initialisations on the HELD-OUT half, against the best of the grid above
+  (run there without early stop): the regret, diverged runs, certified and stable shares.
+  Writes `benchmarks/results/defaults_report.json` and `.md`.
 - `gd`: `fit_gd`'s step rules (the paper's at PGD's default and Adam at three rates) on both
   halves: diverged runs and the median final/initial loss.
 
@@ -34,12 +38,15 @@ import numpy as np  # noqa: E402
 import optax  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
-from _zoo_runs import TRAINERS, applies, run_full, stop_steps  # noqa: E402
+from _zoo_runs import TRAINERS, applies, run_defaults, run_full, stop_steps  # noqa: E402
 
 import dissil_jax as dj  # noqa: E402
 from dissil_jax.experiments import zoo  # noqa: E402
 
 RESULTS = Path(__file__).parent / "results"
+#: The grid entry that is each trainer's default (step rule and initial scale).
+DEFAULT = {"pgd": "adam 0.1, init 0.3", "gd": "adam 0.1, init 0.3", "direct": "default",
+           "ico": "default", "mlp": "default (1e-3)"}
 RTOLS = (1e-2, 1e-3, 1e-4, 1e-5, 3e-6, 1e-6, 1e-7)
 BUDGET = {"pgd": 150, "gd": 150, "direct": 150, "ico": 150, "mlp": 2000}
 NUM_INITS = 4
@@ -187,8 +194,10 @@ def regret_table(out, names) -> str:
     for trainer in TRAINERS:
         for name in names:
             labels = [lab for lab in grid[trainer] if f"{trainer}/{name}/{lab}" in out]
-            if not labels:
+            if DEFAULT[trainer] not in labels:
                 continue
+            labels.remove(DEFAULT[trainer])
+            labels.insert(0, DEFAULT[trainer])
             rows = {lab: out[f"{trainer}/{name}/{lab}"] for lab in labels}
             med = {lab: np.median(r["final"]) for lab, r in rows.items()}
             err = {lab: np.median(r["test_error"]) for lab, r in rows.items()}
@@ -201,6 +210,61 @@ def regret_table(out, names) -> str:
                 f"| {trainer} | {name} | {half} | {med[labels[0]] / med[best]:.2f} | "
                 f"{err[labels[0]] / err[best]:.2f} | {best} | {div}/{len(d['reasons'])} | "
                 f"{cert} | {np.mean(d['stable']):.0%} |")
+    return "\n".join(lines)
+
+
+def part_report(trainers, inits=8):
+    """Every trainer with its true defaults (stopping rule, returned iterate) and `inits`
+    initialisations on the HELD-OUT half; written to `defaults_report.json`."""
+    path = RESULTS / "defaults_report.json"
+    out = json.loads(path.read_text()) if path.exists() else {}
+    for trainer in trainers:
+        for name in zoo.HELD_OUT:
+            p = zoo.problem(name)
+            key = f"{trainer}/{name}"
+            if not applies(trainer, p) or key in out:
+                continue
+            t = time.perf_counter()
+            res, rep = run_defaults(trainer, p, num_inits=inits)
+            out[key] = dict(
+                final=[float(v) for v in np.asarray(res.final_loss)],
+                test_error=[float(v) for v in rep.imitation_error],
+                certified=None if res.certified is None else [bool(v) for v in rep.certified],
+                stable=[bool(v) for v in rep.stable], reasons=res.result_names(),
+                steps=[int(v) for v in np.asarray(res.steps)], wall=time.perf_counter() - t)
+            print(f"{key:40s} {time.perf_counter() - t:7.1f} s", flush=True)
+            path.write_text(json.dumps(out))
+    return out
+
+
+def report_table(report, grid_runs) -> str:
+    """Per trainer and held-out problem: the defaults' (8 runs, their own stopping rule)
+    median final loss and test error over the best grid entry's (4 runs, full budget),
+    diverged runs, certified and stable shares, median steps."""
+    lines = ["| trainer | problem | loss regret | test-error regret | diverged | certified | "
+             "stable | median steps |", "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    grid = _grid()
+    worst = {}
+    for trainer in TRAINERS:
+        for name in zoo.HELD_OUT:
+            d = report.get(f"{trainer}/{name}")
+            rows = [grid_runs[k] for k in (f"{trainer}/{name}/{lab}" for lab in grid[trainer])
+                    if k in grid_runs]
+            if d is None or not rows:
+                continue
+            best = min(np.median(r["final"]) for r in rows)
+            best_err = min(np.median(r["test_error"]) for r in rows)
+            reg = float(np.median(d["final"]) / best)  # below 1: the defaults beat the grid
+            worst[trainer] = max(worst.get(trainer, 0.0), reg)
+            div = sum(r == "non_finite" for r in d["reasons"])
+            cert = "-" if d["certified"] is None else f"{np.mean(d['certified']):.0%}"
+            lines.append(
+                f"| {trainer} | {name} | {reg:.2f} | "
+                f"{np.median(d['test_error']) / best_err:.2f} | {div}/{len(d['reasons'])} | "
+                f"{cert} | {np.mean(d['stable']):.0%} | {np.median(d['steps']):.0f} |")
+    lines.append("")
+    lines.append("Worst loss regret per trainer: " + ", ".join(
+        f"{t} {v:.2f}" for t, v in worst.items()))
     return "\n".join(lines)
 
 
@@ -227,7 +291,7 @@ def part_gd(names):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--part", choices=("stop", "gd", "regret"), required=True)
+    ap.add_argument("--part", choices=("stop", "gd", "regret", "report"), required=True)
     ap.add_argument("--half", choices=("tuning", "held_out", "both"), default="both")
     ap.add_argument("--trainers", default=",".join(TRAINERS))
     args = ap.parse_args()
@@ -242,6 +306,10 @@ def main():
         part_regret(args.trainers.split(","), names, args.half)
         table = regret_table(load_regret(), zoo.TUNING + zoo.HELD_OUT)
         (RESULTS / "defaults_regret.md").write_text(table + "\n")
+    elif args.part == "report":
+        report = part_report(args.trainers.split(","))
+        table = report_table(report, load_regret())
+        (RESULTS / "defaults_report.md").write_text(table + "\n")
     else:
         table = part_gd(list(zoo.TUNING) + list(zoo.HELD_OUT))
         (RESULTS / "defaults_gd.md").write_text(table + "\n")
