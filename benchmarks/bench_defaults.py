@@ -268,6 +268,28 @@ def report_table(report, grid_runs) -> str:
     return "\n".join(lines)
 
 
+def choice_table(report) -> str:
+    """Which trainer wins where: per held-out problem and trainer (defaults, 8 runs) the
+    median held-out imitation error (relative to the zero controller's) and the wall time;
+    the lowest error among the certified trainers in bold."""
+    lines = ["| problem | " + " | ".join(TRAINERS) + " |", "| --- |" + " ---: |" * len(TRAINERS)]
+    for name in zoo.HELD_OUT:
+        cells, errs = {}, {}
+        for t in TRAINERS:
+            d = report.get(f"{t}/{name}")
+            if d is None:
+                cells[t] = "n/a"
+                continue
+            errs[t] = float(np.median(d["test_error"]))
+            cells[t] = f"{errs[t]:.3g} ({d['wall']:.0f} s)"
+        cert = {t: e for t, e in errs.items() if t in ("pgd", "direct", "ico")}
+        if cert:
+            win = min(cert, key=cert.get)
+            cells[win] = f"**{cells[win]}**"
+        lines.append(f"| {name} | " + " | ".join(cells[t] for t in TRAINERS) + " |")
+    return "\n".join(lines)
+
+
 def part_gd(names):
     rules = {"paper (1, 0.99)": dict(learning_rate=1.0, decay=0.99),
              "adam 0.01": dict(optimizer=optax.adam(0.01)),
@@ -308,7 +330,7 @@ def main():
         (RESULTS / "defaults_regret.md").write_text(table + "\n")
     elif args.part == "report":
         report = part_report(args.trainers.split(","))
-        table = report_table(report, load_regret())
+        table = report_table(report, load_regret()) + "\n\n" + choice_table(report)
         (RESULTS / "defaults_report.md").write_text(table + "\n")
     else:
         table = part_gd(list(zoo.TUNING) + list(zoo.HELD_OUT))

@@ -124,7 +124,7 @@ def problem():
 
     def pgd(lr, qsr=qsr):
         return dj.pgd_run(jax.random.PRNGKey(1), windows, qsr, learning_rate=lr, num_inits=2,
-                          max_steps=15, atol=1e-2, throw=False)
+                          max_steps=15, atol=1e-2, rtol=0.0, init_scale=1.0, throw=False)
 
     return qsr, pgd, jnp.array([0.1, 3.0, 1.0, 1.5])
 

@@ -12,6 +12,8 @@ import dissil_jax as dj
 from dissil_jax.experiments import zoo
 
 NAMES = list(zoo.PROBLEMS)
+# One worker runs every test here, so the zoo (about a minute of simulation) is built once.
+pytestmark = pytest.mark.xdist_group("zoo")
 
 
 
