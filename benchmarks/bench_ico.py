@@ -54,7 +54,7 @@ def synthetic_windows(N, n=6, p=3, m=3, seed=0):
 
 
 def cvxpy_step(pb: ICOProblem, theta0, P_tilde, w_tilde, eps, stacked=False):
-    """The ICO SDP of `_ico_sdp` written in cvxpy; returns (obj, time, status).
+    """The ICO SDP of `dissil_jax/_train/ico/sdp.py` written in cvxpy; returns (obj, time, status).
 
     `stacked=False`: one constraint per window (the direct formulation, window_cone='soc');
     `stacked=True`: the library's default QR-compressed single cone (window_cone='stacked'),

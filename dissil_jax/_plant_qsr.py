@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._sdp import single_threaded_blas
+from ._sdp.sdp import single_threaded_blas
 from ._supply import QSR
 from ._validate import check_abcd
 
@@ -201,7 +201,7 @@ def _index_sdp(A, B, C, D, kind: str, nu_fixed=None, rho_fixed=None, ray=None) -
 
 
 def _certified(A, B, C, D, qsr: QSR) -> bool:
-    from ._certify import certify
+    from ._certify.certify import certify
     from ._controller import LTIController
 
     return certify(LTIController(A, B, C, D), qsr).holds

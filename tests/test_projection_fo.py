@@ -1,4 +1,4 @@
-"""The first-order projection (`_projection_fo.py`, `dj.project(method="first_order")`)."""
+"""The first-order projection (`_projection/first_order.py`, `dj.project(method="first_order")`)."""
 
 import jax
 import jax.numpy as jnp

@@ -8,7 +8,7 @@ import numpy as np
 import optax
 
 from .._data import Windows
-from .._indefinite import check_feasible, is_indefinite
+from .._sdp.indefinite import check_feasible, is_indefinite
 from .._supply import QSR
 from .._validate import check_int
 

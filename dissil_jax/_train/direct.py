@@ -11,12 +11,13 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .. import _lmi, _outcome
+from .. import _outcome
 from .._data import Windows
 from .._direct_map import MARGIN, check_margin, direct_map, init_params
-from .._indefinite import is_indefinite
-from .._projection import project
+from .._projection.project import project
 from .._rollout import imitation_loss
+from .._sdp import lmi as _lmi
+from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
 from ._checks import check_fit_args, check_n_state, check_optimizer
 from ._iterate import Method, iterate, where

@@ -10,10 +10,11 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .. import _lmi, _outcome
+from .. import _outcome
 from .._data import Windows
-from .._projection import project
+from .._projection.project import project
 from .._rollout import imitation_loss
+from .._sdp import lmi as _lmi
 from .._supply import QSR
 from ._checks import check_fit_args, check_n_state, check_optimizer
 from ._init import INIT_SCALE, init_controllers

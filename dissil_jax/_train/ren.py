@@ -1,4 +1,4 @@
-"""Training certified REN controllers through their direct parameterisation (`_ren_map.py`).
+"""Training certified REN controllers through their direct parameterisation (`_ren/map.py`).
 
 Training is the driver loop of every gradient trainer (`_iterate.py`) with the LTI direct
 map's method (`direct.MapDescent`) given the REN map's loss.
@@ -17,10 +17,10 @@ import optax
 from .. import _outcome
 from .._data import Windows
 from .._direct_map import MARGIN, check_margin
-from .._indefinite import is_indefinite
-from .._ren_certify import certified_batch, certify_ren
-from .._ren_controller import check_activation, ren_imitation_loss
-from .._ren_map import init_ren_params, ren_map
+from .._ren.certify import certified_batch, certify_ren
+from .._ren.controller import check_activation, ren_imitation_loss
+from .._ren.map import init_ren_params, ren_map
+from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
 from ._checks import check_fit_args, check_n_state
 from ._iterate import iterate

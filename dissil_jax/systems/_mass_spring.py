@@ -121,7 +121,7 @@ def mass_spring_chain(
     plant = LinearPlant(*(jnp.asarray(np.asarray(M, np.float64)) for M in (sysd.A, sysd.B, sysd.C,
                                                                            sysd.D)))
     if check_passive:
-        from .._certify import certify
+        from .._certify.certify import certify
         from .._controller import LTIController
         from .._supply import QSR
 

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-from ..._certify import certify
+from ..._certify.certify import certify
 from ..._controller import LTIController
 from ..._data import Windows
 from ..._plant_qsr import (

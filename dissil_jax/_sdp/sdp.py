@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._outcome import code
+from .._outcome import code
 
 _CLARABEL_OK = {"Solved", "AlmostSolved"}
 _CLARABEL_INFEASIBLE = {"PrimalInfeasible", "AlmostPrimalInfeasible"}

@@ -35,10 +35,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _linalg, _lmi, _outcome, _sdp
-from ._controller import LTIController
-from ._indefinite import is_indefinite
-from ._supply import QSR
+from .. import _linalg, _outcome
+from .._controller import LTIController
+from .._sdp import lmi as _lmi, sdp as _sdp
+from .._sdp.indefinite import is_indefinite
+from .._supply import QSR
 
 #: Newton-Schulz steps of the PSD projection: eigenvalues above ~1e-6 of the matrix's
 #: Frobenius norm reach their sign (a factor 1.5 per step while small, then quadratic).

@@ -1,7 +1,7 @@
 """The window part of the ICO SDP: the bound on the step-1 residuals $\\bar e_k$.
 
-Three interchangeable cone blocks (`_ico_blocks.ConeBlock`), chosen once by `window_cone`
-(see the module docstring of `_ico_sdp` for the maths):
+Three interchangeable cone blocks (`blocks.ConeBlock`), chosen once by `window_cone`
+(see the module docstring of `sdp.py` for the maths):
 
 - `StackedWindows` (`"stacked"`): all windows in one QR-compressed rotated SOC;
 - `SOCWindows` (`"soc"`): one rotated SOC $\\lVert\\bar e_k\\rVert^2 \\le \\sigma_k(1 - y)$
@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._ico_blocks import ConeBlock
-from ._ico_layout import SQRT2, TwoStepData, VariableLayout, svec_len, svec_pos
+from .blocks import ConeBlock
+from .layout import SQRT2, TwoStepData, VariableLayout, svec_len, svec_pos
 
 
 class StackedWindows(ConeBlock):

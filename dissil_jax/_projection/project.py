@@ -18,18 +18,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _certify_fast, _outcome, _projection_fo, _sdp
-from ._controller import LTIController
-from ._lmi import ConvexifiedLMI, cast, certified
-from ._projection_args import (
+from .. import _outcome
+from .._certify import fast as _certify_fast
+from .._controller import LTIController
+from .._sdp import sdp as _sdp
+from .._sdp.lmi import ConvexifiedLMI, cast, certified
+from .._supply import QSR
+from . import first_order as _projection_fo
+from .args import (
     check_k_ref as _check_k_ref,
     check_options as _check_options,
     check_qsr as _check_qsr,
 )
-from ._projection_result import Projection as Projection, raise_on_failure as _raise_on_failure
-from ._projection_solver import _ProjectionSolver
-from ._relinearise import project_rows_indefinite
-from ._supply import QSR
+from .relinearise import project_rows_indefinite
+from .result import Projection as Projection, raise_on_failure as _raise_on_failure
+from .solver import _ProjectionSolver
 
 _STATS = {"solve_time": 0.0, "solves": 0, "callbacks": collections.Counter()}
 _STATS_LOCK = threading.Lock()
@@ -42,7 +45,7 @@ _SOLVED, _UNCHANGED, _SKIPPED, _NOT_CERTIFIED = (
 # enlarged by this factor, at most `_ATTEMPTS - 1` times.
 _ATTEMPTS, _EPS_GROWTH = 3, 100.0
 # The conditioning bound of the projection's P: lambda_min(P) >= P_FLOOR * mean eigenvalue
-# (`_projection_solver`; redundant, so left out, for n = 1).
+# (`_projection/solver.py`; redundant, so left out, for n = 1).
 P_FLOOR = 1e-2
 
 
@@ -171,7 +174,7 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, C0, D0, shard, *, qsr
     `shard` is the calling device's index (broadcast like the batch) and `shards` the
     number of callbacks running at once on this host (`_sdp.shard`); each uses its share
     of the thread pool. `WA`..`WD` are the metric's weights (scaled per row to at most 1).
-    `C0`, `D0` are the first linearisation points of an indefinite $Q$ (`_relinearise`).
+    `C0`, `D0` are the first linearisation points of an indefinite $Q$ (`relinearise.py`).
     """
     dtype = np.asarray(A).dtype
     batch, n = A.shape[:-2], A.shape[-1]
@@ -328,7 +331,7 @@ def project(
     - `method`: `"clarabel"`, `"first_order"` (ADMM in JAX, the same float64 check,
       Clarabel where it fails; Frobenius only, $Q\\preceq0$ only;
       [Scaling out](scaling.md#a-first-order-projection)) or `"auto"` (first-order from
-      `_projection_fo.AUTO_MIN_ORDER` states on; now never).
+      `first_order.AUTO_MIN_ORDER` states on; now never).
 
     **Returns:** a [`Projection`][dissil_jax.Projection] `(K_proj, P)` with `.result`.
 

@@ -16,8 +16,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from . import _outcome, _sdp
-from ._lmi import ConvexifiedLMI, svec_pos
+from .. import _outcome
+from .._sdp import sdp as _sdp
+from .._sdp.lmi import ConvexifiedLMI, svec_pos
 
 _SOLVED = _outcome.code("solved")
 

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import _outcome, _sdp
-from ._ico_sdp import ICOProblem
+from ... import _outcome
+from ..._sdp import sdp as _sdp
+from .sdp import ICOProblem
 
 
 class ICOSolver:

@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ._indefinite import split_q
-from ._sdp import Layout
-from ._supply import QSR
+from .._supply import QSR
+from .indefinite import split_q
+from .sdp import Layout
 
 
 def _T(M):

@@ -8,18 +8,19 @@ from collections.abc import Callable
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _lmi, _outcome, _sdp
-from .._certify import certify
-from .._controller import LTIController
-from .._data import Windows
-from .._projection import project
-from .._supply import QSR
-from ._checks import check_fit_args
-from ._ico_sdp import ICOProblem
-from ._ico_solver import ICOSolver
-from ._init import INIT_SCALE, init_controllers
-from ._scale import loss_scale, scaled
-from .result import FitResult, raise_if_failed
+from ... import _outcome
+from ..._certify.certify import certify
+from ..._controller import LTIController
+from ..._data import Windows
+from ..._projection.project import project
+from ..._sdp import lmi as _lmi, sdp as _sdp
+from ..._supply import QSR
+from .._checks import check_fit_args
+from .._init import INIT_SCALE, init_controllers
+from .._scale import loss_scale, scaled
+from ..result import FitResult, raise_if_failed
+from .sdp import ICOProblem
+from .solver import ICOSolver
 
 _CONVERGED, _MAX_STEPS, _LOSS_INCREASED, _NOT_CERTIFIED = (
     _outcome.code(n) for n in ("converged", "max_steps", "loss_increased", "not_certified"))
@@ -219,7 +220,7 @@ def fit_ico(
     \\end{smallmatrix}\\bigr]\\succeq 0$, one cone for $\\sum_k\\lVert\\delta z_k\\rVert^2/w$
     and one rotated second-order cone for $\\sum_k\\lVert\\bar e_k\\rVert^2/(1 - y)$, the
     stacked residual compressed by a QR factorisation of its Jacobian to at most
-    $n_\\theta + 3$ rows (derivation in `dissil_jax/_train/_ico_sdp.py`). The SDP's size
+    $n_\\theta + 3$ rows (derivation in `dissil_jax/_train/ico/sdp.py`). The SDP's size
     therefore does not depend on the number of windows $N$; only the QR (numpy, linear in
     $N$) does. This is the compact per-window bound with $\\delta C\\delta C^\\top$ replaced by
     $\\lVert\\delta C\\rVert_2^2 I$ (identical when $m = 1$). Unlike the paper's term-by-term

@@ -11,9 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._controller import LTIController
-from ._data import Windows
-from ._rollout import scan_outputs
+from .._controller import LTIController
+from .._data import Windows
+from .._rollout import scan_outputs
 
 #: The activations known to be slope-restricted in $[0, 1]$ with $\sigma(0) = 0$.
 ACTIVATIONS: dict[str, Callable] = {"relu": jax.nn.relu, "tanh": jnp.tanh}
