@@ -102,7 +102,8 @@ def _solve_batch(qsr, targets, P_tilde, eps, weights, *, base_eps, reg, dtype, s
 
     _sdp.thread_map(work, range(count), shards=shards)
     sol = tuple(cast(M, dtype) for M in lmi.layout.unpack(xs))
-    ok = (codes == _SOLVED) & certified(*sol[:4], qsr, sol[4])
+    A, B, C, D, P = sol
+    ok = (codes == _SOLVED) & certified(A, B, C, D, qsr, P)
     return sol, codes, ok
 
 
@@ -131,6 +132,7 @@ def _certified_solve(qsr, targets, P_tilde, weights, *, eps, reg, dtype, shards,
         cur_eps[todo] *= _EPS_GROWTH
         if not len(todo):
             break
+    assert sols is not None  # set by the first attempt (_ATTEMPTS >= 1)
     return sols, found, codes
 
 
@@ -161,6 +163,7 @@ def _project_rows(qsr, targets, P_tilde, weights, rounds, *, eps, reg, dtype, sh
         if not len(live):
             break
         P_tilde[live] = best[4][live]
+    assert best is not None  # set by the first round (rounds >= 1)
     codes[np.isfinite(best_dist)] = _SOLVED
     return best, codes
 
@@ -188,7 +191,8 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, C0, D0, shard, *, qsr
     codes = np.full(act.shape[0], _SKIPPED, np.int32)
     todo = np.nonzero(act)[0]
     if has_ref and len(todo):
-        keep = certified(*(M[todo] for M in flat[:4]), qsr, flat[4][todo])
+        A_, B_, C_, D_, P_ = (M[todo] for M in flat)
+        keep = certified(A_, B_, C_, D_, qsr, P_)
         codes[todo[keep]] = _UNCHANGED
         todo = todo[~keep]
     if len(todo):
@@ -224,8 +228,8 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, C0, D0, shard, *, qsr
         for o, M in zip(out, sol):
             o[done] = M[codes[todo] == _SOLVED]
         # `certify` of a returned controller then finds its storage without an SDP
-        _certify_fast.remember(*(M[codes[todo] == _SOLVED] for M in sol[:4]), qsr,
-                               sol[4][codes[todo] == _SOLVED])
+        A_, B_, C_, D_, P_ = (M[codes[todo] == _SOLVED] for M in sol)
+        _certify_fast.remember(A_, B_, C_, D_, qsr, P_)
     return (*(o.reshape(batch + o.shape[1:]).astype(dtype) for o in out),
             codes.reshape(batch))
 

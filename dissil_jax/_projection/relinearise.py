@@ -66,5 +66,6 @@ def project_rows_indefinite(solve, layout, qsr, targets, P_tilde, H0, weights, r
         P_t[rows_on] = best[4][rows_on]
         C0[rows_on], D0[rows_on] = best[2][rows_on], best[3][rows_on]
         live = np.concatenate([rows_retry, rows_on])
+    assert best is not None  # set by the first round (`targets` is never empty)
     codes[np.isfinite(best_dist)] = _outcome.code("solved")
     return best, codes

@@ -126,7 +126,7 @@ def _solve(G: LTIController, qsr: QSR, q: int):
     with _sdp.single_threaded_blas():
         try:
             prob.solve(solver=cp.CLARABEL)
-        except cp.error.SolverError as err:
+        except cp.SolverError as err:
             return None, None, f"solver_error: {err}"
     if P.value is None:
         return None, None, str(prob.status)

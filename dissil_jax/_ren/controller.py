@@ -7,6 +7,7 @@ from collections.abc import Callable
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -172,7 +173,8 @@ class RENController(eqx.Module):
     @property
     def sigma(self) -> Callable:
         """The activation as a function."""
-        return ACTIVATIONS.get(self.activation) if isinstance(self.activation, str) \
+        # a name was checked against ACTIVATIONS at construction
+        return ACTIVATIONS[self.activation] if isinstance(self.activation, str) \
             else self.activation
 
     def layer(self, x: Float[Array, " n"], u: Float[Array, " p"]) -> Float[Array, " q"]:

@@ -196,6 +196,7 @@ def certify_or_project(res: FitResult, qsr: QSR, windows: Windows, *, eps: float
     `result` the projection's failure.
     """
     K, P = res.controllers, res.P
+    assert P is not None  # the direct map returns a storage with every controller
     ok = _lmi.certified(K.A, K.B, K.C, K.D, qsr, P)
     projected = np.zeros(ok.shape, bool)
     reason = np.asarray(_outcome.codes(res.result)).copy()

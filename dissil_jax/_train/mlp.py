@@ -62,11 +62,11 @@ class MLPController(eqx.Module):
 
     @property
     def n_in(self) -> int:
-        return self.mlp.in_size
+        return int(self.mlp.in_size)  # built from an int, never "scalar"
 
     @property
     def n_out(self) -> int:
-        return self.mlp.out_size
+        return int(self.mlp.out_size)
 
     @property
     def batch_shape(self) -> tuple[int, ...]:

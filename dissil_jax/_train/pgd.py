@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import equinox as eqx
 import jax
@@ -11,6 +11,7 @@ import numpy as np
 import optax
 
 from .. import _outcome
+from .._controller import LTIController
 from .._data import Windows
 from .._projection.project import project
 from .._rollout import imitation_loss
@@ -92,7 +93,8 @@ class _PGD(Method):
         K, P, opt_state = state
         _, grads = _batched_loss(K, self.windows)
         updates, opt_state = jax.vmap(self.opt.update)(grads, opt_state, K)
-        K_new, P_new = optax.apply_updates(K, updates), P
+        # optax types its result as a generic pytree; it has K's structure
+        K_new, P_new = cast(LTIController, optax.apply_updates(K, updates)), P
         code = jnp.full(active.shape, _CONVERGED, jnp.int32)
         if self.qsr is not None:
             # An indefinite Q's positive part is linearised at the certified iterate (K_ref),
@@ -128,7 +130,7 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
     hist, loss = hist * s2, loss * s2
     return FitResult(
         controllers=K, P=P,
-        certified=None if qsr is None else ~_outcome.failed(code0),
+        certified=None if qsr is None else jnp.asarray(~_outcome.failed(code0)),
         loss_history=hist, final_loss=loss, converged=reason == _CONVERGED, steps=steps,
         wall_time=jnp.asarray(jnp.nan, hist.dtype), result=_outcome.item(reason),
     )

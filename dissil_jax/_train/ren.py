@@ -10,6 +10,7 @@ import time
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -90,6 +91,7 @@ _run_jit = eqx.filter_jit(_run)
 def _certify_all(res: RENFitResult, qsr: QSR) -> RENFitResult:
     """The float64 end check of every `(K, P, Λ)`; a failing pair gets a fresh certificate
     from the SDP of [`certify_ren`][dissil_jax.certify_ren], or is marked `not_certified`."""
+    assert res.P is not None  # the REN map returns a storage with every controller
     K, P, lam = res.controllers, np.array(res.P, np.float64), np.array(res.multiplier,
                                                                           np.float64)
     ok = certified_batch(K, qsr, P, lam)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import equinox as eqx
 import jax.numpy as jnp
 import jax.random as jr
@@ -117,7 +119,8 @@ def mass_spring_chain(
     c = c_range[0] + (c_range[1] - c_range[0]) * np.asarray(jr.uniform(kc, (n_masses,)), np.float64)
     phi = phi_range[0] + (phi_range[1] - phi_range[0]) * float(jr.uniform(kp, ()))
     Ac, Bc, Cc, Dc = chain_matrices(k, c, phi)
-    sysd = control.ss(Ac, Bc, Cc, Dc).sample(dt, method=method)
+    # python-control types `ss` as returning any I/O system; from matrices it is a StateSpace
+    sysd = cast(control.StateSpace, control.ss(Ac, Bc, Cc, Dc)).sample(dt, method=method)
     plant = LinearPlant(*(jnp.asarray(np.asarray(M, np.float64)) for M in (sysd.A, sysd.B, sysd.C,
                                                                            sysd.D)))
     if check_passive:

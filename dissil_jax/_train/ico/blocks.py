@@ -40,6 +40,8 @@ class ConeBlock:
 
     rows: int
     cones: list
+    _rows: np.ndarray  # `pattern`, set by every block's `__init__`
+    _cols: np.ndarray
 
     def pattern(self) -> tuple[np.ndarray, np.ndarray]:
         """`(rows, cols)` of the block's nonzeros (rows counted from the block's first row)."""

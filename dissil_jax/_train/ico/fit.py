@@ -98,8 +98,10 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, atol, rtol, dtype, index, c
         if dtheta is None:
             reason = status
             break
+        assert w_new is not None  # a solve returns the whole step or none of it
         theta_new = _lmi.cast(theta + dtheta, dtype)
         if qsr is not None:
+            assert P_new is not None  # ICO's step has a P (ICO-NC's has none)
             P_new = _lmi.cast((P_new + P_new.T) / 2, dtype)
         J_new = pb.loss(theta_new)
         # Guards against solver inaccuracy (the SDP guarantees both in exact arithmetic).
@@ -150,8 +152,10 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
     thetas = [pb.theta(*(M[i] for M in mats)) for i in range(num_inits)]
     user_cb = None
     if callback is not None:
-        def user_cb(i, step, theta, P, J):
+        def in_controller_units(i, step, theta, P, J):
             callback(i, step, LTIController(*pb.mats(theta)), P, s2 * J)
+
+        user_cb = in_controller_units
 
     def work(indices):
         return [_run_one(pb, thetas[i], None if qsr is None else P0[i], max_steps=max_steps,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
@@ -178,7 +180,7 @@ def make_problem(name: str, split: str, seed: int, *, plant, expert, expert_cont
     train = windows(slice(0, n_train), num_windows)
     test = windows(slice(n_train, num), NUM_TEST_WINDOWS)
     x0_test = jnp.asarray(units * rng.standard_normal((NUM_TEST_STATES, n)), dtype)
-    n_hat = plant.n_state if has_state else int(n_state)
+    n_hat = plant.n_state if has_state else int(cast(int, n_state))  # given without state
     facts = Facts(plant.n_state, plant.n_in, plant.n_out, supply, has_state, float(units), noise,
                   int(num_windows), int(horizon), expert_kind)
     return Problem(name, split, plant, expert, expert_controller, train, test, plant_qsr,
