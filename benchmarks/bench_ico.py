@@ -130,7 +130,7 @@ def bench(N, iters, ref_iters, run_fit):
     data = (np.asarray(windows.x0), np.asarray(windows.y), np.asarray(windows.target))
     pb = ICOProblem(*data, qsr)  # the default, window_cone="stacked"
     pb_win = ICOProblem(*data, qsr, window_cone="soc")
-    K = dj.LTIController.random(6, 3, 3, scale=0.1, key=jr.PRNGKey(N))
+    K = dj.LTIController.random(jr.PRNGKey(N), 6, 3, 3, scale=0.1)
     K, P = dj.project(K, qsr)
     theta, P = pb.theta(K.A, K.B, K.C, K.D), np.asarray(P)
     solver, solver_win = ICOSolver(pb), ICOSolver(pb_win)

@@ -17,7 +17,7 @@ RATES = {"passive": dj.QSR.passive(2),
 
 
 def _batch(key, num, n=3):
-    return jax.vmap(lambda k: dj.LTIController.random(n, 2, 2, scale=1.0, key=k))(
+    return jax.vmap(lambda k: dj.LTIController.random(k, n, 2, 2, scale=1.0))(
         jr.split(key, num))
 
 
@@ -30,7 +30,7 @@ def _dist(K, T):
 def test_lmi_matrix_is_the_convexified_lmi(getkey, name):
     # Built independently: the host class assembles M from its affine basis.
     qsr, n = RATES[name], 3
-    K = dj.LTIController.random(n, 2, 2, scale=1.0, key=getkey())
+    K = dj.LTIController.random(getkey(), n, 2, 2, scale=1.0)
     X, Y = jr.normal(getkey(), (2, n, n))
     P, Pt = X @ X.T + jnp.eye(n), Y @ Y.T + jnp.eye(n)
     lmi = ConvexifiedLMI(n, 2, 2, qsr)

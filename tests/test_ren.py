@@ -87,7 +87,7 @@ def _rollout_np(K, x, u):
 
 
 def test_width_zero_and_idle_neurons_are_the_lti_controller(getkey):
-    K = dj.LTIController.random(2, 1, 1, scale=0.5, key=getkey())
+    K = dj.LTIController.random(getkey(), 2, 1, 1, scale=0.5)
     u = jr.normal(getkey(), (6, 1))
     x0 = jnp.array([0.3, -1.0])
     for q in (0, 4):

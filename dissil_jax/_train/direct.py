@@ -261,10 +261,12 @@ def fit_direct(
     - `windows`: the demonstrations ([`Windows`][dissil_jax.Windows]).
     - `qsr`: the controller's supply rate ($Q\\preceq0$; an indefinite $Q$ raises a
       `ValueError`: use [`fit_pgd`][dissil_jax.fit_pgd] or [`fit_ico`][dissil_jax.fit_ico]).
-    - `optimizer`, `learning_rate`: by default `optax.adam(learning_rate)`, or any
-      `optax.GradientTransformation` as `optimizer`. The default step depends on the
-      width $w = \\hat n + p$: $0.3\\min(1, 9/w)$ (0.3 at the paper's sizes; parameters
-      and loss are unit-free), see `default_hyperparameters` and
+    - `optimizer`, `learning_rate`: by default `optax.adam(learning_rate)`, so
+      `learning_rate` is Adam's step on the direct map's free parameters $\\theta$ (about
+      how far each entry of $\\theta$ moves per step; not a factor of the gradient); or any
+      `optax.GradientTransformation` as `optimizer` (then leave `learning_rate` unset). The
+      default step depends on the width $w = \\hat n + p$: $0.3\\min(1, 9/w)$ (0.3 at the
+      paper's sizes; parameters and loss are unit-free), see `default_hyperparameters` and
       [concepts](concepts.md#a-direct-parameterisation).
     - `num_inits`, `n_state`, `max_steps`, `atol`, `rtol`: as in [`fit_pgd`][dissil_jax.fit_pgd].
     - `init_scale` $\\sigma$: the initial $\\theta$ has $X = I$ (so $P\\approx I$, the

@@ -260,11 +260,14 @@ def fit_pgd(
     - `windows`: the demonstrations ([`Windows`][dissil_jax.Windows]).
     - `qsr`: the controller's supply rate (any symmetric $Q$; an indefinite $Q$'s positive
       part is linearised at the current iterate, see [`project`][dissil_jax.project]).
-    - `optimizer`, `learning_rate`, `decay`: the step rule. By default the paper's rule
-      with `learning_rate` $\\eta_0 = 1$ (in the normalised units above) and `decay`
-      $\\rho = 0.99$, chosen by measurement on four problems against Adam and ICO
+    - `optimizer`, `learning_rate`, `decay`: the step rule. By default the paper's rule,
+      plain gradient steps $\\Delta_i = -\\eta_0\\rho^{\\,i}\\nabla J_s(K_i)$ on the normalised
+      loss: `learning_rate` is $\\eta_0$, the factor of the first step's gradient (default
+      1, in the normalised units above), and `decay` is $\\rho$ (default 0.99), chosen by
+      measurement on four problems against Adam and ICO
       (`benchmarks/bench_optimizers.py`); or any `optax.GradientTransformation` as
-      `optimizer` (then leave `learning_rate` and `decay` unset). When the optimiser's
+      `optimizer` (then leave `learning_rate` and `decay` unset: they belong to the
+      paper's rule only). When the optimiser's
       state holds a second moment $\\nu$ (Adam, RMSProp, ...), $\\Pi$ measures distance
       in its metric $\\sqrt\\nu$ (`project`'s `metric`), so that the fixed points of the
       projected steps are the constrained minima
@@ -321,11 +324,14 @@ def fit_gd(
     projects a wild first draw back, and from N(0, 1) draws the runs of the zoo ended up to
     80x higher) and the step rule: with none of
     `optimizer`, `learning_rate` and `decay` given it is `optax.adam(GD_LEARNING_RATE)`
-    ($\\eta = 0.1$ in the normalised units). Adam moves each entry by about $\\eta$ per step
-    whatever the gradient's size, so a run cannot blow up within its step budget: with the
-    paper's rule at its PGD default ($\\eta_0 = 1$) GD diverged on every problem of the zoo
-    (`dissil_jax.experiments.zoo`, `benchmarks/bench_defaults.py`), where PGD's projection
-    keeps the iterates bounded. Pass `learning_rate` (and `decay`) for the paper's rule. With
+    (Adam's step $\\eta = 0.1$ in the normalised units). Adam moves each entry by about
+    $\\eta$ per step whatever the gradient's size, so a run cannot blow up within its step
+    budget: with the paper's rule at its PGD default ($\\eta_0 = 1$) GD diverged on every
+    problem of the zoo (`dissil_jax.experiments.zoo`, `benchmarks/bench_defaults.py`),
+    where PGD's projection keeps the iterates bounded. `learning_rate` and `decay` are,
+    as in `fit_pgd`, the paper's rule's $\\eta_0$ (a factor of the gradient) and $\\rho$:
+    giving either selects that rule (the other then takes `fit_pgd`'s default). To change
+    Adam's step instead, pass `optimizer=optax.adam(step)`. With
     `throw=True` a diverging run (`non_finite`) raises.
     """
     if optimizer is None and learning_rate is None and decay is None:

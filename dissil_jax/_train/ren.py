@@ -136,8 +136,9 @@ def fit_ren(
 
     - `key`, `windows`, `qsr` ($Q\\preceq0$), `num_inits`, `n_state`, `max_steps`, `atol`, `rtol`,
       `optimizer`, `learning_rate`, `init_scale`, `margin`, `throw`: as in
-      [`fit_direct`][dissil_jax.fit_direct]; the default step and initial scale are
-      `fit_direct`'s at order $\\hat n + q$.
+      [`fit_direct`][dissil_jax.fit_direct] (`learning_rate` is Adam's step on the REN
+      map's free parameters); the default step and initial scale are `fit_direct`'s at
+      order $\\hat n + q$.
     - `width` $q\\ge0$: the number of neurons (0 gives an LTI controller, as a REN).
     - `input_share` $\\rho\\in[0,1)$: the share of the LTI map's feedthrough slack
       $\\Phi_0$ given to the neurons' direct input $D_{12}$ (static; 0 gives

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import cast
 
 import jax.numpy as jnp
+import jax.random as jr
 import numpy as np
 import scipy.linalg
 
@@ -39,7 +40,7 @@ def chain_plant(seed: int, masses: int, actuated=None) -> LinearPlant:
     collocated force inputs and velocity outputs at the masses `actuated` (None: all).
 
     A collocated sub-block of a passive transfer matrix is passive, so every such plant is."""
-    chain = mass_spring_chain(seed, masses, check_passive=False)
+    chain = mass_spring_chain(jr.PRNGKey(seed), masses, check_passive=False)
     A, B, C, D = chain.plant.matrices()
     idx = np.arange(masses) if actuated is None else np.asarray(actuated)
     return LinearPlant(A, B[:, idx], C[idx], D[np.ix_(idx, idx)])
