@@ -24,7 +24,12 @@ from ._train._checks import check_n_state
 from ._train._init import INIT_SCALE, init_controllers
 from ._train._iterate import Method, iterate
 from ._train._scale import loss_scale, scaled
-from ._train.direct import MapDescent, _run as direct_run_unchecked, default_hyperparameters
+from ._train.direct import (
+    MapDescent,
+    _run as direct_run_unchecked,
+    default_hyperparameters,
+    map_loss,
+)
 from ._train.ico import fit as ico, sdp as ico_sdp
 from ._train.ico.blocks import Iterate
 from ._train.ico.layout import svec_len
@@ -40,7 +45,7 @@ __all__ = [
     "METRIC_FLOOR", "MapDescent", "Method", "TABLES", "certified", "certify_fast",
     "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct",
     "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "init_controllers", "iterate",
-    "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "mlp",
+    "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",
     "optimizer_metric", "outcome", "pgd", "projection", "projection_fo", "ren_certify",
     "ren_map", "ren_train", "rollout", "scaled", "sdp", "single_threaded_blas", "smat",
     "solver_stats", "stacked_factor", "svec_len",

@@ -55,18 +55,25 @@ def default_hyperparameters(n_state: int, n_in: int) -> tuple[float, float]:
             INIT_SCALE * min(1.0, (_WIDTH / width) ** 0.5))
 
 
-def _loss_fn(qsr, margin):
-    def loss(theta, windows):
-        K, P = direct_map(theta, qsr, margin)
-        return imitation_loss(K, windows), (K, P)
+def map_loss(param_map: Callable, loss: Callable) -> Callable:
+    """`MapDescent`'s `loss_fn` for a direct map: `(theta, windows) -> ((J, out), grad)`,
+    batched over the lanes of `theta`.
 
-    return jax.vmap(jax.value_and_grad(loss, has_aux=True), in_axes=(0, None))
+    `param_map(theta)` returns a tuple whose first entry is the controller (then its
+    certificate: `(K, P)` for the LTI map, `(K, P, Λ)` for the REN map); `J = loss(K,
+    windows)` and the gradient is with respect to `theta`.
+    """
+    def value(theta, windows):
+        out = param_map(theta)
+        return loss(out[0], windows), out
+
+    return jax.vmap(jax.value_and_grad(value, has_aux=True), in_axes=(0, None))
 
 
 class MapDescent(Method):
     """Unconstrained descent on $J_s(K(\\theta))$ through a direct map, for the driver loop
     (`_iterate.py`); `loss_fn(theta, windows) -> ((J, aux), grad)` batched over the lanes
-    (`_loss_fn` here for LTI controllers, the REN map's twin in `ren.py`).
+    (`map_loss` of the LTI map here, of the REN map in `ren.py`).
 
     Pure JAX (no callback), so the run can be jitted, vmapped over the optimiser's
     hyperparameters and sharded. The state carries the gradient of the current iterate, so
@@ -113,7 +120,8 @@ def _run(key, windows, qsr, learning_rate, init_scale, *, optimizer, num_inits, 
                          dtype)
     opt = optax.adam(learning_rate) if optimizer is None else optimizer
     (_, _, (K, P), _), hist, loss, steps, reason = iterate(
-        MapDescent(theta0, scaled(windows, s2), opt, _loss_fn(qsr, margin)),
+        MapDescent(theta0, scaled(windows, s2), opt,
+                   map_loss(lambda theta: direct_map(theta, qsr, margin), imitation_loss)),
         max_steps=max_steps, atol=atol / s2, rtol=rtol)
     return FitResult(
         controllers=K, P=P, certified=None,

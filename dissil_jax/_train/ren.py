@@ -26,7 +26,7 @@ from .._supply import QSR
 from ._checks import check_fit_args, check_n_state
 from ._iterate import iterate
 from ._scale import loss_scale, scaled
-from .direct import MapDescent, default_hyperparameters
+from .direct import MapDescent, default_hyperparameters, map_loss
 from .result import FitResult, raise_if_failed
 
 _CONVERGED, _NOT_CERTIFIED = (_outcome.code(r) for r in ("converged", "not_certified"))
@@ -39,14 +39,6 @@ class RENFitResult(FitResult):
     `certified` is the float64 check of each `(controller, P, multiplier)`."""
 
     multiplier: jax.Array | None = None
-
-
-def _batched_loss(qsr, width, activation, margin, input_share=0.0):
-    def loss(theta, windows):
-        K, P, lam = ren_map(theta, qsr, width, activation, margin, input_share)
-        return ren_imitation_loss(K, windows), (K, P, lam)
-
-    return jax.vmap(jax.value_and_grad(loss, has_aux=True), in_axes=(0, None))
 
 
 def to_user_units(K, lam, s):
@@ -73,9 +65,9 @@ def _run(key, windows, qsr, learning_rate, init_scale, *, width, activation, opt
     opt = optax.adam(learning_rate) if optimizer is None else optimizer
     # The driver loop of every gradient trainer, with the LTI direct map's method and the
     # REN map's loss in place of the LTI one.
+    ren = lambda theta: ren_map(theta, qsr, width, activation, margin, input_share)
     (_, _, (K, P, lam), _), hist, loss, steps, reason = iterate(
-        MapDescent(theta0, data, opt, _batched_loss(qsr, width, activation, margin,
-                                                    input_share)),
+        MapDescent(theta0, data, opt, map_loss(ren, ren_imitation_loss)),
         max_steps=max_steps, atol=atol / s2, rtol=rtol)
     K, lam = to_user_units(K, lam, s2**0.5)
     return RENFitResult(
