@@ -51,12 +51,11 @@ reproduce: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m dissil_jax.experiments linear \
 		--data initial sliding --inits 10 --jobs 2 --out runs/reproduce
 
+# ruff, and pyright in basic mode on dissil_jax/ (configured in pyproject.toml).
 lint: $(STAMP)
 	$(BIN)/ruff check dissil_jax tests examples benchmarks
+	$(BIN)/pyright
 
-# pyright in basic mode on dissil_jax/ (configured in pyproject.toml). Not yet part of
-# `lint`: it still reports errors, mostly optional values and third-party stub gaps
-# (numpy, scipy.sparse, cvxpy); see CHANGELOG.md.
 typecheck: $(STAMP)
 	$(BIN)/pyright
 

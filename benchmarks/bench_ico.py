@@ -54,7 +54,7 @@ def synthetic_windows(N, n=6, p=3, m=3, seed=0):
 
 
 def cvxpy_step(pb: ICOProblem, theta0, P_tilde, w_tilde, eps, stacked=False):
-    """The ICO SDP of `_ico_sdp` written in cvxpy; returns (obj, time, status).
+    """The ICO SDP of `dissil_jax/_train/ico/sdp.py` written in cvxpy; returns (obj, time, status).
 
     `stacked=False`: one constraint per window (the direct formulation, window_cone='soc');
     `stacked=True`: the library's default QR-compressed single cone (window_cone='stacked'),
@@ -130,7 +130,7 @@ def bench(N, iters, ref_iters, run_fit):
     data = (np.asarray(windows.x0), np.asarray(windows.y), np.asarray(windows.target))
     pb = ICOProblem(*data, qsr)  # the default, window_cone="stacked"
     pb_win = ICOProblem(*data, qsr, window_cone="soc")
-    K = dj.LTIController.random(6, 3, 3, scale=0.1, key=jr.PRNGKey(N))
+    K = dj.LTIController.random(jr.PRNGKey(N), 6, 3, 3, scale=0.1)
     K, P = dj.project(K, qsr)
     theta, P = pb.theta(K.A, K.B, K.C, K.D), np.asarray(P)
     solver, solver_win = ICOSolver(pb), ICOSolver(pb_win)

@@ -22,7 +22,7 @@ import dissil_jax as dj
 from dissil_jax.internal import certify_fast as _certify_fast, projection as _projection
 n, m = int(sys.argv[1]), int(sys.argv[2])
 qsr = dj.QSR.passive(m)
-K = dj.LTIController.random(n, m, m, scale=1.0, key=jax.random.PRNGKey(n))
+K = dj.LTIController.random(jax.random.PRNGKey(n), n, m, m, scale=1.0)
 t = time.perf_counter()
 proj = dj.project(K, qsr, throw=False)
 jax.block_until_ready(proj[1])

@@ -43,9 +43,9 @@ out = {"lib": dj.__file__}
 for name, qsr, n in cases:
     m = qsr.n_in
     keys = jax.random.split(jax.random.PRNGKey(0), 64)
-    K = jax.vmap(lambda k: dj.LTIController.random(n, m, m, scale=0.5, key=k))(keys)
+    K = jax.vmap(lambda k: dj.LTIController.random(k, n, m, m, scale=0.5))(keys)
     K, P = dj.project(K, qsr)
-    noise = jax.vmap(lambda k: dj.LTIController.random(n, m, m, scale=0.2, key=k))(
+    noise = jax.vmap(lambda k: dj.LTIController.random(k, n, m, m, scale=0.2))(
         jax.random.split(jax.random.PRNGKey(1), 64))
     target = jax.tree.map(jnp.add, K, noise)
     proj = jax.jit(jax.vmap(lambda K, P: dj.project(K, qsr, P)))
@@ -54,7 +54,7 @@ for name, qsr, n in cases:
     for _ in range(3):
         jax.block_until_ready(proj(target, P))
     out[name + " proj_ref"] = (time.perf_counter() - t) / (3 * 64)
-    Kr = [dj.LTIController.random(n, m, m, scale=1.0, key=k) for k in jax.random.split(
+    Kr = [dj.LTIController.random(k, n, m, m, scale=1.0) for k in jax.random.split(
         jax.random.PRNGKey(2), 9)]
     jax.block_until_ready(dj.project(Kr[0], qsr)[1])
     t = time.perf_counter()
@@ -100,11 +100,11 @@ jax.config.update("jax_enable_x64", True)
 import dissil_jax as dj
 n, qsr = int(sys.argv[1]), dj.QSR.passive(2)
 keys = jax.random.split(jax.random.PRNGKey(n), 8)
-K0 = jax.vmap(lambda k: dj.LTIController.random(n, 2, 2, scale=1.0, key=k))(keys)
+K0 = jax.vmap(lambda k: dj.LTIController.random(k, n, 2, 2, scale=1.0))(keys)
 t = time.perf_counter()
 K0, P0 = dj.project(K0, qsr, refine=1)
 setup = time.perf_counter() - t
-noise = jax.vmap(lambda k: dj.LTIController.random(n, 2, 2, scale=0.2, key=k))(
+noise = jax.vmap(lambda k: dj.LTIController.random(k, n, 2, 2, scale=0.2))(
     jax.random.split(jax.random.PRNGKey(1), 8))
 target = jax.tree.map(lambda a, b: a + b, K0, noise)
 proj = jax.jit(jax.vmap(lambda K, P: dj.project(K, qsr, P, throw=False)))

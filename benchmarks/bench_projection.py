@@ -40,9 +40,9 @@ CASES = [
 def _targets(qsr, n, batch, seed=0):
     """Certified controllers with their P, and perturbed copies as projection targets."""
     keys = jax.random.split(jax.random.PRNGKey(seed), batch)
-    K = jax.vmap(lambda k: dj.LTIController.random(n, qsr.n_in, qsr.n_out, scale=0.5, key=k))(keys)
+    K = jax.vmap(lambda k: dj.LTIController.random(k, n, qsr.n_in, qsr.n_out, scale=0.5))(keys)
     K, P = dj.project(K, qsr)
-    noise = jax.vmap(lambda k: dj.LTIController.random(n, qsr.n_in, qsr.n_out, scale=0.2, key=k))(
+    noise = jax.vmap(lambda k: dj.LTIController.random(k, n, qsr.n_in, qsr.n_out, scale=0.2))(
         jax.random.split(jax.random.PRNGKey(seed + 1), batch))
     return jax.tree.map(jnp.add, K, noise), P
 
@@ -75,8 +75,7 @@ def bench_overhead(qsr, n, batch, reps):
     target) over Clarabel's own solve time, per controller: the host layer's overhead.
     Reported for the default pool and for one thread (no overlap of solves)."""
     keys = jax.random.split(jax.random.PRNGKey(7), batch)
-    K = jax.vmap(lambda k: dj.LTIController.random(n, qsr.n_in, qsr.n_out, scale=1.0,
-                                                   key=k))(keys)
+    K = jax.vmap(lambda k: dj.LTIController.random(k, n, qsr.n_in, qsr.n_out, scale=1.0))(keys)
     proj = jax.jit(jax.vmap(lambda K: dj.project(K, qsr, refine=1)))
     jax.block_until_ready(proj(K))
     stats = _projection.solver_stats()

@@ -92,7 +92,7 @@ def cell(path, n, m, qsr, state):
     """One measurement; returns (seconds, note). `state` carries the projected controller."""
     key = jax.random.PRNGKey(n * 10 + m)
     if path == "project":
-        K = dj.LTIController.random(n, m, m, scale=1.0, key=key)
+        K = dj.LTIController.random(key, n, m, m, scale=1.0)
         dj.project(K, qsr, refine=1, throw=False, active=False)  # trace: not timed
         rss0, stats = _rss_mib(), _projection.solver_stats()
         s0, c0 = stats["solve_time"], stats["solves"]
@@ -113,9 +113,9 @@ def cell(path, n, m, qsr, state):
         # the host half of one PGD step: the batch of 8 iterates projected at their own P
         # (`fit_pgd`'s callback; its gradients are microseconds next to it)
         keys = jax.random.split(key, 8)
-        K0 = jax.vmap(lambda k: dj.LTIController.random(n, m, m, scale=1.0, key=k))(keys)
+        K0 = jax.vmap(lambda k: dj.LTIController.random(k, n, m, m, scale=1.0))(keys)
         K0, P0 = dj.project(K0, qsr, refine=1)
-        noise = jax.vmap(lambda k: dj.LTIController.random(n, m, m, scale=0.2, key=k))(
+        noise = jax.vmap(lambda k: dj.LTIController.random(k, n, m, m, scale=0.2))(
             jax.random.split(jax.random.PRNGKey(1), 8))
         target = jax.tree.map(lambda a, b: a + b, K0, noise)
         proj = jax.jit(jax.vmap(lambda K, P: dj.project(K, qsr, P, throw=False)))

@@ -1,13 +1,12 @@
 """dissil_jax: dissipative imitation learning of LTI output-feedback controllers in JAX."""
 
-from ._certify import Certificate as Certificate, certify as certify
+from ._certify.certify import Certificate as Certificate, certify as certify
 from ._controller import LTIController as LTIController
 from ._data import Windows as Windows
-from ._lmi import kyp_matrix as kyp_matrix
 from ._outcome import Outcome as Outcome
-from ._projection import Projection as Projection, project as project
-from ._ren_certify import RENCertificate as RENCertificate, certify_ren as certify_ren
-from ._ren_controller import (
+from ._projection.project import Projection as Projection, project as project
+from ._ren.certify import RENCertificate as RENCertificate, certify_ren as certify_ren
+from ._ren.controller import (
     RENController as RENController,
     ren_imitation_loss as ren_imitation_loss,
     ren_predict as ren_predict,
@@ -19,6 +18,7 @@ from ._rollout import (
     predict as predict,
     rollout as rollout,
 )
+from ._sdp.lmi import kyp_matrix as kyp_matrix
 from ._supply import (
     QSR as QSR,
     ClosedLoopCertificate as ClosedLoopCertificate,
@@ -39,7 +39,7 @@ from ._plant_qsr import (
     sector_plant_qsr as sector_plant_qsr,
 )
 from ._train.direct import direct_run as direct_run, fit_direct as fit_direct
-from ._train.ico import fit_ico as fit_ico, fit_ico_nc as fit_ico_nc
+from ._train.ico.fit import fit_ico as fit_ico, fit_ico_nc as fit_ico_nc
 from ._train.mlp import MLPController as MLPController, fit_mlp as fit_mlp
 from ._train.pgd import fit_gd as fit_gd, fit_pgd as fit_pgd, pgd_run as pgd_run
 from ._train.ren import RENFitResult as RENFitResult, fit_ren as fit_ren

@@ -122,30 +122,30 @@ class LTIController(eqx.Module):
     @classmethod
     def random(
         cls,
+        key: PRNGKeyArray,
         n_state: int,
         n_in: int,
         n_out: int,
         *,
         scale: float = 0.1,
         dtype=None,
-        key: PRNGKeyArray,
     ) -> LTIController:
         """Entries i.i.d. $\\mathcal N(0, \\text{scale}^2)$ (the trainers' random initialisation).
 
         **Arguments:**
 
+        - `key`: a JAX PRNG key (first, as in the trainers and `jax.random`).
         - `n_state`: state size $\\hat n$.
         - `n_in`: input size $p$ (plant outputs).
         - `n_out`: output size $m$ (plant inputs).
         - `scale`: standard deviation of the entries.
         - `dtype`: floating dtype (default: JAX's default float).
-        - `key`: a JAX PRNG key.
 
         **Returns:** an unbatched `LTIController`; `jax.vmap` over keys for a batch:
 
         ```python
-        K = dj.LTIController.random(2, 1, 1, scale=0.5, key=jax.random.PRNGKey(0))
-        Ks = jax.vmap(lambda k: dj.LTIController.random(2, 1, 1, key=k))(keys)
+        K = dj.LTIController.random(jax.random.PRNGKey(0), 2, 1, 1, scale=0.5)
+        Ks = jax.vmap(lambda k: dj.LTIController.random(k, 2, 1, 1))(keys)
         ```
         """
         n, n_in, n_out = (check_int(name, d) for name, d in

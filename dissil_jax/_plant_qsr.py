@@ -10,9 +10,11 @@ The SDPs are solved in float64 by cvxpy + Clarabel with single-threaded BLAS.
 
 from __future__ import annotations
 
+from typing import Literal, overload
+
 import numpy as np
 
-from ._sdp import single_threaded_blas
+from ._sdp.sdp import single_threaded_blas
 from ._supply import QSR
 from ._validate import check_abcd
 
@@ -61,6 +63,14 @@ def _solve(prob, what: str) -> None:
                          f"such supply rate. {_FIXES.get(what, _FIXES[None])}")
 
 
+def _value(x) -> np.ndarray:
+    """The value of a cvxpy variable or expression after `_solve` (which raises unless the
+    problem was solved, so the value is set)."""
+    value = x.value
+    assert value is not None
+    return np.asarray(value)
+
+
 _FIXES = {
     "Lemma 8": ("Lemma 8 needs a storage with 2(A'PA + alpha^2 tau I) < P, so the linear part "
                 "must contract strongly (||A||^2 + alpha^2 < 1/2 suffices): check `A` and "
@@ -98,7 +108,17 @@ def sector_lemma_matrix(A, B, C, D, alpha, qsr: QSR, P, tau=None) -> np.ndarray:
     return _sym(np.vstack([top, np.hstack([top[:, n:].T, bot])]))
 
 
-def sector_plant_qsr(A, B, C, D, alpha, *, return_storage: bool = False):
+@overload
+def sector_plant_qsr(A, B, C, D, alpha, *, return_storage: Literal[False] = False) -> QSR: ...
+
+
+@overload
+def sector_plant_qsr(A, B, C, D, alpha, *,
+                     return_storage: Literal[True]) -> tuple[QSR, np.ndarray]: ...
+
+
+def sector_plant_qsr(A, B, C, D, alpha, *, return_storage: bool = False
+                     ) -> QSR | tuple[QSR, np.ndarray]:
     """Smallest-radius cone supply rate of a sector-bounded plant (paper Lemma 8).
 
     For $x^+ = Ax + \\alpha\\sin(x) + Bu$, $y = Cx + Du$, with $V = x^\\top Px$,
@@ -145,10 +165,10 @@ def sector_plant_qsr(A, B, C, D, alpha, *, return_storage: bool = False):
     M = cp.bmat([[top_left, (P @ AB).T, CD.T],
                  [P @ AB, P / 2, np.zeros((n, p))],
                  [CD, np.zeros((p, n)), np.eye(p)]])
-    cons = [_sym(M) >> 0, P >> 0, tau * np.eye(n) - P >> 0]
+    cons: list[cp.Constraint] = [_sym(M) >> 0, P >> 0, tau * np.eye(n) - P >> 0]
     prob = cp.Problem(cp.Minimize(t), cons)
     _solve(prob, "Lemma 8")
-    Pv, Sv, tv = _sym(P.value), S.value, float(t.value)
+    Pv, Sv, tv = _sym(_value(P)), _value(S), float(_value(t))
     qsr = QSR(-np.eye(p), Sv, tv * np.eye(m) - Sv.T @ Sv)
     lam = np.linalg.eigvalsh(sector_lemma_matrix(A, B, C, D, alpha, qsr, Pv))[0]
     scale = 1.0 + np.abs(qsr.R).max() + np.abs(Pv).max() * (1 + np.abs(AB).max()) ** 2
@@ -171,23 +191,28 @@ def _kyp_expr(A, B, C, D, P, Q, S, R):
     return _sym(cp.vstack([top, bot]))
 
 
-def _index_sdp(A, B, C, D, kind: str, nu_fixed=None, rho_fixed=None, ray=None) -> tuple:
+def _index_sdp(A, B, C, D, kind: str, nu_fixed: float | None = None,
+               rho_fixed: float | None = None,
+               ray: tuple[float, float] | None = None) -> tuple[float, float]:
     """Maximise passivity indices under the KYP LMI; returns (rho, nu)."""
     import cvxpy as cp
 
     n, m, p = A.shape[0], B.shape[1], C.shape[0]
     P = cp.Variable((n, n), symmetric=True)
     rho, nu = cp.Variable(), cp.Variable()
-    cons = [P >> 0]
+    cons: list[cp.Constraint] = [P >> 0]
     if kind == "nu":
         objective, rho_e, nu_e = nu, 0.0, nu
     elif kind == "rho":
         objective, rho_e, nu_e = rho, rho, 0.0
     elif kind == "rho_at_nu":
+        assert nu_fixed is not None  # this kind's argument
         objective, rho_e, nu_e = rho, rho, float(nu_fixed)
     elif kind == "nu_at_rho":
+        assert rho_fixed is not None
         objective, rho_e, nu_e = nu, float(rho_fixed), nu
     else:  # "ray": (rho, nu) = s * (rho_max, nu_max)
+        assert ray is not None
         s = cp.Variable()
         objective, rho_e, nu_e = s, s * ray[0], s * ray[1]
     Q = -rho_e * np.eye(p)
@@ -196,15 +221,15 @@ def _index_sdp(A, B, C, D, kind: str, nu_fixed=None, rho_fixed=None, ray=None) -
     cons.append(_kyp_expr(A, B, C, D, P, Q, S, R) << 0)
     prob = cp.Problem(cp.Maximize(objective), cons)
     _solve(prob, "passivity-index")
-    val = lambda e: float(e.value) if hasattr(e, "value") else float(e)
+    val = lambda e: float(_value(e)) if isinstance(e, cp.Expression) else float(e)
     return val(rho_e), val(nu_e)
 
 
 def _certified(A, B, C, D, qsr: QSR) -> bool:
-    from ._certify import certify
+    from ._certify.certify import certify
     from ._controller import LTIController
 
-    return certify(LTIController(A, B, C, D), qsr).holds
+    return bool(certify(LTIController(A, B, C, D), qsr).holds)
 
 
 def _backed_off(A, B, C, D, make, value: float, backoff: float, what: str):
@@ -325,6 +350,6 @@ def lti_cone_qsr(plant, *, backoff: float = 1e-3) -> QSR:
                  [CD, np.zeros((p, n)), np.eye(p)]])
     prob = cp.Problem(cp.Minimize(t), [_sym(M) >> 0, P >> 0])
     _solve(prob, "cone")
-    Sv, tv = S.value, float(t.value)
+    Sv, tv = _value(S), float(_value(t))
     make = lambda neg_t: QSR(-np.eye(p), Sv, -neg_t * np.eye(m) - Sv.T @ Sv)
     return _backed_off(A, B, C, D, make, -tv, backoff, "cone radius")

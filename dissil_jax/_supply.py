@@ -13,7 +13,7 @@ input is the plant output and the output is (minus) the plant input.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import Any
+from typing import Any, cast
 
 import equinox as eqx
 import numpy as np
@@ -315,8 +315,10 @@ def closed_loop_certificate(plant_qsr: QSR, controller_qsr: QSR) -> ClosedLoopCe
     lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
     best_la, best = grid[i], vals[i]
     if hi > lo:
-        res = scipy.optimize.minimize_scalar(f, bounds=(lo, hi), method="bounded",
-                                             options={"xatol": 1e-10})
+        # scipy types the result as `object`; it is an `OptimizeResult`
+        res = cast(scipy.optimize.OptimizeResult,
+                   scipy.optimize.minimize_scalar(f, bounds=(lo, hi), method="bounded",
+                                                  options={"xatol": 1e-10}))
         if res.fun < best:
             best_la, best = res.x, res.fun
     scale = 1.0 + np.abs(_theorem1_matrix(plant_qsr, controller_qsr, 10**best_la)).max()

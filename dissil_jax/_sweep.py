@@ -80,6 +80,7 @@ def sweep(fn, mesh: Mesh | None = None):
                              f"(sweep) axis; got leading sizes {sorted(sizes, key=str)}. "
                              "Close over the arguments that are not swept.")
         size = sizes.pop()
+        assert size is not None  # excluded just above
         pad = -size % mesh.size
         args = jax.device_put(jax.tree.map(lambda x: _pad(x, pad), args),
                               NamedSharding(mesh, spec))

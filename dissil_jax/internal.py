@@ -11,33 +11,31 @@ Modules, for monkeypatching in tests and for benchmarks that time one layer alon
 `__all__`.
 """
 
-from . import (
-    _certify_fast as certify_fast,
-    _direct_map as direct_map,
-    _linalg as linalg,
-    _lmi as lmi,
-    _outcome as outcome,
-    _projection as projection,
-    _projection_fo as projection_fo,
-    _ren_certify as ren_certify,
-    _ren_map as ren_map,
-    _rollout as rollout,
-    _sdp as sdp,
-)
-from ._lmi import ConvexifiedLMI, certified, kyp_certified, kyp_margin, kyp_scale, smat
-from ._projection import solver_stats
-from ._sdp import single_threaded_blas
-from ._train import _ico_sdp as ico_sdp, direct, ico, mlp, pgd, ren as ren_train
+from . import _direct_map as direct_map, _linalg as linalg, _outcome as outcome, _rollout as rollout
+from ._certify import fast as certify_fast
+from ._projection import first_order as projection_fo, project as projection
+from ._projection.project import solver_stats
+from ._ren import certify as ren_certify, map as ren_map
+from ._sdp import lmi, sdp
+from ._sdp.lmi import ConvexifiedLMI, certified, kyp_certified, kyp_margin, kyp_scale, smat
+from ._sdp.sdp import single_threaded_blas
+from ._train import direct, mlp, pgd, ren as ren_train
 from ._train._checks import check_n_state
-from ._train._ico_blocks import Iterate
-from ._train._ico_layout import svec_len
-from ._train._ico_sdp import ICOProblem
-from ._train._ico_solver import ICOSolver
-from ._train._ico_windows import stacked_factor
 from ._train._init import INIT_SCALE, init_controllers
 from ._train._iterate import Method, iterate
 from ._train._scale import loss_scale, scaled
-from ._train.direct import MapDescent, _run as direct_run_unchecked, default_hyperparameters
+from ._train.direct import (
+    MapDescent,
+    _run as direct_run_unchecked,
+    default_hyperparameters,
+    map_loss,
+)
+from ._train.ico import fit as ico, sdp as ico_sdp
+from ._train.ico.blocks import Iterate
+from ._train.ico.layout import svec_len
+from ._train.ico.sdp import ICOProblem
+from ._train.ico.solver import ICOSolver
+from ._train.ico.windows import stacked_factor
 from ._train.mlp import demonstration_pairs
 from ._train.pgd import METRIC_FLOOR, optimizer_metric
 from .experiments._paper import FIGURES, TABLES
@@ -47,7 +45,7 @@ __all__ = [
     "METRIC_FLOOR", "MapDescent", "Method", "TABLES", "certified", "certify_fast",
     "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct",
     "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "init_controllers", "iterate",
-    "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "mlp",
+    "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",
     "optimizer_metric", "outcome", "pgd", "projection", "projection_fo", "ren_certify",
     "ren_map", "ren_train", "rollout", "scaled", "sdp", "single_threaded_blas", "smat",
     "solver_stats", "stacked_factor", "svec_len",

@@ -39,7 +39,7 @@ def linear(seeds) -> None:
     passive = dj.QSR.passive(3)
     gain = dj.LTIController(np.zeros((1, 1)), np.zeros((1, 3)), np.zeros((3, 1)), 0.5 * np.eye(3))
     for seed in seeds:
-        chain = dj.systems.mass_spring_chain(seed)  # raises unless certified passive
+        chain = dj.systems.mass_spring_chain(jax.random.PRNGKey(seed))  # raises unless passive
         nu = -dj.input_passivity_qsr(chain.plant).R[0, 0]
         joint = dj.passivity_indices(chain.plant)
         rho_j, nu_j = -joint.Q[0, 0], -joint.R[0, 0]

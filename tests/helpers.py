@@ -45,7 +45,7 @@ def index(tree, i):
 
 # -- dissipativity from the definition -----------------------------------------------------
 #
-# Nothing below uses dissil_jax's KYP blocks (`_lmi`, `certify`) or `QSR.supply`: the
+# Nothing below uses dissil_jax's KYP blocks (`_sdp/lmi.py`, `certify`) or `QSR.supply`: the
 # storage decrease and the supply rate are evaluated by simulating one step,
 #
 #     f(x, u) = V(A x + B u) - V(x) - w(u, C x + D u),   V(x) = x'Px,

@@ -118,7 +118,7 @@ def problem():
     qsr = dj.QSR.passive(2)
     # Windows that a projected random expert fits exactly (as `realisable_windows`).
     kK, kx, ky = jax.random.split(jax.random.PRNGKey(0), 4)[:3]
-    expert, _ = dj.project(dj.LTIController.random(2, 2, 2, key=kK), qsr)
+    expert, _ = dj.project(dj.LTIController.random(kK, 2, 2, 2), qsr)
     x0, y = jax.random.normal(kx, (10, 2)), jax.random.normal(ky, (10, 2, 2))
     windows = dj.Windows(x0, y, -jax.vmap(lambda x, yk: dj.rollout(expert, x, yk))(x0, y))
 
@@ -137,7 +137,7 @@ def main():
         return pgd(lr, qsr=None)
 
     def inits(key):  # ICO's random initialisations: two N(0, 1) draws per key, projected
-        K = jax.vmap(lambda k: dj.LTIController.random(2, 2, 2, key=k))(jax.random.split(key, 2))
+        K = jax.vmap(lambda k: dj.LTIController.random(k, 2, 2, 2))(jax.random.split(key, 2))
         return dj.project(K, qsr, throw=False)
 
     keys = jax.random.split(jax.random.PRNGKey(2), 8)

@@ -169,7 +169,7 @@ def test_given_P_is_checked_not_solved():
 def test_certify_float32_controller():
     """float32 input is certified as given (float64 arithmetic on the float32 values)."""
     qsr = dj.QSR(-29.867, 3.556, 0.601)
-    K = dj.project(dj.LTIController.random(2, 1, 1, scale=2.0, key=jax.random.PRNGKey(3)), qsr)[0]
+    K = dj.project(dj.LTIController.random(jax.random.PRNGKey(3), 2, 1, 1, scale=2.0), qsr)[0]
     K32 = K.astype(jnp.float32)
     cert = dj.certify(K32, qsr)
     assert K32.A.dtype == jnp.float32 and cert.P.dtype == np.float64
@@ -291,7 +291,7 @@ def test_fast_path_and_sdp_agree(qsr):
 
 def test_projected_controller_is_certified_from_the_cache(getkey):
     qsr = dj.QSR.passive(2)
-    Kp, P = dj.project(dj.LTIController.random(4, 2, 2, scale=2.0, key=getkey()), qsr)
+    Kp, P = dj.project(dj.LTIController.random(getkey(), 4, 2, 2, scale=2.0), qsr)
     cert = dj.certify(Kp, qsr)
     assert cert.holds and cert.status == "cached"
     np.testing.assert_array_equal(cert.P, np.asarray(P, np.float64))

@@ -9,7 +9,7 @@ import dissil_jax as dj
 
 
 def test_call_is_one_step(getkey):
-    K = dj.LTIController.random(3, 2, 1, scale=1.0, key=getkey())
+    K = dj.LTIController.random(getkey(), 3, 2, 1, scale=1.0)
     x, u = jnp.arange(3.0), jnp.array([1.0, -2.0])
     xn, y = K(x, u)
     np.testing.assert_allclose(xn, K.A @ x + K.B @ u)
@@ -19,14 +19,14 @@ def test_call_is_one_step(getkey):
 
 def test_random_scale_and_determinism(getkey):
     key = getkey()
-    K1 = dj.LTIController.random(20, 10, 10, scale=0.3, key=key)
-    K2 = dj.LTIController.random(20, 10, 10, scale=0.3, key=key)
+    K1 = dj.LTIController.random(key, 20, 10, 10, scale=0.3)
+    K2 = dj.LTIController.random(key, 20, 10, 10, scale=0.3)
     assert tree_allclose(K1, K2)
     assert 0.25 < float(jnp.std(K1.A)) < 0.35
 
 
 def test_statespace_round_trip(getkey):
-    K = dj.LTIController.random(2, 3, 2, key=getkey())
+    K = dj.LTIController.random(getkey(), 2, 3, 2)
     sys = K.to_statespace(dt=0.1)
     assert isinstance(sys, control.StateSpace) and sys.dt == 0.1
     assert tree_allclose(dj.LTIController.from_statespace(sys), K)
@@ -42,12 +42,12 @@ def test_shape_errors_name_the_argument():
     with pytest.raises(ValueError, match="`A`"):
         dj.LTIController(np.full((2, 2), np.nan), np.ones((2, 1)), np.ones((1, 2)), np.ones((1, 1)))
     with pytest.raises(ValueError, match="`n_state`"):
-        dj.LTIController.random(0, 1, 1, key=jax.random.PRNGKey(0))
+        dj.LTIController.random(jax.random.PRNGKey(0), 0, 1, 1)
 
 
 def test_batched_controllers_via_vmap(getkey):
     keys = jax.random.split(getkey(), 4)
-    Ks = jax.vmap(lambda k: dj.LTIController.random(2, 1, 1, key=k))(keys)
+    Ks = jax.vmap(lambda k: dj.LTIController.random(k, 2, 1, 1))(keys)
     assert Ks.batch_shape == (4,)
     x = jnp.ones((4, 2))
     u = jnp.ones((4, 1))
@@ -78,27 +78,28 @@ def test_invalid_matrices_name_the_argument(mats, name):
 
 def test_random_size_errors_name_the_argument(getkey):
     with pytest.raises(ValueError, match="`n_in`"):
-        dj.LTIController.random(2, 1.5, 1, key=getkey())
+        dj.LTIController.random(getkey(), 2, 1.5, 1)
     with pytest.raises(ValueError, match="`n_out`"):
-        dj.LTIController.random(2, 1, -1, key=getkey())
+        dj.LTIController.random(getkey(), 2, 1, -1)
     with pytest.raises(TypeError):
-        dj.LTIController.random(2, 1, 1)  # `key` is required (keyword-only)
+        dj.LTIController.random(2, 1, 1)  # `key` is required (first)
     with pytest.raises(TypeError):
-        dj.LTIController.random(2, 1, 1, 0.5, key=getkey())  # `scale` is keyword-only
+        dj.LTIController.random(getkey(), 2, 1, 1, 0.5)  # `scale` is keyword-only
 
 
-def test_random_signature_is_equinox_style():
+def test_random_signature_takes_the_key_first():
     import inspect
 
     sig = inspect.signature(dj.LTIController.random)
-    assert list(sig.parameters) == ["n_state", "n_in", "n_out", "scale", "dtype", "key"]
+    assert list(sig.parameters) == ["key", "n_state", "n_in", "n_out", "scale", "dtype"]
     kinds = {name: p.kind for name, p in sig.parameters.items()}
-    assert all(kinds[k] is inspect.Parameter.KEYWORD_ONLY for k in ("scale", "dtype", "key"))
+    assert kinds["key"] is inspect.Parameter.POSITIONAL_OR_KEYWORD
+    assert all(kinds[k] is inspect.Parameter.KEYWORD_ONLY for k in ("scale", "dtype"))
 
 
 def _batch(getkey, shape, n=2, p=1, m=1):
     keys = jax.random.split(getkey(), int(np.prod(shape)))
-    Ks = jax.vmap(lambda k: dj.LTIController.random(n, p, m, scale=0.6, key=k))(keys)
+    Ks = jax.vmap(lambda k: dj.LTIController.random(k, n, p, m, scale=0.6))(keys)
     return jax.tree.map(lambda a: a.reshape(shape + a.shape[1:]), Ks)
 
 
@@ -120,8 +121,8 @@ def test_batched_to_statespace_equals_loop(getkey, shape):
 
 
 def test_from_statespace_batch_errors(getkey):
-    a = dj.LTIController.random(2, 1, 1, key=getkey()).to_statespace()
-    b = dj.LTIController.random(3, 1, 1, key=getkey()).to_statespace()
+    a = dj.LTIController.random(getkey(), 2, 1, 1).to_statespace()
+    b = dj.LTIController.random(getkey(), 3, 1, 1).to_statespace()
     with pytest.raises(ValueError, match="`sys`"):
         dj.LTIController.from_statespace([a, b])  # different sizes
     with pytest.raises(ValueError, match="`sys`"):
@@ -133,7 +134,7 @@ def test_from_statespace_batch_errors(getkey):
 
 
 def test_dtype_is_kept_and_cast(getkey):
-    K = dj.LTIController.random(2, 1, 1, dtype=jnp.float32, key=getkey())
+    K = dj.LTIController.random(getkey(), 2, 1, 1, dtype=jnp.float32)
     assert all(M.dtype == jnp.float32 for M in (K.A, K.B, K.C, K.D))
     K64 = K.astype(jnp.float64)
     assert all(M.dtype == jnp.float64 for M in (K64.A, K64.B, K64.C, K64.D))

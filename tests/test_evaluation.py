@@ -16,7 +16,7 @@ from dissil_jax.systems import mass_spring_chain, paper_nonlinear_plant
 
 @pytest.fixture(scope="module")
 def linear():
-    ch = mass_spring_chain(0)
+    ch = mass_spring_chain(jr.PRNGKey(0))
     return ch.plant, lqr_expert(ch.Ac, ch.Bc, ch.Cc)
 
 

@@ -18,7 +18,7 @@ pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-
 
 @pytest.mark.parametrize("E, F", [(10.0, 1.0), (1.0, 3.0)])
 def test_lqr_gain_riccati_residual(E, F):
-    ch = mass_spring_chain(1)
+    ch = mass_spring_chain(jr.PRNGKey(1))
     A, B, C = ch.Ac, ch.Bc, ch.Cc
     K, Pi = lqr_gain(A, B, C, E, F)
     Einv = np.eye(3) / E
@@ -33,7 +33,7 @@ def test_lqr_gain_riccati_residual(E, F):
 
 
 def test_lqr_expert_policy_and_weights():
-    ch = mass_spring_chain(0)
+    ch = mass_spring_chain(jr.PRNGKey(0))
     expert = lqr_expert(ch.Ac, ch.Bc, ch.Cc)
     x = jnp.arange(6.0)
     u, carry = expert(x, expert.init(x))
@@ -46,7 +46,7 @@ def test_lqr_expert_policy_and_weights():
 
 @pytest.mark.parametrize("kwargs, name", [(dict(E=-1.0), "E"), (dict(F=np.eye(2)), "F")])
 def test_lqr_bad_weights(kwargs, name):
-    ch = mass_spring_chain(0)
+    ch = mass_spring_chain(jr.PRNGKey(0))
     with pytest.raises(ValueError, match=f"`{name}`"):
         lqr_gain(ch.Ac, ch.Bc, ch.Cc, **kwargs)
 

@@ -31,8 +31,7 @@ def _problem(windows, qsr, cone="stacked"):
 
 
 def _start(key, windows, qsr, scale=0.3):
-    K = dj.LTIController.random(windows.n_state, windows.n_in, windows.n_out, scale=scale,
-                                key=key)
+    K = dj.LTIController.random(key, windows.n_state, windows.n_in, windows.n_out, scale=scale)
     P = None
     if qsr is not None:
         K, P = dj.project(K, qsr)

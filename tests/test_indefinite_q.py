@@ -81,7 +81,7 @@ def test_projection_of_50_random_indefinite_rates():
     controller with its own P returns it exactly."""
     for qsr, n, key in _cases(50):
         m = qsr.n_out
-        K = dj.LTIController.random(n, m, m, key=key)
+        K = dj.LTIController.random(key, n, m, m)
         K_proj, P = dj.project(K, qsr)
         _assert_certified(K_proj, qsr, P)
         again = dj.project(K_proj, qsr, P)
@@ -95,7 +95,7 @@ def test_projection_keeps_an_already_certified_target():
     rng = np.random.default_rng(1)
     for m in (1, 2, 3):
         qsr = _random_rate(rng, m)
-        K = dj.project(dj.LTIController.random(2, m, m, key=jax.random.PRNGKey(m)), qsr)[0]
+        K = dj.project(dj.LTIController.random(jax.random.PRNGKey(m), 2, m, m), qsr)[0]
         cert = dj.certify(K, qsr)
         assert cert.holds
         proj = dj.project(K, qsr, cert.P)
@@ -107,7 +107,7 @@ def test_far_target_falls_back_and_is_certified():
     """A target far from the set (its own linearisation can leave the set empty) still
     gets a certified projection, via the static fallback point if needed; `K_ref` works."""
     qsr = dj.QSR(np.diag([1.0, -0.5]), 0.5 * np.eye(2), -0.2 * np.eye(2))
-    K = dj.LTIController.random(3, 2, 2, key=jax.random.PRNGKey(3))
+    K = dj.LTIController.random(jax.random.PRNGKey(3), 3, 2, 2)
     K = jax.tree.map(lambda M: 20.0 * M, K)
     K_proj, P = dj.project(K, qsr)
     _assert_certified(K_proj, qsr, P)
@@ -119,7 +119,7 @@ def test_far_target_falls_back_and_is_certified():
 
 def test_batched_projection_matches_a_python_loop():
     qsr = _random_rate(np.random.default_rng(4), 2)
-    Ks = jax.vmap(lambda k: dj.LTIController.random(3, 2, 2, key=k))(
+    Ks = jax.vmap(lambda k: dj.LTIController.random(k, 3, 2, 2))(
         jax.random.split(jax.random.PRNGKey(5), 4))
     Kb, Pb = dj.project(Ks, qsr)
     for i in range(4):
@@ -187,7 +187,7 @@ def test_linear_example_plant_is_stabilised():
 def test_bad_input():
     # Phi = [[Q, S], [S', R]] has one positive eigenvalue but p = 2: no controller exists.
     bad = dj.QSR(np.diag([1.0, -1.0]), np.zeros((2, 2)), -np.eye(2))
-    K = dj.LTIController.random(2, 2, 2, key=jax.random.PRNGKey(0))
+    K = dj.LTIController.random(jax.random.PRNGKey(0), 2, 2, 2)
     with pytest.raises(ValueError, match="`qsr` is infeasible"):
         dj.project(K, bad)
     w = random_windows(jax.random.PRNGKey(1), N=4, n=2, p=2, m=2)
@@ -200,4 +200,4 @@ def test_bad_input():
     with pytest.raises(ValueError, match="`qsr.Q`.*fit_pgd"):
         dj.fit_direct(jax.random.PRNGKey(0), w, good)
     with pytest.raises(ValueError, match="`K_ref.A`"):
-        dj.project(K, good, K_ref=dj.LTIController.random(1, 2, 2, key=jax.random.PRNGKey(0)))
+        dj.project(K, good, K_ref=dj.LTIController.random(jax.random.PRNGKey(0), 1, 2, 2))

@@ -99,7 +99,7 @@ def test_storage_grows_like_the_nonzeros():
 def test_projection_at_order_16_is_certified(getkey):
     """A projection at n = 16, m = p = 2 (setup memory ~ nonzeros, not n^6)."""
     qsr = dj.QSR.passive(2)
-    K = dj.LTIController.random(16, 2, 2, scale=1.0, key=getkey())
+    K = dj.LTIController.random(getkey(), 16, 2, 2, scale=1.0)
     Kp, P = dj.project(K, qsr, refine=1)
     assert dj.certify(Kp, qsr, P=P).holds
     assert dissipation_ok(Kp, qsr, P)

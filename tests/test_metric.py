@@ -26,7 +26,7 @@ QSR = dj.QSR.passive(2)
 def _case(key, batch=()):
     """Certified controllers, targets outside the set near them, and anisotropic weights."""
     k1, k2, k3 = jr.split(key, 3)
-    draw = lambda k: dj.LTIController.random(2, 2, 2, scale=1.0, key=k)
+    draw = lambda k: dj.LTIController.random(k, 2, 2, 2, scale=1.0)
     K = jax.vmap(draw)(jr.split(k1, batch[0])) if batch else draw(k1)
     Kc, Pc = dj.project(K, QSR)
     def like(k, f):
@@ -86,7 +86,7 @@ def test_metric_errors(getkey):
 def test_optimizer_metric_reads_the_second_moment(getkey):
     """sqrt(nu) of Adam-like states (also inside a chain), floored per controller; None for
     optimisers without a second moment."""
-    K = jax.vmap(lambda k: dj.LTIController.random(2, 2, 2, key=k))(jr.split(getkey(), 2))
+    K = jax.vmap(lambda k: dj.LTIController.random(k, 2, 2, 2))(jr.split(getkey(), 2))
     g = jax.tree.map(lambda a: a * jnp.arange(a.size, dtype=a.dtype).reshape(a.shape), K)
     for opt in (optax.adam(0.1), optax.rmsprop(0.1),
                 optax.chain(optax.clip_by_global_norm(1.0), optax.adam(0.1))):

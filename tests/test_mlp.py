@@ -12,7 +12,7 @@ import dissil_jax as dj
 
 
 def test_mlp_controller_is_memoryless(getkey):
-    K = dj.MLPController(2, 3, (8, 8), key=getkey())
+    K = dj.MLPController(getkey(), 2, 3, (8, 8))
     x, u = jnp.arange(4.0), jnp.array([0.3, -1.0])
     x_next, y = K(x, u)
     assert jnp.array_equal(x_next, x)
@@ -24,7 +24,7 @@ def test_mlp_controller_is_memoryless(getkey):
     np.testing.assert_allclose(y, ref, rtol=1e-12)
     assert (K.n_in, K.n_out, K.batch_shape) == (2, 3, ())
     with pytest.raises(ValueError, match="`hidden`"):
-        dj.MLPController(2, 3, (8, 4), key=getkey())
+        dj.MLPController(getkey(), 2, 3, (8, 4))
 
 
 def test_fit_mlp_lowers_loss(getkey):
@@ -60,7 +60,7 @@ def test_paper_network_has_three_weight_matrices(getkey):
 
     for example, width in (("linear", 150), ("nonlinear", 25)):
         hidden = example_spec(example).hidden
-        K = dj.MLPController(3, 3, hidden, key=getkey())
+        K = dj.MLPController(getkey(), 3, 3, hidden)
         weights = [layer.weight.shape for layer in K.mlp.layers]
         assert weights == [(width, 3), (width, width), (3, width)]
 
@@ -70,7 +70,7 @@ def _plain_adam_loop(key, windows, hidden, max_steps, learning_rate, atol):
     stop when |J_k - J_(k-1)| < atol (the loss of the final parameters is recorded)."""
     import optax
 
-    model = dj.MLPController(windows.n_in, windows.n_out, hidden, key=key, dtype=jnp.float64)
+    model = dj.MLPController(key, windows.n_in, windows.n_out, hidden, dtype=jnp.float64)
     params, static = eqx.partition(model, eqx.is_inexact_array)
     Y, T = windows.y, -windows.u
 

@@ -75,7 +75,7 @@ def test_windows_at_rest_validation():
 @pytest.mark.parametrize("h", [2, 5, 40])  # 40 > the Toeplitz cut-off: the scan path
 def test_loss_at_rest_equals_plain_loop(getkey, n_hat, h):
     p, m, N = 2, 2, 6
-    K = dj.LTIController.random(n_hat, p, m, scale=0.4, key=getkey())
+    K = dj.LTIController.random(getkey(), n_hat, p, m, scale=0.4)
     w = _random_windows(getkey(), N, h, p, m)
     ref = np.stack([_outputs_from_rest(K, w.y[i]) for i in range(N)])
     np.testing.assert_allclose(dj.predict(K, w), ref, rtol=1e-11, atol=1e-11)
@@ -87,7 +87,7 @@ def test_loss_at_rest_equals_plain_loop(getkey, n_hat, h):
 
 
 def test_both_predict_paths_agree_at_rest(getkey, monkeypatch):
-    K = dj.LTIController.random(3, 1, 2, scale=0.5, key=getkey())
+    K = dj.LTIController.random(getkey(), 3, 1, 2, scale=0.5)
     w = _random_windows(getkey(), 4, 6, 1, 2)
     a = dj.predict(K, w)
     monkeypatch.setattr(_rollout, "_TOEPLITZ_MAX_HORIZON", 0)
@@ -98,7 +98,7 @@ def test_both_predict_paths_agree_at_rest(getkey, monkeypatch):
 
 def test_loss_at_rest_differs_from_loss_at_a_state(getkey):
     """With x0 given the same controller sees O x0 on top: the two losses differ."""
-    K = dj.LTIController.random(2, 1, 1, scale=0.5, key=getkey())
+    K = dj.LTIController.random(getkey(), 2, 1, 1, scale=0.5)
     rest = _random_windows(getkey(), 5, 4, 1, 1)
     at_x0 = dj.Windows(jnp.ones((5, 2)), rest.y, rest.u)
     at_zero = dj.Windows(jnp.zeros((5, 2)), rest.y, rest.u)
@@ -108,7 +108,7 @@ def test_loss_at_rest_differs_from_loss_at_a_state(getkey):
 
 
 def test_gradient_at_rest_matches_finite_differences(getkey):
-    K = dj.LTIController.random(2, 1, 1, scale=0.5, key=getkey())
+    K = dj.LTIController.random(getkey(), 2, 1, 1, scale=0.5)
     w = _random_windows(getkey(), 5, 4, 1, 1)
     g = jax.grad(dj.imitation_loss)(K, w)
     flat, unravel = jax.flatten_util.ravel_pytree(K)
@@ -121,7 +121,7 @@ def test_gradient_at_rest_matches_finite_differences(getkey):
 
 
 def test_state_width_must_match_controller_order(getkey):
-    K = dj.LTIController.random(2, 1, 1, key=getkey())
+    K = dj.LTIController.random(getkey(), 2, 1, 1)
     w = _random_windows(getkey(), 3, 2, 1, 1, x0=jnp.ones((3, 1)))
     for fn in (dj.predict, dj.imitation_loss):
         with pytest.raises(ValueError, match="`windows.x0` has width 1 but `K` has 2 states"):
@@ -155,7 +155,7 @@ def test_init_controllers_with_n_state(getkey, n_hat):
     K = init_controllers(key, 4, w, 0.5, n_state=n_hat)
     assert K.batch_shape == (4,) and (K.n_state, K.n_in, K.n_out) == (n_hat, 2, 1)
     for i, k in enumerate(jr.split(key, 4)):  # initialisation i is the draw of key i
-        ref = dj.LTIController.random(n_hat, 2, 1, scale=1.0, dtype=w.y.dtype, key=k)
+        ref = dj.LTIController.random(k, n_hat, 2, 1, scale=1.0, dtype=w.y.dtype)
         for M, R in zip((K.A, K.B, K.C, K.D), (ref.A, ref.B, ref.C, ref.D)):
             np.testing.assert_allclose(M[i], 0.5 * np.asarray(R), rtol=1e-14)
     with pytest.raises(ValueError, match="`n_state` is required"):
@@ -234,7 +234,7 @@ def test_simulate_rest_argument_errors_and_memoryless(getkey):
         ex.simulate_controllers(plant, Ks, x0, noise, xhat0="zero")
     with pytest.raises(ValueError, match="`xhat0` contains NaN"):
         ex.simulate_controllers(plant, Ks, x0, noise, xhat0=jnp.full((3, 1), jnp.nan))
-    mlp = jax.vmap(lambda k: dj.MLPController(1, 1, (4, 4), key=k))(jr.split(getkey(), 2))
+    mlp = jax.vmap(lambda k: dj.MLPController(k, 1, 1, (4, 4)))(jr.split(getkey(), 2))
     tr = ex.simulate_controllers(plant, mlp, x0, noise, xhat0="rest")
     np.testing.assert_array_equal(tr.xhat, 0.0)  # carried unchanged, zeros of plant size
     assert tr.xhat.shape == (2, 3, 5, 1)
@@ -242,7 +242,7 @@ def test_simulate_rest_argument_errors_and_memoryless(getkey):
 
 def test_evaluate_at_rest_against_plain_loops(getkey):
     """Order-2 controllers on the 6-state chain, started at rest, vs numpy loops."""
-    ch = mass_spring_chain(0)
+    ch = mass_spring_chain(jr.PRNGKey(0))
     plant, expert = ch.plant, lqr_expert(ch.Ac, ch.Bc, ch.Cc)
     rng = np.random.default_rng(1)
     Ks = dj.LTIController(*(0.05 * rng.normal(size=(3, *s))
@@ -283,7 +283,7 @@ def test_fit_pgd_learns_a_passive_expert_from_rest():
     """
     p = m = 2
     qsr = dj.QSR.passive(m)
-    K_star, _ = dj.project(dj.LTIController.random(3, p, m, scale=1.0, key=jr.PRNGKey(0)), qsr)
+    K_star, _ = dj.project(dj.LTIController.random(jr.PRNGKey(0), 3, p, m, scale=1.0), qsr)
     assert dj.certify(K_star, qsr).holds
     y = jr.normal(jr.PRNGKey(1), (32, 8, p))
     u = -np.stack([_outputs_from_rest(K_star, yi) for yi in y])  # u = -ŷ (negative feedback)

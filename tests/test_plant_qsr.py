@@ -1,5 +1,6 @@
 """Plant supply rates: paper Lemma 8 and LTI passivity indices / cones (issue 3)."""
 
+import jax.random as jr
 import numpy as np
 import pytest
 
@@ -135,7 +136,7 @@ def test_sector_lemma_bad_input():
 @pytest.fixture(scope="module")
 def chain():
     # Tustin explicitly: the input index of a Tustin chain with D_c = phi I is exactly phi.
-    return mass_spring_chain(0, method="bilinear")
+    return mass_spring_chain(jr.PRNGKey(0), method="bilinear")
 
 
 def test_input_index_is_phi(chain):

@@ -31,7 +31,7 @@ CASES = [
 
 def _random_targets(key, n, qsr, batch, scale=1.0):
     keys = jax.random.split(key, batch)
-    return jax.vmap(lambda k: dj.LTIController.random(n, qsr.n_in, qsr.n_out, scale=scale, key=k))(keys)
+    return jax.vmap(lambda k: dj.LTIController.random(k, n, qsr.n_in, qsr.n_out, scale=scale))(keys)
 
 
 @pytest.mark.parametrize("name, qsr, n", CASES, ids=[c[0] for c in CASES])
@@ -69,7 +69,7 @@ def test_projection_is_no_further_than_a_known_feasible_point(getkey):
     # Any certified controller K_c is feasible for the set at P~ = its own P, so the projection
     # of a target with P_ref = P_c is at least as close to the target as K_c.
     qsr = dj.QSR.passive(2)
-    Kc, Pc = dj.project(dj.LTIController.random(2, 2, 2, scale=1.0, key=getkey()), qsr)
+    Kc, Pc = dj.project(dj.LTIController.random(getkey(), 2, 2, 2, scale=1.0), qsr)
     target = jax.tree.map(lambda a: a + 0.3, Kc)
     Kp, _ = dj.project(target, qsr, Pc)
     dist = lambda K: sum(float(jnp.sum((a - b) ** 2)) for a, b in
@@ -80,7 +80,7 @@ def test_projection_is_no_further_than_a_known_feasible_point(getkey):
 
 def test_projection_in_float32_is_still_certified(getkey):
     qsr = dj.QSR(-29.867, 3.556, 0.601)
-    K = dj.LTIController.random(1, 1, 1, scale=3.0, key=getkey()).astype(jnp.float32)
+    K = dj.LTIController.random(getkey(), 1, 1, 1, scale=3.0).astype(jnp.float32)
     Kp, P = dj.project(K, qsr)
     assert Kp.A.dtype == jnp.float32 and P.dtype == jnp.float32
     assert dissipation_ok(Kp, qsr, P)
@@ -89,13 +89,13 @@ def test_projection_in_float32_is_still_certified(getkey):
 def test_positive_q_accepted():
     # An indefinite (here positive) Q is linearised, not refused (tests/test_indefinite_q.py).
     qsr = dj.QSR(1.0, 0.5, 1.0)
-    K = dj.LTIController.random(1, 1, 1, key=jax.random.PRNGKey(0))
+    K = dj.LTIController.random(jax.random.PRNGKey(0), 1, 1, 1)
     Kp, P = dj.project(K, qsr)
     assert dissipation_ok(Kp, qsr, P)
 
 
 def test_shape_mismatch_rejected():
-    K = dj.LTIController.random(2, 2, 1, key=jax.random.PRNGKey(0))
+    K = dj.LTIController.random(jax.random.PRNGKey(0), 2, 2, 1)
     with pytest.raises(ValueError, match="`qsr`"):
         dj.project(K, dj.QSR.passive(2))
     with pytest.raises(ValueError, match="`P_ref`"):
@@ -105,7 +105,7 @@ def test_shape_mismatch_rejected():
 def test_infeasible_supply_rate_raises():
     # Q = -I, S = 0, R = -I: w = -|y|^2 - |u|^2 < 0, no system is dissipative.
     qsr = dj.QSR(-1.0, 0.0, -1.0)
-    K = dj.LTIController.random(1, 1, 1, key=jax.random.PRNGKey(0))
+    K = dj.LTIController.random(jax.random.PRNGKey(0), 1, 1, 1)
     with pytest.raises(ValueError, match="infeasible"):
         dj.project(K, qsr)
     assert bool(dj.project(K, qsr, throw=False).result == dj.Outcome.infeasible)
@@ -115,7 +115,7 @@ def test_infeasible_supply_rate_raises():
 
 def test_qsr_is_a_static_argument():
     """A supply rate passes through `jax.jit` like any static value, by value."""
-    K = dj.LTIController.random(1, 1, 1, key=jax.random.PRNGKey(0))
+    K = dj.LTIController.random(jax.random.PRNGKey(0), 1, 1, 1)
     qsr = dj.QSR.passive(1)
     assert hash(qsr) == hash(dj.QSR.passive(1))
     eager = dj.project(K, qsr)[0]
@@ -136,7 +136,7 @@ def test_qsr_is_a_static_argument():
 def test_property_every_projection_is_certified(seed, n, p, scale, kind):
     qsr = {"passive": dj.QSR.passive(p), "gain": dj.QSR.bounded_gain(1.5, n_in=p, n_out=p),
            "conic": dj.QSR.conic(0.1, 3.0, dim=p)}[kind]
-    K = dj.LTIController.random(n, p, p, scale=scale, key=jax.random.PRNGKey(seed))
+    K = dj.LTIController.random(jax.random.PRNGKey(seed), n, p, p, scale=scale)
     Kp, P = dj.project(K, qsr)
     assert dissipation_ok(Kp, qsr, P)
     K2, P2 = dj.project(Kp, qsr, P)
@@ -178,7 +178,7 @@ def test_inactive_lanes_are_skipped(getkey):
 def test_eps_is_the_margin_of_the_exact_lmi(getkey):
     """With P_ref = I the convexified LMI <= -eps I implies KYP(P) <= -eps I and P >= eps I."""
     qsr = dj.QSR.passive(2)
-    K = dj.LTIController.random(2, 2, 2, scale=1.0, key=jax.random.PRNGKey(1))
+    K = dj.LTIController.random(jax.random.PRNGKey(1), 2, 2, 2, scale=1.0)
     out = {}
     for eps in (1e-6, 0.05):
         Kp, P, status = _with_status(K, qsr, jnp.eye(2), eps=eps)
@@ -193,7 +193,7 @@ def test_eps_is_the_margin_of_the_exact_lmi(getkey):
 
 def test_reg_pulls_P_to_the_reference(getkey):
     qsr = dj.QSR.conic(-0.5, 2.0, dim=2)
-    K = dj.LTIController.random(2, 2, 2, scale=1.0, key=jax.random.PRNGKey(1))
+    K = dj.LTIController.random(jax.random.PRNGKey(1), 2, 2, 2, scale=1.0)
     P_ref = 2.0 * jnp.eye(2)
     gap = {}
     for reg in (1e-6, 1e3):
@@ -206,7 +206,7 @@ def test_reg_pulls_P_to_the_reference(getkey):
 
 def test_refine_rounds_move_closer(getkey):
     qsr = dj.QSR.passive(2)
-    K = dj.LTIController.random(2, 2, 2, scale=1.0, key=jax.random.PRNGKey(1))
+    K = dj.LTIController.random(jax.random.PRNGKey(1), 2, 2, 2, scale=1.0)
     dists = {}
     for refine in (0, 1, 2, 3, 5):
         Kp, P, status = _with_status(K, qsr, refine=refine)
@@ -229,7 +229,7 @@ def _inject(monkeypatch, obj, name, value):
 
 def _failure_cases(qsr, key):
     """A target, and a batch [certified by P_ref, uncertified] with P_ref."""
-    Kc, Pc = dj.project(dj.LTIController.random(2, 2, 2, scale=1.0, key=key), qsr)
+    Kc, Pc = dj.project(dj.LTIController.random(key, 2, 2, 2, scale=1.0), qsr)
     target = jax.tree.map(lambda a: a + 1.0, Kc)
     assert not dj.certify(target, qsr, P=Pc).holds
     batch = jax.tree.map(lambda a, b: jnp.stack([a, b]), Kc, target)
@@ -314,7 +314,7 @@ def test_enlarged_margin_rescues_a_rounding_failure(getkey, monkeypatch):
 
 def test_projection_option_errors(getkey):
     qsr = dj.QSR.passive(1)
-    K = dj.LTIController.random(2, 1, 1, key=getkey())
+    K = dj.LTIController.random(getkey(), 2, 1, 1)
     Ks = _random_targets(getkey(), 2, qsr, 3)
     for kw, name in [(dict(eps=0.0), "`eps`"), (dict(eps=-1e-6), "`eps`"),
                      (dict(eps=np.nan), "`eps`"), (dict(reg=-1.0), "`reg`"),
@@ -360,7 +360,7 @@ def test_projection_at_a_degenerate_reference_is_retried(getkey):
     """A P_ref whose smallest eigenvalue is below the margin eps leaves the linearised set
     empty (eps I <= P <= 2 P_ref - eps I); the projection starts again from a scaled identity."""
     qsr, n = dj.QSR.passive(2), 4
-    Kc, Pc = dj.project(dj.LTIController.random(n, 2, 2, scale=1.0, key=getkey()), qsr)
+    Kc, Pc = dj.project(dj.LTIController.random(getkey(), n, 2, 2, scale=1.0), qsr)
     lam, V = np.linalg.eigh(np.asarray(Pc))
     lam[0] = 5e-7  # below eps = 1e-6
     P_bad = (V * lam) @ V.T

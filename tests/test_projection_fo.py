@@ -1,4 +1,4 @@
-"""The first-order projection (`_projection_fo.py`, `dj.project(method="first_order")`)."""
+"""The first-order projection (`_projection/first_order.py`, `dj.project(method="first_order")`)."""
 
 import jax
 import jax.numpy as jnp
@@ -17,7 +17,7 @@ RATES = {"passive": dj.QSR.passive(2),
 
 
 def _batch(key, num, n=3):
-    return jax.vmap(lambda k: dj.LTIController.random(n, 2, 2, scale=1.0, key=k))(
+    return jax.vmap(lambda k: dj.LTIController.random(k, n, 2, 2, scale=1.0))(
         jr.split(key, num))
 
 
@@ -30,7 +30,7 @@ def _dist(K, T):
 def test_lmi_matrix_is_the_convexified_lmi(getkey, name):
     # Built independently: the host class assembles M from its affine basis.
     qsr, n = RATES[name], 3
-    K = dj.LTIController.random(n, 2, 2, scale=1.0, key=getkey())
+    K = dj.LTIController.random(getkey(), n, 2, 2, scale=1.0)
     X, Y = jr.normal(getkey(), (2, n, n))
     P, Pt = X @ X.T + jnp.eye(n), Y @ Y.T + jnp.eye(n)
     lmi = ConvexifiedLMI(n, 2, 2, qsr)
@@ -121,7 +121,10 @@ def test_pgd_with_the_first_order_projection(getkey):
     w = expert_windows(0, 2, 1, 1)
     qsr = dj.QSR.passive(1)
     res = dj.fit_pgd(getkey(), w, qsr, num_inits=3, max_steps=5, atol=0.0, rtol=0.0,
-                     method="first_order")
+                     learning_rate=1.0, method="first_order")  # the paper's rule
+    # the default step, projected Adam, needs its metric: refused up front, with the fix
+    with pytest.raises(ValueError, match="`method='first_order'`.*paper's rule"):
+        dj.fit_pgd(getkey(), w, qsr, num_inits=3, max_steps=5, method="first_order")
     assert bool(res.certified.all())
     for i in range(3):
         assert dissipation_ok(index(res.controllers, i), qsr, res.P[i])

@@ -14,6 +14,7 @@ from dissil_jax.internal import (
     MapDescent,
     direct_map as dm,
     iterate,
+    map_loss,
     ren_certify,
     ren_map as rm,
     ren_train,
@@ -87,7 +88,7 @@ def _rollout_np(K, x, u):
 
 
 def test_width_zero_and_idle_neurons_are_the_lti_controller(getkey):
-    K = dj.LTIController.random(2, 1, 1, scale=0.5, key=getkey())
+    K = dj.LTIController.random(getkey(), 2, 1, 1, scale=0.5)
     u = jr.normal(getkey(), (6, 1))
     x0 = jnp.array([0.3, -1.0])
     for q in (0, 4):
@@ -287,7 +288,8 @@ def test_batched_training_equals_python_loop():
     w = expert_windows(2, 1, 1, 1, N=8)
     theta0 = rm.init_ren_params(jr.PRNGKey(5), 3, 1, 3, 1, 1, 0.5, jnp.float64)
     opt = optax.adam(0.05)
-    loss_fn = ren_train._batched_loss(qsr, 3, "tanh", dm.MARGIN)
+    loss_fn = map_loss(lambda th: rm.ren_map(th, qsr, 3, "tanh", dm.MARGIN),
+                       dj.ren_imitation_loss)
 
     def run(theta):
         state, hist, *_ = iterate(MapDescent(theta, w, opt, loss_fn), max_steps=15, atol=0.0,

@@ -13,7 +13,7 @@ _loop_outputs = loop_outputs
 
 @pytest.mark.parametrize("n, p, m, h", [(1, 1, 1, 2), (3, 2, 1, 5), (6, 3, 3, 7)])
 def test_toeplitz_and_scan_equal_plain_loop(getkey, n, p, m, h):
-    K = dj.LTIController.random(n, p, m, scale=0.5, key=getkey())
+    K = dj.LTIController.random(getkey(), n, p, m, scale=0.5)
     x0 = jax.random.normal(getkey(), (n,))
     u = jax.random.normal(getkey(), (h, p))
     ref = _loop_outputs(K, x0, u)
@@ -25,7 +25,7 @@ def test_toeplitz_and_scan_equal_plain_loop(getkey, n, p, m, h):
 
 
 def test_predict_both_paths_agree(getkey, monkeypatch):
-    K = dj.LTIController.random(2, 2, 1, scale=0.5, key=getkey())
+    K = dj.LTIController.random(getkey(), 2, 2, 1, scale=0.5)
     w = dj.Windows(jax.random.normal(getkey(), (5, 2)), jax.random.normal(getkey(), (5, 4, 2)),
                    jax.random.normal(getkey(), (5, 4, 1)))
     a = dj.predict(K, w)
@@ -49,7 +49,7 @@ def test_sign_convention_lqr_like_expert_is_passive_gain():
 
 
 def test_loss_value_and_gradient_match_finite_differences(getkey):
-    K = dj.LTIController.random(2, 2, 2, scale=0.5, key=getkey())
+    K = dj.LTIController.random(getkey(), 2, 2, 2, scale=0.5)
     w = dj.Windows(jax.random.normal(getkey(), (7, 2)), jax.random.normal(getkey(), (7, 3, 2)),
                    jax.random.normal(getkey(), (7, 3, 2)))
     # Paper eq. 16: squared norm of each window's stacked error, averaged over windows.
@@ -88,11 +88,11 @@ def test_windows_validation():
     with pytest.raises(ValueError, match="`u`"):
         dj.Windows(jnp.zeros((3, 1)), jnp.zeros((3, 2, 1)), jnp.full((3, 2, 1), jnp.nan))
     with pytest.raises(ValueError, match="`horizon`"):
-        dj.observability_toeplitz(dj.LTIController.random(1, 1, 1, key=jax.random.PRNGKey(0)), 0)
+        dj.observability_toeplitz(dj.LTIController.random(jax.random.PRNGKey(0), 1, 1, 1), 0)
 
 
 def test_float32_rollout_and_loss_match_float64(getkey):
-    K = dj.LTIController.random(3, 2, 2, scale=0.4, key=getkey())
+    K = dj.LTIController.random(getkey(), 3, 2, 2, scale=0.4)
     x0, u = jax.random.normal(getkey(), (3,)), jax.random.normal(getkey(), (5, 2))
     f32 = lambda t: jax.tree.map(lambda a: jnp.asarray(a, jnp.float32), t)
     y64, y32 = dj.rollout(K, x0, u), dj.rollout(f32(K), f32(x0), f32(u))
@@ -109,7 +109,7 @@ def test_float32_rollout_and_loss_match_float64(getkey):
 def test_batched_observability_toeplitz_equals_loop(getkey, shape):
     n, p, m, h = 3, 2, 2, 4
     keys = jax.random.split(getkey(), int(np.prod(shape)))
-    Kb = jax.vmap(lambda k: dj.LTIController.random(n, p, m, scale=0.5, key=k))(keys)
+    Kb = jax.vmap(lambda k: dj.LTIController.random(k, n, p, m, scale=0.5))(keys)
     Kb = jax.tree.map(lambda a: a.reshape(shape + a.shape[1:]), Kb)
     O, T = dj.observability_toeplitz(Kb, h)
     assert O.shape == shape + (h * m, n) and T.shape == shape + (h * m, h * p)
@@ -124,7 +124,7 @@ def test_batched_observability_toeplitz_equals_loop(getkey, shape):
 
 
 def test_batched_controller_is_refused_where_one_is_required(getkey):
-    Kb = jax.vmap(lambda k: dj.LTIController.random(2, 1, 1, key=k))(jax.random.split(getkey(), 3))
+    Kb = jax.vmap(lambda k: dj.LTIController.random(k, 2, 1, 1))(jax.random.split(getkey(), 3))
     w = dj.Windows(jnp.zeros((4, 2)), jnp.ones((4, 3, 1)), jnp.ones((4, 3, 1)))
     with pytest.raises(ValueError, match="`K`"):
         dj.predict(Kb, w)
@@ -135,7 +135,7 @@ def test_batched_controller_is_refused_where_one_is_required(getkey):
 def test_windows_at_rest_keep_the_dtype_and_vmap_over_controllers(getkey):
     """x̂0 = 0 (`Windows(None, ...)`): float32 stays float32, and a batch of controllers of
     order 3 (any order fits windows at rest) vmaps as in the trainers."""
-    Kb = jax.vmap(lambda k: dj.LTIController.random(3, 1, 1, scale=0.5, key=k))(
+    Kb = jax.vmap(lambda k: dj.LTIController.random(k, 3, 1, 1, scale=0.5))(
         jax.random.split(getkey(), 4))
     y, u = jax.random.normal(getkey(), (5, 3, 1)), jax.random.normal(getkey(), (5, 3, 1))
     w = dj.Windows(None, y, u)

@@ -82,7 +82,7 @@ def test_chain_matrices_hand_built():
 
 
 def test_mass_spring_chain_sampling_and_zoh():
-    ch = mass_spring_chain(3)
+    ch = mass_spring_chain(jr.PRNGKey(3))
     assert np.all((1 <= ch.k) & (ch.k <= 5)) and np.all((1 <= ch.c) & (ch.c <= 10))
     assert 0.05 <= ch.phi <= 1 and ch.dt == 0.1
     assert (ch.plant.n_state, ch.plant.n_in, ch.plant.n_out) == (6, 3, 3)
@@ -94,14 +94,15 @@ def test_mass_spring_chain_sampling_and_zoh():
     np.testing.assert_allclose(ch.plant.B, E[:6, 6:], atol=1e-12)
     np.testing.assert_allclose(ch.plant.C, ch.Cc, atol=0)
     np.testing.assert_allclose(ch.plant.D, ch.phi * np.eye(3), atol=0)
-    # Reproducible from the seed, and a key gives the same chain as its seed.
-    np.testing.assert_array_equal(mass_spring_chain(3).plant.A, ch.plant.A)
-    assert not np.allclose(mass_spring_chain(4).plant.A, ch.plant.A)
+    # Reproducible from the key; an integer seed is refused with the fix.
     np.testing.assert_array_equal(mass_spring_chain(jr.PRNGKey(3)).plant.A, ch.plant.A)
+    assert not np.allclose(mass_spring_chain(jr.PRNGKey(4)).plant.A, ch.plant.A)
+    with pytest.raises(ValueError, match=r"`key`.*PRNGKey\(3\)"):
+        mass_spring_chain(3)
 
 
 def test_tustin_option_adds_half_cb_to_the_feedthrough():
-    ch = mass_spring_chain(3, method="bilinear")
+    ch = mass_spring_chain(jr.PRNGKey(3), method="bilinear")
     Mi = np.eye(6) - ch.Ac * ch.dt / 2
     Ad = np.linalg.solve(Mi, np.eye(6) + ch.Ac * ch.dt / 2)
     np.testing.assert_allclose(ch.plant.A, Ad, atol=1e-12)
@@ -115,7 +116,7 @@ def test_zoh_chains_are_passive_with_margin():
     KYP SDP) with a positive margin, and its frequency response agrees (He G >= 0)."""
     margins = []
     for seed in range(100):
-        ch = mass_spring_chain(seed, check_passive=False)
+        ch = mass_spring_chain(jr.PRNGKey(seed), check_passive=False)
         cert = dj.certify(dj.LTIController(*ch.plant.matrices()), dj.QSR.passive(3))
         assert cert.holds, (seed, ch.phi, cert.margin)
         margins.append(cert.margin)
@@ -127,7 +128,7 @@ def test_zoh_chains_are_passive_with_margin():
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_tustin_chain_is_passive_frequency_domain(seed):
     """Independent passivity check: He G(e^{jw}) >= 0, with infimum phi at w = pi (Tustin)."""
-    ch = mass_spring_chain(seed, method="bilinear")
+    ch = mass_spring_chain(jr.PRNGKey(seed), method="bilinear")
     mats = ch.plant.matrices()
     assert dj.certify(dj.LTIController(*mats), dj.QSR.passive(3)).holds
     G = freq_response(*mats, OMEGAS)
@@ -140,8 +141,8 @@ def test_zoh_with_tiny_feedthrough_is_rejected():
     """ZOH needs phi above about dt/2: the generator must refuse phi = 0.01 (truly not passive)."""
     kwargs = dict(phi_range=(0.01, 0.01), dt=0.1, method="zoh")
     with pytest.raises(ValueError, match="not certified passive"):
-        mass_spring_chain(0, **kwargs)
-    ch = mass_spring_chain(0, check_passive=False, **kwargs)
+        mass_spring_chain(jr.PRNGKey(0), **kwargs)
+    ch = mass_spring_chain(jr.PRNGKey(0), check_passive=False, **kwargs)
     assert min_hermitian_part(freq_response(*ch.plant.matrices(), OMEGAS)) < 0
 
 
@@ -149,4 +150,4 @@ def test_zoh_with_tiny_feedthrough_is_rejected():
                                           (dict(k_range=(5.0, 1.0)), "k_range")])
 def test_chain_bad_arguments(kwargs, name):
     with pytest.raises(ValueError, match=f"`{name}`"):
-        mass_spring_chain(0, **kwargs)
+        mass_spring_chain(jr.PRNGKey(0), **kwargs)

@@ -196,8 +196,8 @@ def _loop_predict(K, W, n_state):
 @pytest.mark.parametrize("name", ["chain4_4x4_io", "cone_3x2"])
 def test_imitation_error_against_loops(problems, name):
     p = problems[name]
-    Ks = jax.vmap(lambda k: dj.LTIController.random(p.n_state, p.facts.n_out, p.facts.n_in,
-                                                    scale=0.3, key=k))(jr.split(jr.PRNGKey(1), 3))
+    Ks = jax.vmap(lambda k: dj.LTIController.random(k, p.n_state, p.facts.n_out, p.facts.n_in,
+                                                    scale=0.3))(jr.split(jr.PRNGKey(1), 3))
     err = zoo.imitation_error(p, Ks)
     target = -np.asarray(p.test.u, np.float64)
     J0 = np.mean(np.sum(target**2, axis=(1, 2)))

@@ -8,7 +8,7 @@ import numpy as np
 import optax
 
 from .._data import Windows
-from .._indefinite import check_feasible, is_indefinite
+from .._sdp.indefinite import check_feasible, is_indefinite
 from .._supply import QSR
 from .._validate import check_int
 
@@ -73,7 +73,7 @@ def check_n_state(windows: Windows, n_state) -> int:
     `windows.n_state`.
     """
     if n_state is None:
-        if windows.x0 is None:
+        if windows.n_state is None:  # the windows start at rest (`x0` None)
             raise ValueError(
                 "`n_state` is required when `windows.x0` is None: the controller starts at "
                 "rest (x̂0 = 0), so the data do not fix its order; pass e.g. `n_state=2`."

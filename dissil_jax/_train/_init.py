@@ -35,6 +35,6 @@ def init_controllers(key, num_inits: int, windows: Windows, scale, dtype=None, *
                          "at rest, so they do not fix the controller order).")
     p, m = windows.n_in, windows.n_out
     dtype = dtype or windows.y.dtype
-    K = jax.vmap(lambda k: LTIController.random(n, p, m, scale=1.0, dtype=dtype, key=k))(
+    K = jax.vmap(lambda k: LTIController.random(k, n, p, m, scale=1.0, dtype=dtype))(
         jr.split(key, num_inits))
     return jax.tree.map(lambda M: scale * M, K)

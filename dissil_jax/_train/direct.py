@@ -11,12 +11,13 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .. import _lmi, _outcome
+from .. import _outcome
 from .._data import Windows
 from .._direct_map import MARGIN, check_margin, direct_map, init_params
-from .._indefinite import is_indefinite
-from .._projection import project
+from .._projection.project import project
 from .._rollout import imitation_loss
+from .._sdp import lmi as _lmi
+from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
 from ._checks import check_fit_args, check_keep, check_n_state, check_optimizer
 from ._iterate import RTOL, Method, iterate, where
@@ -54,18 +55,25 @@ def default_hyperparameters(n_state: int, n_in: int) -> tuple[float, float]:
             INIT_SCALE * min(1.0, (_WIDTH / width) ** 0.5))
 
 
-def _loss_fn(qsr, margin):
-    def loss(theta, windows):
-        K, P = direct_map(theta, qsr, margin)
-        return imitation_loss(K, windows), (K, P)
+def map_loss(param_map: Callable, loss: Callable) -> Callable:
+    """`MapDescent`'s `loss_fn` for a direct map: `(theta, windows) -> ((J, out), grad)`,
+    batched over the lanes of `theta`.
 
-    return jax.vmap(jax.value_and_grad(loss, has_aux=True), in_axes=(0, None))
+    `param_map(theta)` returns a tuple whose first entry is the controller (then its
+    certificate: `(K, P)` for the LTI map, `(K, P, Λ)` for the REN map); `J = loss(K,
+    windows)` and the gradient is with respect to `theta`.
+    """
+    def value(theta, windows):
+        out = param_map(theta)
+        return loss(out[0], windows), out
+
+    return jax.vmap(jax.value_and_grad(value, has_aux=True), in_axes=(0, None))
 
 
 class MapDescent(Method):
     """Unconstrained descent on $J_s(K(\\theta))$ through a direct map, for the driver loop
     (`_iterate.py`); `loss_fn(theta, windows) -> ((J, aux), grad)` batched over the lanes
-    (`_loss_fn` here for LTI controllers, the REN map's twin in `ren.py`).
+    (`map_loss` of the LTI map here, of the REN map in `ren.py`).
 
     Pure JAX (no callback), so the run can be jitted, vmapped over the optimiser's
     hyperparameters and sharded. The state carries the gradient of the current iterate, so
@@ -112,7 +120,8 @@ def _run(key, windows, qsr, learning_rate, init_scale, *, optimizer, num_inits, 
                          dtype)
     opt = optax.adam(learning_rate) if optimizer is None else optimizer
     (_, _, (K, P), _), hist, loss, steps, reason, kept = iterate(
-        MapDescent(theta0, scaled(windows, s2), opt, _loss_fn(qsr, margin)),
+        MapDescent(theta0, scaled(windows, s2), opt,
+                   map_loss(lambda theta: direct_map(theta, qsr, margin), imitation_loss)),
         max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
     return FitResult(
         controllers=K, P=P, certified=None,
@@ -195,6 +204,7 @@ def certify_or_project(res: FitResult, qsr: QSR, windows: Windows, *, eps: float
     `result` the projection's failure.
     """
     K, P = res.controllers, res.P
+    assert P is not None  # the direct map returns a storage with every controller
     ok = _lmi.certified(K.A, K.B, K.C, K.D, qsr, P)
     projected = np.zeros(ok.shape, bool)
     reason = np.asarray(_outcome.codes(res.result)).copy()
@@ -259,10 +269,12 @@ def fit_direct(
     - `windows`: the demonstrations ([`Windows`][dissil_jax.Windows]).
     - `qsr`: the controller's supply rate ($Q\\preceq0$; an indefinite $Q$ raises a
       `ValueError`: use [`fit_pgd`][dissil_jax.fit_pgd] or [`fit_ico`][dissil_jax.fit_ico]).
-    - `optimizer`, `learning_rate`: by default `optax.adam(learning_rate)`, or any
-      `optax.GradientTransformation` as `optimizer`. The default step depends on the
-      width $w = \\hat n + p$: $0.3\\min(1, 9/w)$ (0.3 at the paper's sizes; parameters
-      and loss are unit-free), see `default_hyperparameters` and
+    - `optimizer`, `learning_rate`: by default `optax.adam(learning_rate)`, so
+      `learning_rate` is Adam's step on the direct map's free parameters $\\theta$ (about
+      how far each entry of $\\theta$ moves per step; not a factor of the gradient); or any
+      `optax.GradientTransformation` as `optimizer` (then leave `learning_rate` unset). The
+      default step depends on the width $w = \\hat n + p$: $0.3\\min(1, 9/w)$ (0.3 at the
+      paper's sizes; parameters and loss are unit-free), see `default_hyperparameters` and
       [concepts](concepts.md#a-direct-parameterisation).
     - `num_inits`, `n_state`, `max_steps`, `atol`, `rtol`: as in [`fit_pgd`][dissil_jax.fit_pgd].
     - `init_scale` $\\sigma$: the initial $\\theta$ has $X = I$ (so $P\\approx I$, the

@@ -30,8 +30,8 @@ class MLPController(eqx.Module):
     controller state through unchanged. Unbatched; vmap for batches (the trainers return
     it with a leading initialisation axis on every array).
 
-    **Arguments:** `n_in` ($p$), `n_out` ($m$), `hidden` (widths of the hidden layers, all
-    equal), `key`, optional `dtype`. The network has `len(hidden) + 1` weight matrices. The
+    **Arguments:** `key` (a JAX PRNG key, first as in the trainers), `n_in` ($p$), `n_out`
+    ($m$), `hidden` (widths of the hidden layers, all equal), optional `dtype`. The network has `len(hidden) + 1` weight matrices. The
     paper's baseline is "a three layer network" whose weights are
     "$(\\mathbf W_1, \\mathbf W_2, \\mathbf W_3)$" (paper §5.2), i.e. three weight matrices
     and so two hidden layers: `hidden=(150, 150)` for the linear example and `(25, 25)`
@@ -41,7 +41,7 @@ class MLPController(eqx.Module):
     params: eqx.nn.MLP  # the array leaves of the MLP (weights and biases)
     static: eqx.nn.MLP = eqx.field(static=True)  # everything else (activations, sizes)
 
-    def __init__(self, n_in: int, n_out: int, hidden: Sequence[int], *, key: PRNGKeyArray,
+    def __init__(self, key: PRNGKeyArray, n_in: int, n_out: int, hidden: Sequence[int], *,
                  dtype=None):
         hidden = tuple(int(h) for h in hidden)
         if len(set(hidden)) > 1:
@@ -62,11 +62,11 @@ class MLPController(eqx.Module):
 
     @property
     def n_in(self) -> int:
-        return self.mlp.in_size
+        return int(self.mlp.in_size)  # built from an int, never "scalar"
 
     @property
     def n_out(self) -> int:
-        return self.mlp.out_size
+        return int(self.mlp.out_size)
 
     @property
     def batch_shape(self) -> tuple[int, ...]:
@@ -130,7 +130,7 @@ def _train_one(key, X, T, *, hidden, max_steps, learning_rate, atol, rtol):
     $|J_k - J_{k-1}| <$ `atol` $+$ `rtol` $|J_0|$. Vmapped, the loop runs until every run
     has stopped, finished runs frozen.
     """
-    model = MLPController(X.shape[-1], T.shape[-1], hidden, key=key, dtype=X.dtype)
+    model = MLPController(key, X.shape[-1], T.shape[-1], hidden, dtype=X.dtype)
     params, static = eqx.partition(model, eqx.is_inexact_array)
     (params, _, _), hist, J, steps, reason, kept = iterate(
         _Adam(params, static, X, T, optax.adam(learning_rate)), max_steps=max_steps,
@@ -172,8 +172,9 @@ def fit_mlp(
     - `num_inits`, `max_steps`, `atol`, `rtol`: as for the other trainers (default
       `atol` = 0, `rtol` = 1e-7: the unconstrained baselines' relative rule, see
       [`fit_pgd`][dissil_jax.fit_pgd]).
-    - `learning_rate`: Adam's step size on the raw parameters (the data are not normalised,
-      unlike the LTI trainers').
+    - `learning_rate`: Adam's step on the network's weights and biases (about how far
+      each of them moves per step), in the data's own units: unlike the LTI trainers,
+      `fit_mlp` does not normalise the windows.
     - `throw`: raise a `ValueError` if a run's loss became non-finite (as `dj.fit_gd`).
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult] whose `controllers` is an

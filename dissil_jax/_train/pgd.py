@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, cast
 
 import equinox as eqx
 import jax
@@ -10,10 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from .. import _lmi, _outcome
+from .. import _outcome
+from .._controller import LTIController
 from .._data import Windows
-from .._projection import project
+from .._projection.project import project
 from .._rollout import imitation_loss
+from .._sdp import lmi as _lmi
 from .._supply import QSR
 from ._checks import check_fit_args, check_keep, check_n_state, check_optimizer
 from ._init import init_controllers
@@ -91,7 +93,8 @@ class _PGD(Method):
         K, P, opt_state = state
         _, grads = _batched_loss(K, self.windows)
         updates, opt_state = jax.vmap(self.opt.update)(grads, opt_state, K)
-        K_new, P_new = optax.apply_updates(K, updates), P
+        # optax types its result as a generic pytree; it has K's structure
+        K_new, P_new = cast(LTIController, optax.apply_updates(K, updates)), P
         code = jnp.full(active.shape, _CONVERGED, jnp.int32)
         if self.qsr is not None:
             # An indefinite Q's positive part is linearised at the certified iterate (K_ref),
@@ -127,7 +130,7 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
     hist, loss = hist * s2, loss * s2
     return FitResult(
         controllers=K, P=P,
-        certified=None if qsr is None else ~_outcome.failed(code0),
+        certified=None if qsr is None else jnp.asarray(~_outcome.failed(code0)),
         loss_history=hist, final_loss=loss, converged=reason == _CONVERGED, steps=steps,
         wall_time=jnp.asarray(jnp.nan, hist.dtype), result=_outcome.item(reason),
         kept_step=kept)
@@ -167,12 +170,21 @@ def default_rule(optimizer, learning_rate, decay):
 
 
 def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, decay, atol,
-             rtol, init_scale, n_state):
+             rtol, init_scale, n_state, method="clarabel"):
     """Check the arguments; returns `(optimizer, learning_rate, decay, n_state)`.
 
     `optimizer` is None for the paper's rule, whose (possibly traced) `learning_rate` and
     `decay` are then used, with the defaults filled in.
     """
+    if method == "first_order" and optimizer is not None and qsr is not None:
+        K = init_controllers(jax.random.PRNGKey(0), 1, windows, 1.0,
+                             n_state=check_n_state(windows, n_state))  # for the shapes only
+        if optimizer_metric(jax.vmap(optimizer.init)(K), K) is not None:
+            raise ValueError(
+                "`method='first_order'` projects in the Frobenius distance, but `optimizer` "
+                "(the default is projected Adam) keeps a second moment and is projected in "
+                "its own metric. Pass `method='clarabel'` (or 'auto'), or a step rule "
+                "without one: the paper's rule (`learning_rate=`, `decay=`) or `optax.sgd`.")
     if check_optimizer(optimizer, "the paper's decaying-step rule", learning_rate=learning_rate,
                        decay=decay):
         learning_rate = decay = 0.0  # unused
@@ -209,7 +221,7 @@ def pgd_run(
         windows, qsr, num_inits, max_steps, optimizer=default_rule(optimizer, learning_rate,
                                                                    decay),
         learning_rate=learning_rate, decay=decay, atol=atol, rtol=rtol, init_scale=init_scale,
-        n_state=n_state)
+        n_state=n_state, method=method)
     res = _run(key, windows, qsr, learning_rate, decay, init_scale, optimizer=optimizer,
                num_inits=num_inits, n_state=n_state, max_steps=max_steps, atol=atol,
                rtol=rtol, eps=eps, method=method, keep=check_keep(keep))
@@ -221,7 +233,8 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
     """`pgd_run`, compiled once per static configuration, timed and certified as a batch."""
     optimizer, learning_rate, decay, n_state = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
-        decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state)
+        decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state,
+        method=method)
 
     def certify(res):
         if qsr is None:
@@ -360,9 +373,12 @@ def fit_gd(
     whatever the gradient's size, so a run cannot blow up within its step budget: with the
     paper's rule at its PGD default ($\\eta_0 = 1$) GD diverged on every problem of the zoo
     (`dissil_jax.experiments.zoo`, `benchmarks/bench_defaults.py`), where PGD's projection
-    keeps the iterates bounded. Pass `learning_rate` (and `decay`) for the paper's rule. With
+    keeps the iterates bounded. `learning_rate` and `decay` are,
+    as in `fit_pgd`, the paper's rule's $\\eta_0$ (a factor of the gradient) and $\\rho$:
+    giving either selects that rule (the other then takes its default). To change
+    Adam's step instead, pass `optimizer=optax.adam(step)`. With
     `throw=True` a diverging run (`non_finite`) raises.
     """
-    return _fit(key, windows, None, optimizer=default_rule(optimizer, learning_rate, decay), learning_rate=learning_rate,
-                decay=decay, init_scale=init_scale, num_inits=num_inits, n_state=n_state,
+    return _fit(key, windows, None, optimizer=default_rule(optimizer, learning_rate, decay),
+                learning_rate=learning_rate, decay=decay, init_scale=init_scale, num_inits=num_inits, n_state=n_state,
                 max_steps=max_steps, atol=atol, rtol=rtol, eps=0.0, throw=throw)

@@ -1,4 +1,4 @@
-"""Training certified REN controllers through their direct parameterisation (`_ren_map.py`).
+"""Training certified REN controllers through their direct parameterisation (`_ren/map.py`).
 
 Training is the driver loop of every gradient trainer (`_iterate.py`) with the LTI direct
 map's method (`direct.MapDescent`) given the REN map's loss.
@@ -10,6 +10,7 @@ import time
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -17,15 +18,15 @@ import optax
 from .. import _outcome
 from .._data import Windows
 from .._direct_map import MARGIN, check_margin
-from .._indefinite import is_indefinite
-from .._ren_certify import certified_batch, certify_ren
-from .._ren_controller import check_activation, ren_imitation_loss
-from .._ren_map import init_ren_params, ren_map
+from .._ren.certify import certified_batch, certify_ren
+from .._ren.controller import check_activation, ren_imitation_loss
+from .._ren.map import init_ren_params, ren_map
+from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
 from ._checks import check_fit_args, check_keep, check_n_state
 from ._iterate import RTOL, iterate
 from ._scale import loss_scale, scaled
-from .direct import MapDescent, default_hyperparameters
+from .direct import MapDescent, default_hyperparameters, map_loss
 from .result import FitResult, raise_if_failed
 
 _CONVERGED, _NOT_CERTIFIED = (_outcome.code(r) for r in ("converged", "not_certified"))
@@ -38,14 +39,6 @@ class RENFitResult(FitResult):
     `certified` is the float64 check of each `(controller, P, multiplier)`."""
 
     multiplier: jax.Array | None = None
-
-
-def _batched_loss(qsr, width, activation, margin, input_share=0.0):
-    def loss(theta, windows):
-        K, P, lam = ren_map(theta, qsr, width, activation, margin, input_share)
-        return ren_imitation_loss(K, windows), (K, P, lam)
-
-    return jax.vmap(jax.value_and_grad(loss, has_aux=True), in_axes=(0, None))
 
 
 def to_user_units(K, lam, s):
@@ -72,9 +65,9 @@ def _run(key, windows, qsr, learning_rate, init_scale, *, width, activation, opt
     opt = optax.adam(learning_rate) if optimizer is None else optimizer
     # The driver loop of every gradient trainer, with the LTI direct map's method and the
     # REN map's loss in place of the LTI one.
+    ren = lambda theta: ren_map(theta, qsr, width, activation, margin, input_share)
     (_, _, (K, P, lam), _), hist, loss, steps, reason, kept = iterate(
-        MapDescent(theta0, data, opt, _batched_loss(qsr, width, activation, margin,
-                                                    input_share)),
+        MapDescent(theta0, data, opt, map_loss(ren, ren_imitation_loss)),
         max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
     K, lam = to_user_units(K, lam, s2**0.5)
     return RENFitResult(
@@ -90,6 +83,7 @@ _run_jit = eqx.filter_jit(_run)
 def _certify_all(res: RENFitResult, qsr: QSR) -> RENFitResult:
     """The float64 end check of every `(K, P, Λ)`; a failing pair gets a fresh certificate
     from the SDP of [`certify_ren`][dissil_jax.certify_ren], or is marked `not_certified`."""
+    assert res.P is not None  # the REN map returns a storage with every controller
     K, P, lam = res.controllers, np.array(res.P, np.float64), np.array(res.multiplier,
                                                                           np.float64)
     ok = certified_batch(K, qsr, P, lam)
@@ -135,8 +129,9 @@ def fit_ren(
 
     - `key`, `windows`, `qsr` ($Q\\preceq0$), `num_inits`, `n_state`, `max_steps`, `atol`, `rtol`,
       `optimizer`, `learning_rate`, `init_scale`, `margin`, `throw`, `keep`: as in
-      [`fit_direct`][dissil_jax.fit_direct]; the default step and initial scale are
-      `fit_direct`'s at order $\\hat n + q$.
+      [`fit_direct`][dissil_jax.fit_direct] (`learning_rate` is Adam's step on the REN
+      map's free parameters); the default step and initial scale are `fit_direct`'s at
+      order $\\hat n + q$.
     - `width` $q\\ge0$: the number of neurons (0 gives an LTI controller, as a REN).
     - `input_share` $\\rho\\in[0,1)$: the share of the LTI map's feedthrough slack
       $\\Phi_0$ given to the neurons' direct input $D_{12}$ (static; 0 gives

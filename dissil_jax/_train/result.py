@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, TypeVar
 
 import equinox as eqx
 import jax
@@ -97,7 +97,10 @@ class FitResult(eqx.Module):
     stop_reasons = result_names  # the former name
 
 
-def raise_if_failed(res: FitResult) -> FitResult:
+_Result = TypeVar("_Result", bound="FitResult")
+
+
+def raise_if_failed(res: _Result) -> _Result:
     """The trainers' `throw=True`: raise if a run ended other than `converged`/`max_steps`.
 
     Eagerly a `ValueError` that counts the reasons; under `jit` an `EquinoxRuntimeError`

@@ -53,7 +53,7 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     import jax
 
-    if not jax.config.jax_enable_x64:
+    if not jax.config.read("jax_enable_x64"):
         # The experiments run in float64. `jax.enable_x64` is thread-local and does not reach
         # the host-callback threads, and the library never flips global config, so a
         # command-line run re-executes itself with JAX_ENABLE_X64=1 set before jax loads.

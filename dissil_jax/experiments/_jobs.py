@@ -7,6 +7,7 @@ the `-m` entry point's `__main__` cannot be pickled into them.
 from __future__ import annotations
 
 import os
+from typing import Any
 
 # Relative cost of one configuration, for handing the dearest out first: PGD's projections
 # dominate, then ICO's SDPs; cost grows with N.
@@ -30,9 +31,9 @@ def in_workers(run, configs, jobs: int, bar) -> list[dict]:
     order = sorted(range(len(configs)),
                    key=lambda i: -_COST.get(configs[i][1], 1.0) * configs[i][2])
     threads = max(1, (os.cpu_count() or 1) // jobs)
-    records = [None] * len(configs)
+    records: list[Any] = [None] * len(configs)  # every slot is filled below
     env = {"DISSIL_JAX_THREADS": str(threads),
-           "JAX_ENABLE_X64": "1" if jax.config.jax_enable_x64 else "0"}
+           "JAX_ENABLE_X64": "1" if jax.config.read("jax_enable_x64") else "0"}
     saved = {k: os.environ.get(k) for k in env}
     os.environ.update(env)  # spawned workers copy the environment when they start
     try:

@@ -180,7 +180,7 @@ def realisable_windows(
     import dissil_jax as dj
 
     kK, kx, ky, kn = jr.split(key, 4)
-    K = dj.LTIController.random(n_state, qsr.n_in, qsr.n_out, scale=1.0, key=kK)
+    K = dj.LTIController.random(kK, n_state, qsr.n_in, qsr.n_out, scale=1.0)
     K, _ = dj.project(K, qsr)
     x0 = jr.normal(kx, (num_windows, n_state))
     y = jr.normal(ky, (num_windows, horizon, qsr.n_in))

@@ -151,11 +151,11 @@ def state_mse(x_expert: Float[Array, "N T1 n"], x: Float[Array, "K N T1 n"],
     $k = 0$ is excluded (both loops start at the same $x_0$). Unstable controllers
     (`stable` False) and non-finite simulations get $+\\infty$.
     """
-    xe, x = np.asarray(x_expert, np.float64), np.asarray(x, np.float64)
-    if x.ndim != 4 or xe.shape != x.shape[1:]:
-        raise ValueError(f"`x` must be [K, *x_expert.shape] = [K, {xe.shape}], got {x.shape}.")
+    xe, xs = np.asarray(x_expert, np.float64), np.asarray(x, np.float64)
+    if xs.ndim != 4 or xe.shape != xs.shape[1:]:
+        raise ValueError(f"`x` must be [K, *x_expert.shape] = [K, {xe.shape}], got {xs.shape}.")
     with np.errstate(invalid="ignore", over="ignore"):
-        mse = np.sum((x[:, :, 1:] - xe[None, :, 1:]) ** 2, axis=-1).mean(axis=(1, 2))
+        mse = np.sum((xs[:, :, 1:] - xe[None, :, 1:]) ** 2, axis=-1).mean(axis=(1, 2))
     mse = np.where(np.isfinite(mse), mse, np.inf)
     if stable is not None:
         mse = np.where(np.asarray(stable, bool), mse, np.inf)

@@ -86,7 +86,7 @@ def lqr_expert(A, B, C, E=10.0, F=1.0) -> LQRExpert:
     $F = I$ are the paper's values.
 
     ```python
-    chain = dj.systems.mass_spring_chain(0)
+    chain = dj.systems.mass_spring_chain(jax.random.PRNGKey(0))
     expert = dj.experts.lqr_expert(chain.Ac, chain.Bc, chain.Cc)
     ```
     """

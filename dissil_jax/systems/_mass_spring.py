@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import equinox as eqx
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
+from jaxtyping import PRNGKeyArray
 
 from .._validate import check_int
 from ._plants import LinearPlant
@@ -61,7 +64,7 @@ def chain_matrices(k, c, phi: float):
 
 
 def mass_spring_chain(
-    key_or_seed,
+    key: PRNGKeyArray,
     n_masses: int = 3,
     dt: float = 0.1,
     *,
@@ -86,7 +89,7 @@ def mass_spring_chain(
 
     **Arguments:**
 
-    - `key_or_seed`: a JAX PRNG key or an integer seed.
+    - `key`: a JAX PRNG key (for an integer seed `s`, `jax.random.PRNGKey(s)`).
     - `n_masses`: number of masses $n$ (state size $2n$, $n$ inputs, $n$ outputs).
     - `dt`: sampling time.
     - `k_range`, `c_range`, `phi_range`: the uniform sampling intervals.
@@ -98,7 +101,7 @@ def mass_spring_chain(
     **Returns:** a [`MassSpringChain`][dissil_jax.systems.MassSpringChain].
 
     ```python
-    chain = dj.systems.mass_spring_chain(0)
+    chain = dj.systems.mass_spring_chain(jax.random.PRNGKey(0))
     expert = dj.experts.lqr_expert(chain.Ac, chain.Bc, chain.Cc)
     ```
     """
@@ -110,18 +113,21 @@ def mass_spring_chain(
     for name, (lo, hi) in (("k_range", k_range), ("c_range", c_range), ("phi_range", phi_range)):
         if not (np.isfinite(lo) and np.isfinite(hi)) or not 0 < lo <= hi:
             raise ValueError(f"`{name}` must be an interval 0 < lo <= hi, got {(lo, hi)}.")
-    key = jr.PRNGKey(key_or_seed) if isinstance(key_or_seed, (int, np.integer)) else key_or_seed
+    if isinstance(key, (int, np.integer)):
+        raise ValueError(f"`key` must be a JAX PRNG key, got the integer {key!r}; pass "
+                         f"`jax.random.PRNGKey({key!r})` (the same chain as the seed gave).")
     kk, kc, kp = jr.split(key, 3)
     # Draw in float32-independent fashion: uniform [0,1) then scale in float64 on the host.
     k = k_range[0] + (k_range[1] - k_range[0]) * np.asarray(jr.uniform(kk, (n_masses,)), np.float64)
     c = c_range[0] + (c_range[1] - c_range[0]) * np.asarray(jr.uniform(kc, (n_masses,)), np.float64)
     phi = phi_range[0] + (phi_range[1] - phi_range[0]) * float(jr.uniform(kp, ()))
     Ac, Bc, Cc, Dc = chain_matrices(k, c, phi)
-    sysd = control.ss(Ac, Bc, Cc, Dc).sample(dt, method=method)
+    # python-control types `ss` as returning any I/O system; from matrices it is a StateSpace
+    sysd = cast(control.StateSpace, control.ss(Ac, Bc, Cc, Dc)).sample(dt, method=method)
     plant = LinearPlant(*(jnp.asarray(np.asarray(M, np.float64)) for M in (sysd.A, sysd.B, sysd.C,
                                                                            sysd.D)))
     if check_passive:
-        from .._certify import certify
+        from .._certify.certify import certify
         from .._controller import LTIController
         from .._supply import QSR
 

@@ -60,7 +60,8 @@ class _ABCDPlant(eqx.Module):
 
     def matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """`(A, B, C, D)` as float64 numpy arrays (for host-side SDPs and python-control)."""
-        return tuple(np.asarray(M, np.float64) for M in (self.A, self.B, self.C, self.D))
+        A, B, C, D = (np.asarray(M, np.float64) for M in (self.A, self.B, self.C, self.D))
+        return A, B, C, D
 
 
 class LinearPlant(_ABCDPlant):

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from typing import cast
+
 import jax.numpy as jnp
+import jax.random as jr
 import numpy as np
 import scipy.linalg
 
-from ..._certify import certify
+from ..._certify.certify import certify
 from ..._controller import LTIController
 from ..._data import Windows
 from ..._plant_qsr import (
@@ -37,7 +40,7 @@ def chain_plant(seed: int, masses: int, actuated=None) -> LinearPlant:
     collocated force inputs and velocity outputs at the masses `actuated` (None: all).
 
     A collocated sub-block of a passive transfer matrix is passive, so every such plant is."""
-    chain = mass_spring_chain(seed, masses, check_passive=False)
+    chain = mass_spring_chain(jr.PRNGKey(seed), masses, check_passive=False)
     A, B, C, D = chain.plant.matrices()
     idx = np.arange(masses) if actuated is None else np.asarray(actuated)
     return LinearPlant(A, B[:, idx], C[idx], D[np.ix_(idx, idx)])
@@ -178,7 +181,7 @@ def make_problem(name: str, split: str, seed: int, *, plant, expert, expert_cont
     train = windows(slice(0, n_train), num_windows)
     test = windows(slice(n_train, num), NUM_TEST_WINDOWS)
     x0_test = jnp.asarray(units * rng.standard_normal((NUM_TEST_STATES, n)), dtype)
-    n_hat = plant.n_state if has_state else int(n_state)
+    n_hat = plant.n_state if has_state else int(cast(int, n_state))  # given without state
     facts = Facts(plant.n_state, plant.n_in, plant.n_out, supply, has_state, float(units), noise,
                   int(num_windows), int(horizon), expert_kind)
     return Problem(name, split, plant, expert, expert_controller, train, test, plant_qsr,

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
-from ..._certify import certify
+from ..._certify.certify import certify
 from ..._controller import LTIController
 from ..._train.result import FitResult
 from ...systems import LinearPlant

@@ -11,9 +11,9 @@ import jax.core
 import numpy as np
 from jaxtyping import Array, Float
 
-from . import _outcome
-from ._controller import LTIController
-from ._outcome import Outcome
+from .. import _outcome
+from .._controller import LTIController
+from .._outcome import Outcome
 
 
 class Projection(eqx.Module):

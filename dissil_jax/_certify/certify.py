@@ -5,11 +5,12 @@ from __future__ import annotations
 import equinox as eqx
 import numpy as np
 
-from . import _certify_fast, _certify_sdp, _outcome
-from ._controller import LTIController
-from ._lmi import VERIFY_RTOL, kyp_margin, kyp_matrix, kyp_scale
-from ._outcome import Outcome
-from ._supply import QSR
+from .. import _outcome
+from .._controller import LTIController
+from .._outcome import Outcome
+from .._sdp.lmi import VERIFY_RTOL, kyp_margin, kyp_matrix, kyp_scale
+from .._supply import QSR
+from . import fast as _certify_fast, sdp as _certify_sdp
 
 
 class Certificate(eqx.Module):
@@ -147,7 +148,7 @@ def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hi
 
 
 def _candidates(A, B, C, D, qsr, hint):
-    """Cheap storages to check before the SDP, with their `status` (`_certify_fast`)."""
+    """Cheap storages to check before the SDP, with their `status` (`fast.py`)."""
     if hint is not None:
         yield hint, "hint"
     P = _certify_fast.cached(A, B, C, D, qsr)

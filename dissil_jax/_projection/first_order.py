@@ -35,10 +35,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _linalg, _lmi, _outcome, _sdp
-from ._controller import LTIController
-from ._indefinite import is_indefinite
-from ._supply import QSR
+from .. import _linalg, _outcome
+from .._controller import LTIController
+from .._sdp import lmi as _lmi, sdp as _sdp
+from .._sdp.indefinite import is_indefinite
+from .._supply import QSR
 
 #: Newton-Schulz steps of the PSD projection: eigenvalues above ~1e-6 of the matrix's
 #: Frobenius norm reach their sign (a factor 1.5 per step while small, then quadratic).
@@ -187,13 +188,15 @@ def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, active, shard, *, qsr, has
     codes = np.full(act.shape[0], _SKIPPED, np.int32)
     todo = np.nonzero(act)[0]
     if has_ref and len(todo):  # as Clarabel's path: a certified target stays unchanged
-        keep = _lmi.certified(*(t[todo] for t in tgt), qsr, ref[todo])
+        gA, gB, gC, gD = (t[todo] for t in tgt)
+        keep = _lmi.certified(gA, gB, gC, gD, qsr, ref[todo])
         codes[todo[keep]] = _UNCHANGED
         todo = todo[~keep]
     if len(todo):
         rounded = [_lmi.cast(M[todo], dtype) for M in sol]
         finite = np.all([np.all(np.isfinite(M), axis=(-2, -1)) for M in rounded], axis=0)
-        ok = finite & _lmi.certified(*rounded[:4], qsr, rounded[4])
+        rA, rB, rC, rD, rP = rounded
+        ok = finite & _lmi.certified(rA, rB, rC, rD, qsr, rP)
         for o, M in zip(out, rounded):
             o[todo[ok]] = M[ok]
         codes[todo[ok]] = _SOLVED
@@ -244,6 +247,7 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, fallb
         # the next round linearises at the new P (if it is usable; else keep P~)
         good = jnp.all(jnp.isfinite(x[4])) & (jnp.min(jnp.diag(x[4])) > 0)
         P_tilde = jnp.where(good, x[4], P_tilde)
+    assert x is not None  # set by the first round (there is at least one)
     shard, shards = _sdp.shard()
     shapes = tuple(jax.ShapeDtypeStruct(M.shape, dtype) for M in (*target, P_ref))
     callback = functools.partial(_host_check, qsr=qsr, has_ref=has_ref, eps=float(eps),

@@ -22,7 +22,7 @@ import warnings
 
 import numpy as np
 
-from ._supply import QSR
+from .._supply import QSR
 
 _CACHE: collections.OrderedDict = collections.OrderedDict()
 _CACHE_SIZE = 256

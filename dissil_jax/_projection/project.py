@@ -18,18 +18,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _certify_fast, _outcome, _projection_fo, _sdp
-from ._controller import LTIController
-from ._lmi import ConvexifiedLMI, cast, certified
-from ._projection_args import (
+from .. import _outcome
+from .._certify import fast as _certify_fast
+from .._controller import LTIController
+from .._sdp import sdp as _sdp
+from .._sdp.lmi import ConvexifiedLMI, cast, certified
+from .._supply import QSR
+from . import first_order as _projection_fo
+from .args import (
     check_k_ref as _check_k_ref,
     check_options as _check_options,
     check_qsr as _check_qsr,
 )
-from ._projection_result import Projection as Projection, raise_on_failure as _raise_on_failure
-from ._projection_solver import _ProjectionSolver
-from ._relinearise import project_rows_indefinite
-from ._supply import QSR
+from .relinearise import project_rows_indefinite
+from .result import Projection as Projection, raise_on_failure as _raise_on_failure
+from .solver import _ProjectionSolver
 
 _STATS = {"solve_time": 0.0, "solves": 0, "callbacks": collections.Counter()}
 _STATS_LOCK = threading.Lock()
@@ -42,7 +45,7 @@ _SOLVED, _UNCHANGED, _SKIPPED, _NOT_CERTIFIED = (
 # enlarged by this factor, at most `_ATTEMPTS - 1` times.
 _ATTEMPTS, _EPS_GROWTH = 3, 100.0
 # The conditioning bound of the projection's P: lambda_min(P) >= P_FLOOR * mean eigenvalue
-# (`_projection_solver`; redundant, so left out, for n = 1).
+# (`_projection/solver.py`; redundant, so left out, for n = 1).
 P_FLOOR = 1e-2
 
 
@@ -99,7 +102,8 @@ def _solve_batch(qsr, targets, P_tilde, eps, weights, *, base_eps, reg, dtype, s
 
     _sdp.thread_map(work, range(count), shards=shards)
     sol = tuple(cast(M, dtype) for M in lmi.layout.unpack(xs))
-    ok = (codes == _SOLVED) & certified(*sol[:4], qsr, sol[4])
+    A, B, C, D, P = sol
+    ok = (codes == _SOLVED) & certified(A, B, C, D, qsr, P)
     return sol, codes, ok
 
 
@@ -128,6 +132,7 @@ def _certified_solve(qsr, targets, P_tilde, weights, *, eps, reg, dtype, shards,
         cur_eps[todo] *= _EPS_GROWTH
         if not len(todo):
             break
+    assert sols is not None  # set by the first attempt (_ATTEMPTS >= 1)
     return sols, found, codes
 
 
@@ -158,6 +163,7 @@ def _project_rows(qsr, targets, P_tilde, weights, rounds, *, eps, reg, dtype, sh
         if not len(live):
             break
         P_tilde[live] = best[4][live]
+    assert best is not None  # set by the first round (rounds >= 1)
     codes[np.isfinite(best_dist)] = _SOLVED
     return best, codes
 
@@ -171,7 +177,7 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, C0, D0, shard, *, qsr
     `shard` is the calling device's index (broadcast like the batch) and `shards` the
     number of callbacks running at once on this host (`_sdp.shard`); each uses its share
     of the thread pool. `WA`..`WD` are the metric's weights (scaled per row to at most 1).
-    `C0`, `D0` are the first linearisation points of an indefinite $Q$ (`_relinearise`).
+    `C0`, `D0` are the first linearisation points of an indefinite $Q$ (`relinearise.py`).
     """
     dtype = np.asarray(A).dtype
     batch, n = A.shape[:-2], A.shape[-1]
@@ -185,7 +191,8 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, C0, D0, shard, *, qsr
     codes = np.full(act.shape[0], _SKIPPED, np.int32)
     todo = np.nonzero(act)[0]
     if has_ref and len(todo):
-        keep = certified(*(M[todo] for M in flat[:4]), qsr, flat[4][todo])
+        A_, B_, C_, D_, P_ = (M[todo] for M in flat)
+        keep = certified(A_, B_, C_, D_, qsr, P_)
         codes[todo[keep]] = _UNCHANGED
         todo = todo[~keep]
     if len(todo):
@@ -221,8 +228,8 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, C0, D0, shard, *, qsr
         for o, M in zip(out, sol):
             o[done] = M[codes[todo] == _SOLVED]
         # `certify` of a returned controller then finds its storage without an SDP
-        _certify_fast.remember(*(M[codes[todo] == _SOLVED] for M in sol[:4]), qsr,
-                               sol[4][codes[todo] == _SOLVED])
+        A_, B_, C_, D_, P_ = (M[codes[todo] == _SOLVED] for M in sol)
+        _certify_fast.remember(A_, B_, C_, D_, qsr, P_)
     return (*(o.reshape(batch + o.shape[1:]).astype(dtype) for o in out),
             codes.reshape(batch))
 
@@ -328,7 +335,7 @@ def project(
     - `method`: `"clarabel"`, `"first_order"` (ADMM in JAX, the same float64 check,
       Clarabel where it fails; Frobenius only, $Q\\preceq0$ only;
       [Scaling out](scaling.md#a-first-order-projection)) or `"auto"` (first-order from
-      `_projection_fo.AUTO_MIN_ORDER` states on; now never).
+      `first_order.AUTO_MIN_ORDER` states on; now never).
 
     **Returns:** a [`Projection`][dissil_jax.Projection] `(K_proj, P)` with `.result`.
 

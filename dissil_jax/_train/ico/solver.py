@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import _outcome, _sdp
-from ._ico_sdp import ICOProblem
+from ... import _outcome
+from ..._sdp import sdp as _sdp
+from .sdp import ICOProblem
 
 
 class ICOSolver:
@@ -14,7 +15,7 @@ class ICOSolver:
     def __init__(self, problem: ICOProblem, max_iter: int = _sdp.ICO_SETTINGS["max_iter"]):
         self.problem = problem
         self.solver = None
-        self.settings = dict(_sdp.ICO_SETTINGS, max_iter=max_iter)
+        self.settings: _sdp.SolverSettings = {**_sdp.ICO_SETTINGS, "max_iter": max_iter}
         self.obj_val = np.nan
 
     def solve(self, theta0, P_tilde, w_tilde, eps=None):

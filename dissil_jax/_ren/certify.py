@@ -6,11 +6,11 @@ from __future__ import annotations
 import equinox as eqx
 import numpy as np
 
-from . import _sdp
-from ._controller import LTIController
-from ._lmi import VERIFY_RTOL, kyp_margin, kyp_matrix, kyp_scale
-from ._ren_controller import RENController
-from ._supply import QSR
+from .._controller import LTIController
+from .._sdp import sdp as _sdp
+from .._sdp.lmi import VERIFY_RTOL, kyp_margin, kyp_matrix, kyp_scale
+from .._supply import QSR
+from .controller import RENController
 
 
 class RENCertificate(eqx.Module):
@@ -126,7 +126,7 @@ def _solve(G: LTIController, qsr: QSR, q: int):
     with _sdp.single_threaded_blas():
         try:
             prob.solve(solver=cp.CLARABEL)
-        except cp.error.SolverError as err:
+        except cp.SolverError as err:
             return None, None, f"solver_error: {err}"
     if P.value is None:
         return None, None, str(prob.status)

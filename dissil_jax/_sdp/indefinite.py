@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._supply import QSR
+from .._supply import QSR
 
 _TOL = 1e-10
 

@@ -1,7 +1,7 @@
 r"""The convex overbound SDP of one ICO iteration, assembled straight into Clarabel's format.
 
 Host-side float64 numpy only. One `ICOProblem` per (windows, supply rate) holds the data and
-the fixed sparsity pattern (shared read-only by all threads); one `ICOSolver` (`_ico_solver.py`) per
+the fixed sparsity pattern (shared read-only by all threads); one `ICOSolver` (`solver.py`) per
 initialisation owns a Clarabel solver whose numbers are updated in place every iteration
 (`solver.update(q=..., A=..., b=...)`).
 
@@ -32,7 +32,7 @@ on its last two blocks, with the pieces lifted into a few small cones:
 - with $Y = yI$ ($y \ge w\lVert\delta C\rVert_2^2$, identical bound when $m = 1$), the
   rotated SOC $\lVert\bar e\rVert^2 \le \sigma (1 - y)$ for the stacked residual
   $\bar e = (\bar e_1, \dots, \bar e_N)$, compressed by a QR factorisation of its Jacobian to
-  $\min(Nm, n_\theta) + 3$ rows (`window_cone="stacked"`, default; see `_ico_windows.StackedWindows`);
+  $\min(Nm, n_\theta) + 3$ rows (`window_cone="stacked"`, default; see `windows.StackedWindows`);
   or the same bound window by window, $\lVert\bar e_k\rVert^2 \le \sigma_k (1 - y)$ (`"soc"`,
   the same optimum with $N$ cones; kept as a reference); or, with a full symmetric $Y$, the
   per-window LMI $[[\sigma_k, \bar e_k^\top], [\bar e_k, I - Y]] \succeq 0$ (`"psd"`;
@@ -58,9 +58,9 @@ $Y = 0$, $\tau = 0$, $w = \tilde w$, $\sigma_k = \lVert\bar e_k(0)\rVert^2$ (or
 $\sigma = \lVert\bar e(0)\rVert^2$). The step-0 term is
 a plain quadratic with Hessian $I_m\otimes\sum_k\zeta_k\zeta_k^\top$: no per-window variables.
 
-Variables (`_ico_layout.VariableLayout`): $x = (\delta\theta, P_{\text{triu}}, Y, w, \tau,
+Variables (`layout.VariableLayout`): $x = (\delta\theta, P_{\text{triu}}, Y, w, \tau,
 \sigma)$ with one $\sigma$ (`"stacked"`) or $\sigma_{1..N}$ (no $P$ for ICO-NC). Cone blocks
-in order (`_ico_blocks`, `_ico_windows`): KYP PSD (`KYPBlock`, ICO only), the $\tau$ SOC
+in order (`blocks.py`, `windows.py`): KYP PSD (`KYPBlock`, ICO only), the $\tau$ SOC
 (`DeltaZCone`), the $Y$ PSD of size $m + \hat n$ (`YoungLMI`), then the window cone(s)
 (`StackedWindows`, `SOCWindows` or `PSDWindows`, chosen once by `window_cone`). With the
 default the SDP's size does not depend on $N$ at all. Only the numbers of $q$, $A$ and $b$
@@ -71,11 +71,11 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .._lmi import ConvexifiedLMI
-from .._supply import QSR
-from ._ico_blocks import ConeBlock, DeltaZCone, Iterate, KYPBlock, YoungLMI
-from ._ico_layout import TwoStepData, VariableLayout
-from ._ico_windows import WINDOW_BLOCKS
+from ..._sdp.lmi import ConvexifiedLMI
+from ..._supply import QSR
+from .blocks import ConeBlock, DeltaZCone, Iterate, KYPBlock, YoungLMI
+from .layout import TwoStepData, VariableLayout
+from .windows import WINDOW_BLOCKS
 
 WINDOW_CONES = tuple(WINDOW_BLOCKS)
 

@@ -7,10 +7,10 @@ import jax.core
 import jax.numpy as jnp
 import numpy as np
 
-from ._controller import LTIController
-from ._indefinite import check_feasible, is_indefinite
-from ._supply import QSR
-from ._validate import check_int
+from .._controller import LTIController
+from .._sdp.indefinite import check_feasible, is_indefinite
+from .._supply import QSR
+from .._validate import check_int
 
 
 def check_qsr(K: LTIController, qsr: QSR) -> None:

@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from numpy.typing import ArrayLike
 
-from ._indefinite import split_q
-from ._sdp import Layout
-from ._supply import QSR
+from .._supply import QSR
+from .indefinite import split_q
+from .sdp import Layout
 
 
 def _T(M):
@@ -70,7 +71,8 @@ def kyp_certified(A, B, C, D, qsr: QSR, P):
     mats = [np.asarray(M, np.float64) for M in (A, B, C, D, P)]
     finite = np.all([np.all(np.isfinite(M), axis=(-2, -1)) for M in mats], axis=0)
     safe = [np.where(finite[..., None, None], M, 0.0) for M in mats]
-    ok = kyp_margin(*safe[:4], qsr, safe[4]) > VERIFY_RTOL * kyp_scale(*safe[:4], qsr, safe[4])
+    A, B, C, D, P = safe
+    ok = kyp_margin(A, B, C, D, qsr, P) > VERIFY_RTOL * kyp_scale(A, B, C, D, qsr, P)
     ok = ok & finite
     return bool(ok) if np.ndim(ok) == 0 else ok
 
@@ -166,7 +168,8 @@ class ConvexifiedLMI:
         # parameter index or -1, parameter weight). Constant zeros are left out.
         ent = []
 
-        def add(i, j, var, const=0.0, param=-1, weight=0.0):
+        def add(i: ArrayLike, j: ArrayLike, var: ArrayLike, const: ArrayLike = 0.0,
+                param: ArrayLike = -1, weight: ArrayLike = 0.0) -> None:
             i, j, var, const, param, weight = np.broadcast_arrays(
                 np.asarray(i), np.asarray(j), np.asarray(var), np.asarray(const, np.float64),
                 np.asarray(param), np.asarray(weight, np.float64))

@@ -21,7 +21,7 @@ The REN is read off $M$ and the map's output:
 - $C_1 = -\\Lambda^{-1}M_{wx}$;
 - $[C_2\\ D_{21}] = C_z$ and $D_{22} = D$ (for $D_{12} = 0$; see below for $D_{12}\\ne0$).
 
-With $D_{12} = 0$, the REN's dissipation matrix (`_ren_certify.ren_lmi`) at $(P,\\Lambda)$ has the
+With $D_{12} = 0$, the REN's dissipation matrix (`certify.ren_lmi`) at $(P,\\Lambda)$ has the
 same supply and storage-difference terms as the extended LTI system's KYP matrix at $M$,
 except that the successor's storage is $P$ on $x^+$ instead of $M$ on $z^+$, which can only
 lower it: $M_{\\mathrm{REN}}(P,\\Lambda)\\preceq -\\varepsilon\\operatorname{diag}(M,\\Phi_0)
@@ -51,10 +51,10 @@ import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Float
 
-from . import _linalg
-from ._direct_map import MARGIN, DirectParams, direct_map, feedthrough_centre, init_params
-from ._ren_controller import RENController
-from ._supply import QSR
+from .. import _linalg
+from .._direct_map import MARGIN, DirectParams, direct_map, feedthrough_centre, init_params
+from .._supply import QSR
+from .controller import RENController
 
 
 class RENParams(eqx.Module):

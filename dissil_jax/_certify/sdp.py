@@ -15,9 +15,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from . import _sdp
-from ._lmi import kyp_matrix, svec, svec_indices, svec_pos
-from ._supply import QSR
+from .._sdp import sdp as _sdp
+from .._sdp.lmi import kyp_matrix, svec, svec_indices, svec_pos
+from .._supply import QSR
 
 # Clarabel's gap and feasibility tolerances for the certificate: tight, because nearly
 # lossless systems have margins of order 1e-7 (the verdict re-checks P anyway).

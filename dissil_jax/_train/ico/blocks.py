@@ -1,9 +1,9 @@
-"""The cone blocks of the ICO SDP (see `_ico_sdp` for the maths).
+"""The cone blocks of the ICO SDP (see `sdp.py` for the maths).
 
 A block is a run of consecutive rows of the constraint $b - Ax \\in \\mathcal K$ with its
 cones. It fixes its sparsity once (`pattern`) and gives its numbers at each iterate (`fill`),
 in the same order; `ICOProblem` stacks the blocks and concatenates their numbers. The window
-blocks are in `_ico_windows`.
+blocks are in `windows.py`.
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .._lmi import ConvexifiedLMI, svec, svec_indices
-from ._ico_layout import SQRT2, TwoStepData, VariableLayout, svec_len, svec_pos
+from ..._sdp.lmi import ConvexifiedLMI, svec, svec_indices
+from .layout import SQRT2, TwoStepData, VariableLayout, svec_len, svec_pos
 
 _NO_COLS, _NO_VALS = np.zeros(0, np.int64), np.zeros(0)
 
@@ -40,6 +40,8 @@ class ConeBlock:
 
     rows: int
     cones: list
+    _rows: np.ndarray  # `pattern`, set by every block's `__init__`
+    _cols: np.ndarray
 
     def pattern(self) -> tuple[np.ndarray, np.ndarray]:
         """`(rows, cols)` of the block's nonzeros (rows counted from the block's first row)."""

@@ -1,7 +1,7 @@
 """The projection's re-linearisation loop for an indefinite $Q$ (host side, float64 numpy).
 
 The convex set of one solve is an inner approximation exact at its linearisation point
-$(H_0, \\tilde P)$ (`_indefinite`): a certified point that is its own linearisation point
+$(H_0, \\tilde P)$ (`_sdp/indefinite.py`): a certified point that is its own linearisation point
 stays in the next set, so each round can only move closer to the target. The first round
 linearises at the caller's point (the target, or a feasible reference); a row whose first
 set is empty (the target far from the dissipative set) starts again at a static controller
@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import _outcome
-from ._indefinite import static_point
+from .. import _outcome
+from .._sdp.indefinite import static_point
 
 # A row stops re-linearising once a round shortens its distance by less than this fraction.
 SETTLE_RTOL = 1e-3
@@ -66,5 +66,6 @@ def project_rows_indefinite(solve, layout, qsr, targets, P_tilde, H0, weights, r
         P_t[rows_on] = best[4][rows_on]
         C0[rows_on], D0[rows_on] = best[2][rows_on], best[3][rows_on]
         live = np.concatenate([rows_retry, rows_on])
+    assert best is not None  # set by the first round (`targets` is never empty)
     codes[np.isfinite(best_dist)] = _outcome.code("solved")
     return best, codes

@@ -16,8 +16,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from . import _outcome, _sdp
-from ._lmi import ConvexifiedLMI, svec_pos
+from .. import _outcome
+from .._sdp import sdp as _sdp
+from .._sdp.lmi import ConvexifiedLMI, svec_pos
 
 _SOLVED = _outcome.code("solved")
 
@@ -52,14 +53,15 @@ class _ProjectionSolver:
         if floor > 0:
             extra = _floor_block(lmi, floor)
             self.cones.append(clarabel.PSDTriangleConeT(lmi.n))
-            rows += extra.shape[0]
+            rows += lmi.n * (lmi.n + 1) // 2  # the svec length of an n x n block
             # Stack [J; extra] once with the position of every number as its value: the
             # stacked CSC's data then say where each of its numbers comes from.
-            src = sp.vstack([
+            # (csc_matrix of a CSC result is no copy; it gives the checker the one format)
+            src = sp.csc_matrix(sp.vstack([
                 sp.csc_matrix((np.arange(1, lmi.nnz + 1.0), lmi.indices, lmi.indptr),
                               shape=(lmi.L, lmi.nx)),
                 sp.csc_matrix((lmi.nnz + 1.0 + np.arange(extra.nnz), extra.indices,
-                               extra.indptr), shape=extra.shape)], format="csc")
+                               extra.indptr), shape=extra.shape)], format="csc"))
             src.sort_indices()
             self.order = src.data.astype(np.int64) - 1
             self.extra_vals = extra.data
@@ -99,7 +101,7 @@ class _ProjectionSolver:
             P_obj = sp.csc_matrix((diag, k[:-1], k), shape=(len(diag),) * 2)
             settings = _sdp.clarabel_settings(**_sdp.PROJECTION_SETTINGS)
             self.solver = self._clarabel.DefaultSolver(P_obj, q, A, b, self.cones, settings)
-        elif np.array_equal(diag, self.diag):  # the same distance (always, without a metric)
+        elif self.diag is not None and np.array_equal(diag, self.diag):  # the same distance (always, without a metric)
             self.solver.update(q=q, A=vals, b=b)
         else:
             self.solver.update(P=diag, q=q, A=vals, b=b)

@@ -7,13 +7,14 @@ from collections.abc import Callable
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._controller import LTIController
-from ._data import Windows
-from ._rollout import scan_outputs
+from .._controller import LTIController
+from .._data import Windows
+from .._rollout import scan_outputs
 
 #: The activations known to be slope-restricted in $[0, 1]$ with $\sigma(0) = 0$.
 ACTIVATIONS: dict[str, Callable] = {"relu": jax.nn.relu, "tanh": jnp.tanh}
@@ -172,7 +173,8 @@ class RENController(eqx.Module):
     @property
     def sigma(self) -> Callable:
         """The activation as a function."""
-        return ACTIVATIONS.get(self.activation) if isinstance(self.activation, str) \
+        # a name was checked against ACTIVATIONS at construction
+        return ACTIVATIONS[self.activation] if isinstance(self.activation, str) \
             else self.activation
 
     def layer(self, x: Float[Array, " n"], u: Float[Array, " p"]) -> Float[Array, " q"]:

@@ -8,19 +8,20 @@ from collections.abc import Callable
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _lmi, _outcome, _sdp
-from .._certify import certify
-from .._controller import LTIController
-from .._data import Windows
-from .._projection import project
-from .._supply import QSR
-from ._checks import check_fit_args
-from ._ico_sdp import ICOProblem
-from ._ico_solver import ICOSolver
-from ._init import INIT_SCALE, init_controllers
-from ._iterate import RTOL
-from ._scale import loss_scale, scaled
-from .result import FitResult, raise_if_failed
+from ... import _outcome
+from ..._certify.certify import certify
+from ..._controller import LTIController
+from ..._data import Windows
+from ..._projection.project import project
+from ..._sdp import lmi as _lmi, sdp as _sdp
+from ..._supply import QSR
+from .._checks import check_fit_args
+from .._init import INIT_SCALE, init_controllers
+from .._iterate import RTOL
+from .._scale import loss_scale, scaled
+from ..result import FitResult, raise_if_failed
+from .sdp import ICOProblem
+from .solver import ICOSolver
 
 _CONVERGED, _MAX_STEPS, _LOSS_INCREASED, _NOT_CERTIFIED = (
     _outcome.code(n) for n in ("converged", "max_steps", "loss_increased", "not_certified"))
@@ -98,8 +99,10 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, atol, rtol, dtype, index, c
         if dtheta is None:
             reason = status
             break
+        assert w_new is not None  # a solve returns the whole step or none of it
         theta_new = _lmi.cast(theta + dtheta, dtype)
         if qsr is not None:
+            assert P_new is not None  # ICO's step has a P (ICO-NC's has none)
             P_new = _lmi.cast((P_new + P_new.T) / 2, dtype)
         J_new = pb.loss(theta_new)
         # Guards against solver inaccuracy (the SDP guarantees both in exact arithmetic).
@@ -150,8 +153,10 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
     thetas = [pb.theta(*(M[i] for M in mats)) for i in range(num_inits)]
     user_cb = None
     if callback is not None:
-        def user_cb(i, step, theta, P, J):
+        def in_controller_units(i, step, theta, P, J):
             callback(i, step, LTIController(*pb.mats(theta)), P, s2 * J)
+
+        user_cb = in_controller_units
 
     def work(indices):
         return [_run_one(pb, thetas[i], None if qsr is None else P0[i], max_steps=max_steps,
@@ -222,7 +227,7 @@ def fit_ico(
     \\end{smallmatrix}\\bigr]\\succeq 0$, one cone for $\\sum_k\\lVert\\delta z_k\\rVert^2/w$
     and one rotated second-order cone for $\\sum_k\\lVert\\bar e_k\\rVert^2/(1 - y)$, the
     stacked residual compressed by a QR factorisation of its Jacobian to at most
-    $n_\\theta + 3$ rows (derivation in `dissil_jax/_train/_ico_sdp.py`). The SDP's size
+    $n_\\theta + 3$ rows (derivation in `dissil_jax/_train/ico/sdp.py`). The SDP's size
     therefore does not depend on the number of windows $N$; only the QR (numpy, linear in
     $N$) does. This is the compact per-window bound with $\\delta C\\delta C^\\top$ replaced by
     $\\lVert\\delta C\\rVert_2^2 I$ (identical when $m = 1$). Unlike the paper's term-by-term

@@ -1,7 +1,7 @@
 """The window part of the ICO SDP: the bound on the step-1 residuals $\\bar e_k$.
 
-Three interchangeable cone blocks (`_ico_blocks.ConeBlock`), chosen once by `window_cone`
-(see the module docstring of `_ico_sdp` for the maths):
+Three interchangeable cone blocks (`blocks.ConeBlock`), chosen once by `window_cone`
+(see the module docstring of `sdp.py` for the maths):
 
 - `StackedWindows` (`"stacked"`): all windows in one QR-compressed rotated SOC;
 - `SOCWindows` (`"soc"`): one rotated SOC $\\lVert\\bar e_k\\rVert^2 \\le \\sigma_k(1 - y)$
@@ -15,10 +15,12 @@ the `VariableLayout` is built for it.
 
 from __future__ import annotations
 
+from typing import Any, cast
+
 import numpy as np
 
-from ._ico_blocks import ConeBlock
-from ._ico_layout import SQRT2, TwoStepData, VariableLayout, svec_len, svec_pos
+from .blocks import ConeBlock
+from .layout import SQRT2, TwoStepData, VariableLayout, svec_len, svec_pos
 
 
 class StackedWindows(ConeBlock):
@@ -73,6 +75,18 @@ class _PerWindow(ConeBlock):
 
     scalar_y: bool
     escale: float
+
+    @staticmethod
+    def _cone(m: int) -> tuple[int, np.ndarray, Any]:
+        """`(width, e_pos, cone)`: the cone of one window and where $\\bar e_k$ sits in it."""
+        raise NotImplementedError
+
+    @staticmethod
+    def _fixed_part(base: np.ndarray, width: int, layout: VariableLayout
+                    ) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray, np.ndarray]:
+        """`(rows, cols, vals, b)` of the entries that do not change between iterations
+        (`rows` and `cols` as lists of index arrays, one per group of entries)."""
+        raise NotImplementedError
 
     @staticmethod
     def n_sigma(N: int) -> int:
@@ -187,7 +201,8 @@ def stacked_factor(data: TwoStepData, C0, z, ebar, chunk: int = 2048):
             (eye[None, :, :, None] * data.u1[sl, None, None, :]).reshape(k, m, -1),
             ebar[sl, :, None],
         ], axis=2).reshape(k * m, -1)
-        Raug = np.linalg.qr(np.concatenate([Raug, L]), mode="r")
+        # numpy's stub types every mode as `QRResult`; mode="r" returns the array R
+        Raug = cast(np.ndarray, np.linalg.qr(np.concatenate([Raug, L]), mode="r"))
     r_e = min(N * m, nth)
     c = abs(Raug[r_e, nth]) if Raug.shape[0] > r_e else 0.0
     return Raug[:r_e, :nth], Raug[:r_e, nth], float(c)

@@ -18,12 +18,13 @@ import math
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from typing import TypedDict
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._outcome import code
+from .._outcome import code
 
 _CLARABEL_OK = {"Solved", "AlmostSolved"}
 _CLARABEL_INFEASIBLE = {"PrimalInfeasible", "AlmostPrimalInfeasible"}
@@ -71,8 +72,19 @@ def clarabel_settings(*, max_iter: int, equilibrate: bool, tol: float | None = N
     return s
 
 
-PROJECTION_SETTINGS = dict(max_iter=100, equilibrate=False)
-ICO_SETTINGS = dict(max_iter=200, equilibrate=True, tol=1e-10)
+class _SettingsRequired(TypedDict):
+    max_iter: int
+    equilibrate: bool
+
+
+class SolverSettings(_SettingsRequired, total=False):
+    """The keyword arguments of `clarabel_settings` of one problem family."""
+
+    tol: float
+
+
+PROJECTION_SETTINGS: SolverSettings = {"max_iter": 100, "equilibrate": False}
+ICO_SETTINGS: SolverSettings = {"max_iter": 200, "equilibrate": True, "tol": 1e-10}
 
 
 class Layout:
@@ -104,12 +116,13 @@ class Layout:
             parts.append(np.asarray(P, np.float64)[..., self.p_rows, self.p_cols])
         return np.concatenate(parts, axis=-1)
 
-    def mats(self, theta):
+    def mats(self, theta) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """`(A, B, C, D)` from $\\theta$ (or from $x$, ignoring $P$), batched."""
         theta = np.asarray(theta)
         batch, o = theta.shape[:-1], self._offsets
-        return tuple(theta[..., o[i]:o[i + 1]].reshape(batch + s)
-                     for i, s in enumerate(self._shapes))
+        A, B, C, D = (theta[..., o[i]:o[i + 1]].reshape(batch + s)
+                      for i, s in enumerate(self._shapes))
+        return A, B, C, D
 
     def P(self, p, scale=1.0) -> np.ndarray:
         """The symmetric $P$ from its upper-triangle coordinates $p$ (times `scale`), batched."""
@@ -158,6 +171,7 @@ def single_threaded_blas():
         with _BLAS_LOCK:
             _BLAS_USERS -= 1
             if _BLAS_USERS == 0:
+                assert _BLAS_LIMITER is not None  # set by the first user
                 _BLAS_LIMITER.restore_original_limits()
                 _BLAS_LIMITER = None
 

@@ -1,12 +1,12 @@
 """What the ICO SDP is built from: the two-step windows (`TwoStepData`) and the layout of its
-variable vector (`VariableLayout`). Host-side float64 numpy only; see `_ico_sdp` for the maths.
+variable vector (`VariableLayout`). Host-side float64 numpy only; see `sdp.py` for the maths.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .._sdp import Layout
+from ..._sdp.sdp import Layout
 
 SQRT2 = np.sqrt(2.0)
 

@@ -1,0 +1,2 @@
+"""`certify` (`certify`): cheap storage candidates first (`fast`), then the maximum-margin
+SDP (`sdp`)."""

@@ -1,0 +1,2 @@
+"""REN controllers (`controller`), their direct parameterisation (`map`) and their
+certificate (`certify`)."""
