@@ -160,10 +160,12 @@ def sweeps(spec, w, key, inits):
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--quick", action="store_true", help="fewer initialisations, no sweeps")
+    parser.add_argument("--no-sweeps", action="store_true", help="all initialisations, no sweeps")
     args = parser.parse_args()
     print(f"jax {jax.__version__}, {jax.devices()[0].platform}, float64 unless stated")
-    compare("nonlinear", 20 if args.quick else 100, args.quick)
-    compare("linear", 4 if args.quick else 20, args.quick)
+    skip = args.quick or args.no_sweeps
+    compare("nonlinear", 20 if args.quick else 100, skip)
+    compare("linear", 4 if args.quick else 20, skip)
 
 
 if __name__ == "__main__":

@@ -65,9 +65,10 @@ def test_paper_network_has_three_weight_matrices(getkey):
         assert weights == [(width, 3), (width, width), (3, width)]
 
 
-def _plain_adam_loop(key, windows, hidden, max_steps, learning_rate, atol):
+def _plain_adam_loop(key, windows, hidden, max_steps, learning_rate, atol, rtol):
     """One network trained by a plain Python loop: full-batch Adam on the paper's loss,
-    stop when |J_k - J_(k-1)| < atol (the loss of the final parameters is recorded)."""
+    stop when |J_k - J_(k-1)| < atol + rtol |J_0| (the loss of the final parameters is
+    recorded)."""
     import optax
 
     model = dj.MLPController(key, windows.n_in, windows.n_out, hidden, dtype=jnp.float64)
@@ -86,7 +87,7 @@ def _plain_adam_loop(key, windows, hidden, max_steps, learning_rate, atol):
     for _ in range(max_steps + 1):
         J, g = vg(params)
         hist.append(float(J))
-        if abs(float(J) - prev) < atol or len(hist) == max_steps + 1:
+        if abs(float(J) - prev) < atol + rtol * hist[0] or len(hist) == max_steps + 1:
             break
         prev = float(J)
         updates, state = opt.update(g, state, params)
