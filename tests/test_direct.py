@@ -6,7 +6,6 @@ import os
 import subprocess
 import sys
 import textwrap
-import time
 
 import equinox as eqx
 import jax
@@ -141,7 +140,8 @@ def test_issue_failure_case_q_minus_1e4(dtype):
     spec = example_spec("linear")
     w = training_data(spec, 0, 0, "initial", 25)[2]
     w = _f32(w) if dtype == "float32" else w
-    kw = dict(num_inits=20, learning_rate=spec.direct_learning_rate, atol=0.0, rtol=0.0)
+    kw = dict(num_inits=20, learning_rate=spec.direct_learning_rate, max_steps=150, atol=0.0,
+              rtol=0.0)
     near = dj.fit_direct(jr.PRNGKey(0), w, dj.QSR(-1e-4 * I3, I3 / 2, 0 * I3), **kw)
     assert bool(jnp.all(near.certified)) and not bool(jnp.any(near.projected))
     med = float(jnp.median(near.final_loss))
@@ -157,7 +157,7 @@ def test_training_loss_within_2x_of_ico_small():
     qsr = SUPPLY_RATES["passive"]
     w, _ = realisable_windows(jr.PRNGKey(0), qsr, n_state=2, num_windows=25, noise=0.1)
     ico = dj.fit_ico(jr.PRNGKey(1), w, qsr, num_inits=4, atol=1e-3)
-    res = dj.fit_direct(jr.PRNGKey(1), w, qsr, num_inits=4, atol=0.0, rtol=0.0)
+    res = dj.fit_direct(jr.PRNGKey(1), w, qsr, num_inits=4, max_steps=150, atol=0.0, rtol=0.0)
     assert float(jnp.median(res.final_loss)) <= 2 * float(jnp.median(ico.final_loss))
 
 
@@ -373,8 +373,9 @@ def test_protocol_uses_the_specs_direct_settings(getkey):
 
 @pytest.mark.slow
 def test_nonlinear_example_criteria():
-    """100 initialisations, 25 initial segments: all certified, median test MSE <= 0.02,
-    and 100 inits x 150 steps in well under a second once compiled."""
+    """100 initialisations, 25 initial segments: all certified, median test MSE <= 0.02.
+    (The time, well under a second once compiled, is measured in
+    `benchmarks/bench_direct.py`, not asserted here.)"""
     rec = run_config("nonlinear", "initial", "direct", 25, inits=100)
     assert rec["certified"] is True and rec["percent_stable"] == 100.0
     assert rec["mse_median"] <= 0.02
@@ -383,7 +384,7 @@ def test_nonlinear_example_criteria():
     kw = dict(num_inits=100, max_steps=150, atol=0.0, rtol=0.0, learning_rate=spec.direct_learning_rate)
     dj.fit_direct(jr.PRNGKey(0), w, spec.qsr, **kw)  # compile
     res = dj.fit_direct(jr.PRNGKey(0), w, spec.qsr, **kw)
-    assert bool(jnp.all(res.steps == 150)) and float(res.wall_time) < 1.0
+    assert bool(jnp.all(res.steps == 150))
     assert bool(np.all(dj.certify(res.controllers, spec.qsr).holds))
 
 
@@ -391,15 +392,13 @@ def test_nonlinear_example_criteria():
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
 def test_linear_example_criteria(dtype):
     """n̂ = 6, m = p = 3, passive, 25 initial segments, 20 initialisations: all certified,
-    median training loss within 2x of ICO's on the same data, under a second."""
+    median training loss within 2x of ICO's on the same data (the time, under a second, is
+    measured in `benchmarks/bench_direct.py`)."""
     spec = example_spec("linear")
     w64 = training_data(spec, 0, 0, "initial", 25)[2]
     w = _f32(w64) if dtype == "float32" else w64
     kw = dict(num_inits=20, learning_rate=spec.direct_learning_rate, atol=spec.direct_tol)
-    dj.fit_direct(jr.PRNGKey(1), w, spec.qsr, **kw)  # compile
-    t = time.perf_counter()
     res = dj.fit_direct(jr.PRNGKey(1), w, spec.qsr, **kw)
-    assert time.perf_counter() - t < 1.0
     assert bool(jnp.all(res.certified)) and not bool(jnp.any(res.projected))
     assert bool(np.all(dj.certify(res.controllers, spec.qsr).holds))
     ico = dj.fit_ico(jr.PRNGKey(1), w64, spec.qsr, num_inits=20, atol=spec.tol, throw=False)
