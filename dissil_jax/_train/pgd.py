@@ -371,14 +371,15 @@ def fit_gd(
     step is `fit_pgd`'s, `optax.adam(ADAM_LEARNING_RATE)`
     ($\\eta = 0.1$ in the normalised units). Adam moves each entry by about $\\eta$ per step
     whatever the gradient's size, so a run cannot blow up within its step budget: with the
-    paper's rule at its PGD default ($\\eta_0 = 1$) GD diverged on every problem of the zoo
+    paper's rule at $\\eta_0 = 1$, GD diverged on every problem of the zoo
     (`dissil_jax.experiments.zoo`, `benchmarks/bench_defaults.py`), where PGD's projection
-    keeps the iterates bounded. `learning_rate` and `decay` are,
-    as in `fit_pgd`, the paper's rule's $\\eta_0$ (a factor of the gradient) and $\\rho$:
-    giving either selects that rule (the other then takes its default). To change
-    Adam's step instead, pass `optimizer=optax.adam(step)`. With
-    `throw=True` a diverging run (`non_finite`) raises.
+    keeps the iterates bounded. `learning_rate` and `decay` are, as in `fit_pgd`, the
+    paper's rule's $\\eta_0$ (a factor of the gradient) and $\\rho$: giving either selects
+    that rule (the other then takes its default). To change Adam's step instead, pass
+    `optimizer=optax.adam(step)`. With `throw=True` a diverging run (`non_finite`)
+    raises.
     """
     return _fit(key, windows, None, optimizer=default_rule(optimizer, learning_rate, decay),
-                learning_rate=learning_rate, decay=decay, init_scale=init_scale, num_inits=num_inits, n_state=n_state,
-                max_steps=max_steps, atol=atol, rtol=rtol, eps=0.0, throw=throw)
+                learning_rate=learning_rate, decay=decay, init_scale=init_scale,
+                num_inits=num_inits, n_state=n_state, max_steps=max_steps, atol=atol,
+                rtol=rtol, eps=0.0, throw=throw)
