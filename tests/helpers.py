@@ -156,9 +156,6 @@ def dissipation_ok(K, qsr, P, rel_margin=1e-12, *, python_control=True):
     return bool(ok)
 
 
-independent_kyp_ok = dissipation_ok  # old name, used by tests/test_pgd.py
-
-
 def loop_outputs(K, x0, y):
     """One window by a plain Python loop (float64 numpy): $\\hat y_k = C\\hat x_k + D y_k$,
     $\\hat x_{k+1} = A\\hat x_k + B y_k$ from `x0` (None: at rest, $\\hat x_0 = 0$)."""
@@ -171,13 +168,73 @@ def loop_outputs(K, x0, y):
     return np.array(out)
 
 
-def random_windows(key, N=10, h=2, n=1, p=1, m=1, gain=0.5):
-    """Windows from a known linear map so a good controller exists: u = -gain * y."""
-    k1, k2 = jax.random.split(key)
-    x0 = jax.random.normal(k1, (N, n))
-    y = jax.random.normal(k2, (N, h, p))
-    u = -gain * y[..., :m] if m <= p else -gain * jnp.tile(y, (1, 1, m))[..., :m]
+def loop_predict(K, windows):
+    """Every window's outputs, shape (N, h, m), by plain Python loops (no vmap, no scan);
+    windows without `x0` start the controller at rest."""
+    x0s = [None] * windows.num_windows if windows.x0 is None else list(np.asarray(windows.x0))
+    return np.stack([loop_outputs(K, x0, y) for x0, y in zip(x0s, np.asarray(windows.y))])
+
+
+def loop_loss(K, windows) -> float:
+    """The paper's eq. 16 by plain loops: $(1/N) \\sum_i \\sum_k \\|\\hat y_k + u_k\\|^2$."""
+    err = loop_predict(K, windows) + np.asarray(windows.u, np.float64)
+    return float(np.sum(err**2) / windows.num_windows)
+
+
+def random_windows(key, N=10, h=2, n=1, p=1, m=1, gain=0.5, *, x0=None):
+    """Random windows, y ~ N(0, I).
+
+    With `gain`, the targets come from a known linear map, u = -gain * y (repeated or cut to
+    m entries), so a good controller exists; with `gain=None`, u ~ N(0, I) independently of
+    y. The controller state `x0` is drawn N(0, I) of width `n`, or taken as given, and
+    `n=None` without `x0` gives windows at rest (`x0 = None`).
+    """
+    kx, ky, ku = jax.random.split(key, 3)
+    if x0 is None and n is not None:
+        x0 = jax.random.normal(kx, (N, n))
+    y = jax.random.normal(ky, (N, h, p))
+    if gain is None:
+        u = jax.random.normal(ku, (N, h, m))
+    else:
+        u = -gain * (y[..., :m] if m <= p else jnp.tile(y, (1, 1, m))[..., :m])
     return dj.Windows(x0, y, u)
+
+
+def as_float32(windows):
+    """The same windows in float32 (a missing `x0` stays missing)."""
+    return dj.Windows(*(None if a is None else jnp.asarray(a, jnp.float32)
+                        for a in (windows.x0, windows.y, windows.u)))
+
+
+# -- frequency responses (independent of python-control and of the KYP lemma) -------------
+
+#: A grid of the unit circle's upper half, where a real system's response is determined.
+OMEGAS = np.linspace(0.0, np.pi, 2001)
+
+
+def freq_response(A, B, C, D, omegas=OMEGAS):
+    """$G(e^{j\\omega}) = C (e^{j\\omega} I - A)^{-1} B + D$ on the grid, shape (W, m, p)."""
+    A, B, C, D = (np.asarray(M, np.float64) for M in (A, B, C, D))
+    eye = np.eye(A.shape[0])
+    return np.stack([C @ np.linalg.solve(np.exp(1j * w) * eye - A, B) + D for w in omegas])
+
+
+def frequency_supply_min(A, B, C, D, qsr, omegas=OMEGAS):
+    """$\\min_\\omega \\lambda_{\\min}(G^H Q G + G^H S + S^T G + R)$: $\\ge 0$ iff the stable
+    system G is (Q, S, R)-dissipative (frequency-domain KYP)."""
+    G = freq_response(A, B, C, D, omegas)
+    Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
+    GH = np.conj(np.swapaxes(G, -1, -2))
+    M = GH @ Q @ G + GH @ S + S.T @ G + R
+    return float(np.linalg.eigvalsh((M + np.conj(np.swapaxes(M, -1, -2))) / 2)[:, 0].min())
+
+
+def min_hermitian_part(A, B, C, D, omegas=OMEGAS):
+    """$\\min_\\omega \\lambda_{\\min}((G + G^H)/2)$: $\\ge 0$ iff the stable square G is
+    passive."""
+    G = freq_response(A, B, C, D, omegas)
+    He = (G + np.conj(np.swapaxes(G, -1, -2))) / 2
+    return float(np.linalg.eigvalsh(He)[:, 0].min())
 
 
 def expert_windows(seed, n, p, m, N=12, noise=0.05):

@@ -1,9 +1,11 @@
+"""`dj.certify`: the KYP certificate against python-control, frequency responses and the definition."""
+
 import control
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import dissipation_matrix, dissipation_ok
+from helpers import dissipation_matrix, dissipation_ok, min_hermitian_part
 
 import dissil_jax as dj
 
@@ -34,16 +36,6 @@ def _random_stable(rng, n, m):
     return A, rng.normal(size=(n, m)), rng.normal(size=(m, n)), rng.normal(size=(m, m))
 
 
-def _min_hermitian_part(A, B, C, D, num=2001):
-    """min over the unit circle of lambda_min((G + G^H) / 2): passive iff >= 0 (stable A)."""
-    n = A.shape[0]
-    out = np.inf
-    for w in np.linspace(0.0, np.pi, num):
-        G = C @ np.linalg.solve(np.exp(1j * w) * np.eye(n) - A, B) + D
-        out = min(out, np.linalg.eigvalsh((G + G.conj().T) / 2)[0])
-    return out
-
-
 def test_agrees_with_python_control_passivity():
     """Passive and non-passive systems by construction; python-control and certify agree.
 
@@ -56,8 +48,8 @@ def test_agrees_with_python_control_passivity():
         A, B, C, D = _random_stable(rng, 2, 2)
         expected = trial % 2 == 0
         delta = rng.uniform(0.05, 0.5) * (1 if expected else -1)
-        D = D - (_min_hermitian_part(A, B, C, D) - delta) * np.eye(2)
-        assert bool(_min_hermitian_part(A, B, C, D) > 0) is expected
+        D = D - (min_hermitian_part(A, B, C, D) - delta) * np.eye(2)
+        assert bool(min_hermitian_part(A, B, C, D) > 0) is expected
         ref = bool(control.ispassive(control.ss(A, B, C, D, True)))
         K = dj.LTIController(A, B, C, D)
         cert = dj.certify(K, dj.QSR.passive(2))
@@ -121,7 +113,7 @@ def test_certificate_margin_is_min_of_the_two_eigenvalues():
     qsr = dj.QSR.passive(2)
     rng = np.random.default_rng(5)
     A, B, C, D = _random_stable(rng, 2, 2)
-    D = D - (_min_hermitian_part(A, B, C, D) - 0.2) * np.eye(2)
+    D = D - (min_hermitian_part(A, B, C, D) - 0.2) * np.eye(2)
     K = dj.LTIController(A, B, C, D)
     cert = dj.certify(K, qsr, max_margin=True)
     assert cert.holds and cert.status == "optimal"

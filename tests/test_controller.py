@@ -1,3 +1,5 @@
+"""`dj.LTIController`: one step, random draws, state-space round trips, shapes and batches."""
+
 import control
 import jax
 import jax.numpy as jnp

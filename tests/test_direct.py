@@ -14,7 +14,7 @@ import jax.random as jr
 import numpy as np
 import optax
 import pytest
-from helpers import dissipation_ok, expert_windows, index
+from helpers import as_float32, dissipation_ok, expert_windows, index
 
 import dissil_jax as dj
 from dissil_jax.experiments import realisable_windows
@@ -33,11 +33,6 @@ SUPPLY_RATES = {
     "gain_2x3": dj.QSR.bounded_gain(2.0, n_in=3, n_out=2),  # S = 0, non-square
     "input_only": dj.QSR(0 * I2, 0 * I2, I2),  # Q = S = 0: C and D are free
 }
-
-
-def _f32(w):
-    return dj.Windows(*(None if a is None else jnp.asarray(a, jnp.float32)
-                        for a in (w.x0, w.y, w.u)))
 
 
 def _random_theta(key, num, n, qsr, scale):
@@ -120,7 +115,7 @@ def test_fit_direct_is_certified(getkey, name, dtype):
     qsr = SUPPLY_RATES[name]
     m, p = qsr.S.shape
     w = expert_windows(3, 2, p, m, N=16)
-    w = _f32(w) if dtype == "float32" else w
+    w = as_float32(w) if dtype == "float32" else w
     res = dj.fit_direct(getkey(), w, qsr, num_inits=4, max_steps=30, atol=0.0, rtol=0.0)
     K = res.controllers
     assert K.A.dtype == res.P.dtype == res.loss_history.dtype == jnp.dtype(dtype)
@@ -139,7 +134,7 @@ def test_issue_failure_case_q_minus_1e4(dtype):
     matches the passive supply rate and every controller is certified."""
     spec = example_spec("linear")
     w = training_data(spec, 0, 0, "initial", 25)[2]
-    w = _f32(w) if dtype == "float32" else w
+    w = as_float32(w) if dtype == "float32" else w
     kw = dict(num_inits=20, learning_rate=spec.direct_learning_rate, max_steps=150, atol=0.0,
               rtol=0.0)
     near = dj.fit_direct(jr.PRNGKey(0), w, dj.QSR(-1e-4 * I3, I3 / 2, 0 * I3), **kw)
@@ -396,7 +391,7 @@ def test_linear_example_criteria(dtype):
     measured in `benchmarks/bench_direct.py`)."""
     spec = example_spec("linear")
     w64 = training_data(spec, 0, 0, "initial", 25)[2]
-    w = _f32(w64) if dtype == "float32" else w64
+    w = as_float32(w64) if dtype == "float32" else w64
     kw = dict(num_inits=20, learning_rate=spec.direct_learning_rate, atol=spec.direct_tol)
     res = dj.fit_direct(jr.PRNGKey(1), w, spec.qsr, **kw)
     assert bool(jnp.all(res.certified)) and not bool(jnp.any(res.projected))

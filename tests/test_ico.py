@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import dissipation_ok, expert_windows, index, tree_allclose
+from helpers import as_float32, dissipation_ok, expert_windows, index, tree_allclose
 from ico_checks import cone_min, cone_spec, feasible_point, overbound
 
 import dissil_jax as dj
@@ -369,7 +369,7 @@ def test_fit_ico_float32_controllers_are_certified_as_returned(getkey):
     """float32 windows: every accepted iterate is checked exactly as it is returned, i.e. after
     rounding to float32, and the returned float32 controllers and P pass the exact check."""
     windows = expert_windows(3, 2, 1, 1, N=8)
-    w32 = dj.Windows(*(jnp.asarray(a, jnp.float32) for a in (windows.x0, windows.y, windows.u)))
+    w32 = as_float32(windows)
     qsr = NONLINEAR_QSR
     last, lock = {}, threading.Lock()
 

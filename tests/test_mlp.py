@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import pytest
-from helpers import random_windows, tree_allclose
+from helpers import as_float32, random_windows, tree_allclose
 
 import dissil_jax as dj
 
@@ -131,7 +131,7 @@ def test_stopping_rule(getkey):
 
 def test_float32_training(getkey):
     w = random_windows(getkey(), N=12, h=2, n=1, p=2, m=2)
-    w32 = dj.Windows(*(jnp.asarray(a, jnp.float32) for a in (w.x0, w.y, w.u)))
+    w32 = as_float32(w)
     res = dj.fit_mlp(getkey(), w32, hidden=(8, 8), num_inits=2, max_steps=100,
                      learning_rate=1e-2, atol=0.0, rtol=0.0)
     assert res.loss_history.dtype == jnp.float32

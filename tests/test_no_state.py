@@ -10,63 +10,13 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import pytest
-from helpers import loop_outputs
+from helpers import loop_loss, loop_outputs, random_windows
 
 import dissil_jax as dj
 from dissil_jax import experiments as ex
 from dissil_jax.experts import lqr_expert
 from dissil_jax.internal import check_n_state, init_controllers, rollout as _rollout
 from dissil_jax.systems import mass_spring_chain, paper_nonlinear_plant
-
-
-def _outputs_from_rest(K, y):
-    return loop_outputs(K, None, y)
-
-
-def _loss_from_rest(K, y, u):
-    """Paper eq. 16 with x̂_0 = 0: mean over windows of sum_k ||ŷ_k + u_k||^2 (numpy)."""
-    return np.mean([np.sum((_outputs_from_rest(K, y[i]) + np.asarray(u[i])) ** 2)
-                    for i in range(y.shape[0])])
-
-
-def _random_windows(key, N, h, p, m, x0=None):
-    ky, ku = jr.split(key)
-    return dj.Windows(x0, jr.normal(ky, (N, h, p)), jr.normal(ku, (N, h, m)))
-
-
-# -- Windows(None, ...) ---------------------------------------------------------------------
-
-
-def test_windows_at_rest_construction(getkey):
-    w = _random_windows(getkey(), 5, 3, 2, 1)
-    assert w.x0 is None and w.n_state is None
-    assert (w.num_windows, w.horizon, w.n_in, w.n_out) == (5, 3, 2, 1)
-    np.testing.assert_array_equal(w.target, -np.asarray(w.u))
-    # A pytree like any other: it goes through jit and tree maps with x0 still None.
-    w2 = jax.jit(lambda v: jax.tree.map(lambda a: 2 * a, v))(w)
-    assert w2.x0 is None
-    np.testing.assert_allclose(w2.y, 2 * np.asarray(w.y))
-
-
-def test_windows_at_rest_validation():
-    z = lambda *s: jnp.zeros(s)
-    with pytest.raises(ValueError, match="`y`"):
-        dj.Windows(None, z(3, 2), z(3, 2, 1))
-    with pytest.raises(ValueError, match="`u`"):
-        dj.Windows(None, z(3, 2, 1), z(3, 2))
-    with pytest.raises(ValueError, match="`y` and `u` must share the window axis"):
-        dj.Windows(None, z(4, 2, 1), z(3, 2, 1))
-    with pytest.raises(ValueError, match="horizon"):
-        dj.Windows(None, z(3, 2, 1), z(3, 4, 1))
-    with pytest.raises(ValueError, match="at least one window"):
-        dj.Windows(None, z(0, 2, 1), z(0, 2, 1))
-    with pytest.raises(ValueError, match="`y` contains NaN"):
-        dj.Windows(None, jnp.full((3, 2, 1), jnp.nan), z(3, 2, 1))
-    with pytest.raises(ValueError, match="`u` contains NaN"):
-        dj.Windows(None, z(3, 2, 1), jnp.full((3, 2, 1), jnp.inf))
-    with pytest.raises(ValueError, match="`x0` must have shape"):
-        dj.Windows(z(3), z(3, 2, 1), z(3, 2, 1))
-
 
 # -- loss, predict and rollout from rest ----------------------------------------------------
 
@@ -76,30 +26,30 @@ def test_windows_at_rest_validation():
 def test_loss_at_rest_equals_plain_loop(getkey, n_hat, h):
     p, m, N = 2, 2, 6
     K = dj.LTIController.random(getkey(), n_hat, p, m, scale=0.4)
-    w = _random_windows(getkey(), N, h, p, m)
-    ref = np.stack([_outputs_from_rest(K, w.y[i]) for i in range(N)])
+    w = random_windows(getkey(), N, h, n=None, p=p, m=m, gain=None)
+    ref = np.stack([loop_outputs(K, None, w.y[i]) for i in range(N)])
     np.testing.assert_allclose(dj.predict(K, w), ref, rtol=1e-11, atol=1e-11)
-    assert float(dj.imitation_loss(K, w)) == pytest.approx(_loss_from_rest(K, w.y, w.u),
+    assert float(dj.imitation_loss(K, w)) == pytest.approx(loop_loss(K, w),
                                                            rel=1e-11)
     assert float(jax.jit(dj.imitation_loss)(K, w)) == pytest.approx(
-        _loss_from_rest(K, w.y, w.u), rel=1e-11)
+        loop_loss(K, w), rel=1e-11)
     np.testing.assert_allclose(dj.rollout(K, None, w.y[0]), ref[0], rtol=1e-11, atol=1e-11)
 
 
 def test_both_predict_paths_agree_at_rest(getkey, monkeypatch):
     K = dj.LTIController.random(getkey(), 3, 1, 2, scale=0.5)
-    w = _random_windows(getkey(), 4, 6, 1, 2)
+    w = random_windows(getkey(), 4, 6, n=None, p=1, m=2, gain=None)
     a = dj.predict(K, w)
     monkeypatch.setattr(_rollout, "_TOEPLITZ_MAX_HORIZON", 0)
     b = dj.predict(K, w)
     np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(b[2], _outputs_from_rest(K, w.y[2]), atol=1e-12)
+    np.testing.assert_allclose(b[2], loop_outputs(K, None, w.y[2]), atol=1e-12)
 
 
 def test_loss_at_rest_differs_from_loss_at_a_state(getkey):
     """With x0 given the same controller sees O x0 on top: the two losses differ."""
     K = dj.LTIController.random(getkey(), 2, 1, 1, scale=0.5)
-    rest = _random_windows(getkey(), 5, 4, 1, 1)
+    rest = random_windows(getkey(), 5, 4, n=None, p=1, m=1, gain=None)
     at_x0 = dj.Windows(jnp.ones((5, 2)), rest.y, rest.u)
     at_zero = dj.Windows(jnp.zeros((5, 2)), rest.y, rest.u)
     assert float(dj.imitation_loss(K, rest)) == pytest.approx(
@@ -109,11 +59,11 @@ def test_loss_at_rest_differs_from_loss_at_a_state(getkey):
 
 def test_gradient_at_rest_matches_finite_differences(getkey):
     K = dj.LTIController.random(getkey(), 2, 1, 1, scale=0.5)
-    w = _random_windows(getkey(), 5, 4, 1, 1)
+    w = random_windows(getkey(), 5, 4, n=None, p=1, m=1, gain=None)
     g = jax.grad(dj.imitation_loss)(K, w)
     flat, unravel = jax.flatten_util.ravel_pytree(K)
     gflat, _ = jax.flatten_util.ravel_pytree(g)
-    f = lambda v: _loss_from_rest(unravel(v), w.y, w.u)
+    f = lambda v: loop_loss(unravel(v), w)
     eps = 1e-6
     fd = np.array([(f(flat.at[i].add(eps)) - f(flat.at[i].add(-eps))) / (2 * eps)
                    for i in range(flat.size)])
@@ -122,7 +72,7 @@ def test_gradient_at_rest_matches_finite_differences(getkey):
 
 def test_state_width_must_match_controller_order(getkey):
     K = dj.LTIController.random(getkey(), 2, 1, 1)
-    w = _random_windows(getkey(), 3, 2, 1, 1, x0=jnp.ones((3, 1)))
+    w = random_windows(getkey(), 3, 2, n=None, p=1, m=1, gain=None, x0=jnp.ones((3, 1)))
     for fn in (dj.predict, dj.imitation_loss):
         with pytest.raises(ValueError, match="`windows.x0` has width 1 but `K` has 2 states"):
             fn(K, w)
@@ -134,8 +84,8 @@ def test_state_width_must_match_controller_order(getkey):
 
 
 def test_check_n_state(getkey):
-    rest = _random_windows(getkey(), 3, 2, 1, 1)
-    logged = _random_windows(getkey(), 3, 2, 1, 1, x0=jnp.ones((3, 2)))
+    rest = random_windows(getkey(), 3, 2, n=None, p=1, m=1, gain=None)
+    logged = random_windows(getkey(), 3, 2, n=None, p=1, m=1, gain=None, x0=jnp.ones((3, 2)))
     with pytest.raises(ValueError, match="`n_state` is required when `windows.x0` is None"):
         check_n_state(rest, None)
     for bad in (0, -1, 1.5, True, "2", np.ones(2)):
@@ -150,7 +100,7 @@ def test_check_n_state(getkey):
 
 @pytest.mark.parametrize("n_hat", [1, 3])
 def test_init_controllers_with_n_state(getkey, n_hat):
-    w = _random_windows(getkey(), 3, 2, 2, 1)
+    w = random_windows(getkey(), 3, 2, n=None, p=2, m=1, gain=None)
     key = getkey()
     K = init_controllers(key, 4, w, 0.5, n_state=n_hat)
     assert K.batch_shape == (4,) and (K.n_state, K.n_in, K.n_out) == (n_hat, 2, 1)
@@ -160,14 +110,14 @@ def test_init_controllers_with_n_state(getkey, n_hat):
             np.testing.assert_allclose(M[i], 0.5 * np.asarray(R), rtol=1e-14)
     with pytest.raises(ValueError, match="`n_state` is required"):
         init_controllers(key, 4, w, 0.5)
-    logged = _random_windows(getkey(), 3, 2, 2, 1, x0=jnp.ones((3, 2)))
+    logged = random_windows(getkey(), 3, 2, n=None, p=2, m=1, gain=None, x0=jnp.ones((3, 2)))
     assert init_controllers(key, 2, logged, 1.0).n_state == 2  # default: x0's width
 
 
 def test_mlp_pairs_ignore_x0(getkey):
     from dissil_jax.internal import demonstration_pairs as _pairs
 
-    w = _random_windows(getkey(), 3, 2, 1, 1)
+    w = random_windows(getkey(), 3, 2, n=None, p=1, m=1, gain=None)
     X, T = _pairs(w)
     np.testing.assert_array_equal(X, w.y)
     np.testing.assert_array_equal(T, -np.asarray(w.u))
@@ -286,7 +236,7 @@ def test_fit_pgd_learns_a_passive_expert_from_rest():
     K_star, _ = dj.project(dj.LTIController.random(jr.PRNGKey(0), 3, p, m, scale=1.0), qsr)
     assert dj.certify(K_star, qsr).holds
     y = jr.normal(jr.PRNGKey(1), (32, 8, p))
-    u = -np.stack([_outputs_from_rest(K_star, yi) for yi in y])  # u = -ŷ (negative feedback)
+    u = -np.stack([loop_outputs(K_star, None, yi) for yi in y])  # u = -ŷ (negative feedback)
     windows = dj.Windows(None, y, u)
     assert float(dj.imitation_loss(K_star, windows)) < 1e-20
     with pytest.raises(ValueError, match="`n_state` is required"):
@@ -301,4 +251,4 @@ def test_fit_pgd_learns_a_passive_expert_from_rest():
         K = jax.tree.map(lambda a: a[i], res.controllers)
         assert dj.certify(K, qsr).holds
         # The reported loss is the loss from rest of the returned controller.
-        assert float(res.final_loss[i]) == pytest.approx(_loss_from_rest(K, y, u), rel=1e-8)
+        assert float(res.final_loss[i]) == pytest.approx(loop_loss(K, windows), rel=1e-8)

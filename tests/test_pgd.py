@@ -1,10 +1,12 @@
+"""`dj.fit_pgd`, `dj.pgd_run` and `dj.fit_gd` (paper Alg. 2) against plain Python loops."""
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from helpers import independent_kyp_ok, index, random_windows, through_solves
+from helpers import as_float32, dissipation_ok, index, loop_loss, random_windows, through_solves
 
 import dissil_jax as dj
 from dissil_jax.internal import INIT_SCALE, init_controllers, outcome as _outcome, pgd
@@ -12,22 +14,11 @@ from dissil_jax.internal import INIT_SCALE, init_controllers, outcome as _outcom
 QSR = dj.QSR(-29.867, 3.556, 0.601)
 
 
-def paper_loss(K, windows) -> float:
-    """Paper eq. 16 written out: (1/N) sum_i sum_k ||yhat_k + u_k||^2 by a plain simulation."""
-    A, B, C, D = (np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
-    total = 0.0
-    for x, ys, us in zip(np.asarray(windows.x0), np.asarray(windows.y), np.asarray(windows.u)):
-        for y, u in zip(ys, us):
-            total += float(np.sum((C @ x + D @ y + u) ** 2))
-            x = A @ x + B @ y
-    return total / windows.num_windows
-
-
 def _reference_pgd(K, P, windows, qsr, lr, decay, max_steps, tol):
     """Plain Python loop: one controller, grad step, project with the previous P, and stop
     when the paper's J (computed independently) changes by less than `tol`."""
     grad = jax.jit(jax.grad(dj.imitation_loss))
-    hist = [paper_loss(K, windows)]
+    hist = [loop_loss(K, windows)]
     # steps are taken on J / s^2, s^2 the power of the inputs and initial states
     s2 = (np.mean(np.sum(np.asarray(windows.y) ** 2, axis=(1, 2)))
           + np.mean(np.sum(np.asarray(windows.x0) ** 2, axis=1)))
@@ -38,7 +29,7 @@ def _reference_pgd(K, P, windows, qsr, lr, decay, max_steps, tol):
             K, P = dj.project(K_tilde, qsr, P)
         else:
             K = K_tilde
-        hist.append(paper_loss(K, windows))
+        hist.append(loop_loss(K, windows))
         if abs(hist[-1] - hist[-2]) < tol:
             break
     return K, P, hist
@@ -64,7 +55,7 @@ def _check_against_loop(res, K0, P0, w, qsr, lr, decay, max_steps, tol):
         if qsr is not None:
             # P is pinned only by the projection's proximal term (weight 1e-6), so two solves
             # agree on it only to ~sqrt(tol / 1e-6); what matters is that it certifies.
-            assert independent_kyp_ok(index(res.controllers, i), qsr, res.P[i])
+            assert dissipation_ok(index(res.controllers, i), qsr, res.P[i])
 
 
 @pytest.mark.numerics
@@ -108,7 +99,7 @@ def test_pgd_controllers_certified_and_loss_decreases(getkey):
     assert bool(jnp.all(res.certified))
     for i in range(4):
         Ki = index(res.controllers, i)
-        assert independent_kyp_ok(Ki, QSR, res.P[i])
+        assert dissipation_ok(Ki, QSR, res.P[i])
         assert dj.certify(Ki, QSR).holds
     assert bool(jnp.all(res.final_loss < res.initial_loss))
     assert bool(jnp.all(res.steps == 60)) and not bool(jnp.any(res.converged))
@@ -194,7 +185,7 @@ def test_stopping_rule_uses_the_papers_loss(getkey):
     for i in range(4):
         n = int(res.steps[i])
         K = index(res.controllers, i)
-        assert hist[i, n] == pytest.approx(paper_loss(K, w), rel=1e-10)
+        assert hist[i, n] == pytest.approx(loop_loss(K, w), rel=1e-10)
         dJ = np.abs(np.diff(hist[i, : n + 1]))
         assert dJ[-1] < 1e-3 and np.all(dJ[:-1] >= 1e-3)
         # With J/h the stopping step would be earlier for at least one run.
@@ -266,7 +257,7 @@ def test_solver_failure_mid_run_keeps_the_last_certified_iterate(getkey, monkeyp
     assert float(res.final_loss[0]) == pytest.approx(float(ref.loss_history[0, k - 1]),
                                                      rel=1e-12)
     assert bool(res.certified[0]) and int(res.kept_step[0]) == k - 1
-    assert independent_kyp_ok(index(res.controllers, 0), QSR, res.P[0])
+    assert dissipation_ok(index(res.controllers, 0), QSR, res.P[0])
 
 
 @pytest.mark.parametrize("trainer", ["pgd", "direct", "gd"])
@@ -296,8 +287,8 @@ def test_best_iterate_is_kept(getkey, trainer):
         assert kept[i] == int(np.nanargmin(hist[i]))
         assert float(res.final_loss[i]) == pytest.approx(np.nanmin(hist[i]), rel=1e-12)
         # the returned controller is the one that had that loss, and it is certified
-        assert paper_loss(K, w) == pytest.approx(float(res.final_loss[i]), rel=1e-9)
-        assert bool(res.certified[i]) and independent_kyp_ok(K, QSR, res.P[i])
+        assert loop_loss(K, w) == pytest.approx(float(res.final_loss[i]), rel=1e-9)
+        assert bool(res.certified[i]) and dissipation_ok(K, QSR, res.P[i])
 
 
 def test_failed_initial_projection(getkey, monkeypatch):
@@ -338,8 +329,8 @@ def test_non_finite_loss_under_a_constraint_keeps_the_last_finite_iterate(getkey
     assert float(res.final_loss[0]) == pytest.approx(hist[2], rel=1e-12)
     assert float(res.loss_history[0, 3]) == pytest.approx(hist[2], rel=1e-12)
     assert bool(res.certified[0]) and int(res.kept_step[0]) == 2
-    assert independent_kyp_ok(index(res.controllers, 0), QSR, res.P[0])
-    assert paper_loss(index(res.controllers, 0), w) == pytest.approx(hist[2], rel=1e-10)
+    assert dissipation_ok(index(res.controllers, 0), QSR, res.P[0])
+    assert loop_loss(index(res.controllers, 0), w) == pytest.approx(hist[2], rel=1e-10)
     with pytest.raises(ValueError, match="non_finite"):
         dj.fit_pgd(key, w, QSR, **kw)
 
@@ -349,7 +340,7 @@ def test_float32_training(getkey, constrained):
     """float32 windows train float32 controllers; the certificate holds for the rounded
     float32 numbers (checked in float64 by the definition-based test)."""
     w = random_windows(getkey(), N=12, n=2, p=2, m=2, gain=0.3)
-    w32 = dj.Windows(*(jnp.asarray(a, jnp.float32) for a in (w.x0, w.y, w.u)))
+    w32 = as_float32(w)
     qsr = dj.QSR.passive(2)
     kw = dict(num_inits=3, max_steps=20, learning_rate=0.05, atol=0.0, rtol=0.0)
     res = dj.fit_pgd(getkey(), w32, qsr, **kw) if constrained else dj.fit_gd(getkey(), w32, **kw)
@@ -358,4 +349,4 @@ def test_float32_training(getkey, constrained):
     if constrained:
         assert bool(jnp.all(res.certified)) and res.P.dtype == jnp.float32
         for i in range(3):
-            assert independent_kyp_ok(index(res.controllers, i), qsr, res.P[i])
+            assert dissipation_ok(index(res.controllers, i), qsr, res.P[i])

@@ -1,3 +1,5 @@
+"""`dj.project` (paper eq. 13): certified results, batching, caching, errors and the thread pool."""
+
 import threading
 
 import jax

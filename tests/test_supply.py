@@ -1,3 +1,5 @@
+"""`dj.QSR`, the closed-loop theorem (`closed_loop_certificate`) and `stabilising_qsr`."""
+
 import numpy as np
 import pytest
 

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import pytest
-from helpers import dissipation_ok
+from helpers import dissipation_ok, loop_predict
 
 import dissil_jax as dj
 from dissil_jax.experiments import zoo
@@ -178,20 +178,6 @@ def test_evaluate_expert(problems, name):
         assert 0 < rep.imitation_error[0] < 1
 
 
-def _loop_predict(K, W, n_state):
-    """Plain Python loops over windows and steps (no vmap, no scan)."""
-    A, B, C, D = (np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
-    y, out = np.asarray(W.y), []
-    for i in range(y.shape[0]):
-        x = np.zeros(n_state) if W.x0 is None else np.asarray(W.x0[i], np.float64)
-        row = []
-        for k in range(y.shape[1]):
-            row.append(C @ x + D @ y[i, k])
-            x = A @ x + B @ y[i, k]
-        out.append(row)
-    return np.asarray(out)
-
-
 @pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 @pytest.mark.parametrize("name", ["chain4_4x4_io", "cone_3x2"])
 def test_imitation_error_against_loops(problems, name):
@@ -203,7 +189,7 @@ def test_imitation_error_against_loops(problems, name):
     J0 = np.mean(np.sum(target**2, axis=(1, 2)))
     for i in range(3):
         Ki = jax.tree.map(lambda M: M[i], Ks)
-        pred = _loop_predict(Ki, p.test, p.n_state)
+        pred = loop_predict(Ki, p.test)
         J = np.mean(np.sum((pred - target) ** 2, axis=(1, 2)))
         np.testing.assert_allclose(err[i], J / J0, rtol=1e-10)
 

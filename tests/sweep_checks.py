@@ -1,6 +1,6 @@
 """Sharded sweeps against unsharded ones, on 2 forced host devices.
 
-Run by `tests/test_sharding.py`: `main` in a subprocess with
+Run by `tests/test_sweep.py`: `main` in a subprocess with
 `XLA_FLAGS=--xla_force_host_platform_device_count=2`, `JAX_ENABLE_X64=1` and a 2-thread
 pool (`DISSIL_JAX_THREADS=2`); prints one JSON line of findings, one entry per case:
 the largest difference to the unsharded sweep, the devices holding the output, XLA's

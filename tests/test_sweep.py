@@ -1,6 +1,7 @@
-"""Sweeps past one device: shard-local projections and host threads per device.
+"""`dj.sweep`: on one device it is `jax.jit(jax.vmap(fn))`; past one device, shard-local
+projections and host threads per device.
 
-The sweeps run in a subprocess (`sharding_checks.py`) with 2 forced host CPU devices
+The sweeps run in a subprocess (`sweep_checks.py`) with 2 forced host CPU devices
 (`XLA_FLAGS=--xla_force_host_platform_device_count=2`), float64 and a 2-thread pool; the
 slow-marked test runs two `jax.distributed` processes, as on two hosts.
 """
@@ -17,13 +18,15 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
 import pytest
-from helpers import tree_allclose
+from helpers import dissipation_ok, index, through_solves, tree_allclose
 
 import dissil_jax as dj
 from dissil_jax.internal import sdp as _sdp
 
-CHECKS = Path(__file__).with_name("sharding_checks.py")
+CHECKS = Path(__file__).with_name("sweep_checks.py")
 # One worker runs every test here, so the subprocess behind `found` runs once per test run.
 pytestmark = pytest.mark.xdist_group("sharding")
 SHARDED = ("pgd", "recipe", "gd", "project")  # dj.sweep of PGD, the raw recipe, GD, project
@@ -166,3 +169,31 @@ def test_sweep_on_one_device_and_its_argument_errors():
         dj.sweep(fn)(x, jnp.float64(1.0))
     with pytest.raises(ValueError, match="`mesh`"):
         dj.sweep(fn, mesh="sweep")
+
+
+def test_sweep_of_projections_equals_a_plain_loop(getkey):
+    """The host-callback path on one device: each lane of a swept `dj.project` is the
+    projection of that target alone, and is certified by the independent check."""
+    qsr = dj.QSR.passive(2)
+    Ks = jax.vmap(lambda k: dj.LTIController.random(k, 2, 2, 2, scale=1.0))(jr.split(getkey(), 3))
+    out = dj.sweep(lambda K: dj.project(K, qsr))(Ks)
+    for i in range(3):
+        ref = dj.project(index(Ks, i), qsr)
+        # One Clarabel solve each, of the same problem assembled alone or in a batch: they
+        # agree to the solver's tolerance, not to round-off.
+        tol = through_solves(1)
+        assert tree_allclose(index(out.controller, i), ref.controller, rtol=tol, atol=tol)
+        assert dissipation_ok(index(out.controller, i), qsr, np.asarray(out.P[i]))
+
+
+def test_sweep_over_a_mesh_of_two_axes(getkey):
+    """A mesh with several axes splits the sweep over their product; with one device it is
+    still the vmapped function, with the swept axis of any length."""
+    mesh = jax.make_mesh((1, 1), ("a", "b"))
+    K = dj.LTIController.random(getkey(), 2, 1, 1, scale=0.5)
+    windows = dj.Windows(None, jr.normal(getkey(), (4, 3, 1)), jr.normal(getkey(), (4, 3, 1)))
+    scales = jnp.array([0.5, 1.0, 2.0])
+    losses = dj.sweep(lambda c: dj.imitation_loss(jax.tree.map(lambda a: c * a, K), windows),
+                      mesh=mesh)(scales)
+    loop = [dj.imitation_loss(jax.tree.map(lambda a: float(c) * a, K), windows) for c in scales]
+    np.testing.assert_allclose(losses, loop, rtol=1e-12)
