@@ -239,7 +239,7 @@ def test_unknown_problem_names_the_argument():
 def test_fit_gd_defaults_stay_finite_on_the_held_out_half(problems):
     """`fit_gd`'s default step (Adam) never diverges on problems nobody tuned it on; the
     paper's rule at PGD's default rate, run the same way, does (so the check has teeth)."""
-    paper_diverged = 0
+    paper_diverged, needed = 0, len(zoo.HELD_OUT) // 2
     for name in zoo.HELD_OUT:
         p = problems[name]
         kw = dict(num_inits=4, n_state=p.n_state, max_steps=40, atol=0.0, rtol=0.0, throw=False)
@@ -248,10 +248,11 @@ def test_fit_gd_defaults_stay_finite_on_the_held_out_half(problems):
         hist = np.asarray(res.loss_history)
         assert np.all(np.isfinite(hist)), name
         assert np.all(hist[:, -1] < hist[:, 0]), name
-        paper = dj.fit_gd(jr.PRNGKey(0), p.train, learning_rate=1.0, decay=0.99,
-                          init_scale=1.0, **kw)  # the paper's rule at PGD's defaults
-        paper_diverged += "non_finite" in paper.result_names()
-    assert paper_diverged >= len(zoo.HELD_OUT) // 2
+        if paper_diverged < needed:  # each run is a compilation: stop once the point is made
+            paper = dj.fit_gd(jr.PRNGKey(0), p.train, learning_rate=1.0, decay=0.99,
+                              init_scale=1.0, **kw)  # the paper's rule at PGD's defaults
+            paper_diverged += "non_finite" in paper.result_names()
+    assert paper_diverged >= needed
     # The failure message is true for GD (nothing certified) and names the fix.
     with pytest.raises(ValueError) as err:
         dj.fit_gd(jr.PRNGKey(0), p.train, learning_rate=1e3, decay=0.99, num_inits=2,
