@@ -5,14 +5,14 @@ and benchmarks import from here, never from a `_private` module, so that the pri
 layout can change behind this one list (as lineax's `internal`).
 
 Modules, for monkeypatching in tests and for benchmarks that time one layer alone:
-`certify_fast`, `direct`, `direct_map`, `ico`, `ico_sdp`, `linalg`, `lmi`, `mlp`, `outcome`,
+`certify_fast`, `certify_sdp`, `direct`, `direct_map`, `ico`, `ico_sdp`, `linalg`, `lmi`, `mlp`, `outcome`,
 `pgd`, `projection`, `projection_fo`, `ren_certify`, `ren_map`, `ren_train`, `rollout`,
 `sdp`; and the functions and constants in
 `__all__`.
 """
 
 from . import _direct_map as direct_map, _linalg as linalg, _outcome as outcome, _rollout as rollout
-from ._certify import fast as certify_fast
+from ._certify import fast as certify_fast, sdp as certify_sdp
 from ._projection import first_order as projection_fo, project as projection
 from ._projection.project import solver_stats
 from ._ren import certify as ren_certify, map as ren_map
@@ -42,7 +42,7 @@ from .experiments._paper import FIGURES, TABLES
 
 __all__ = [
     "ConvexifiedLMI", "FIGURES", "ICOProblem", "ICOSolver", "INIT_SCALE", "Iterate",
-    "METRIC_FLOOR", "MapDescent", "Method", "TABLES", "certified", "certify_fast",
+    "METRIC_FLOOR", "MapDescent", "Method", "TABLES", "certified", "certify_fast", "certify_sdp",
     "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct",
     "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "init_controllers", "iterate",
     "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",

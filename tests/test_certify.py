@@ -1,6 +1,9 @@
 """`dj.certify`: the KYP certificate against python-control, frequency responses and the definition."""
 
+import warnings
+
 import control
+import cvxpy as cp
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -8,6 +11,7 @@ import pytest
 from helpers import dissipation_matrix, dissipation_ok, min_hermitian_part
 
 import dissil_jax as dj
+from dissil_jax.internal import certify_fast, certify_sdp
 
 pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 
@@ -224,8 +228,10 @@ def test_batched_certify_equals_loop(shape):
         assert cert.holds[idx] == ref.holds and cert.status[idx] == ref.status
         np.testing.assert_allclose(cert.margin[idx], ref.margin, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(cert.P[idx], ref.P, rtol=1e-9, atol=1e-12)
-    # with P given the check is vectorised, and equals the loop too
-    given = dj.certify(Ks, qsr, P=cert.P)
+    # with P given the check is vectorised, and equals the loop too (members the search
+    # disproved have no storage, NaN: give them the identity)
+    found = np.where(np.isfinite(cert.P), cert.P, np.eye(2))
+    given = dj.certify(Ks, qsr, P=found)
     assert given.status.shape == shape and set(given.status.ravel()) == {"given"}
     np.testing.assert_array_equal(given.holds, cert.holds)
     one_P = dj.certify(Ks, qsr, P=np.eye(2))  # one P for every member
@@ -234,7 +240,7 @@ def test_batched_certify_equals_loop(shape):
         ref = dj.certify(members[i], qsr, P=np.eye(2))
         assert one_P.holds[idx] == ref.holds
         assert one_P.margin[idx] == pytest.approx(ref.margin, rel=1e-12, abs=1e-15)
-        ref = dj.certify(members[i], qsr, P=cert.P[idx])
+        ref = dj.certify(members[i], qsr, P=found[idx])
         assert given.holds[idx] == ref.holds
         assert given.margin[idx] == pytest.approx(ref.margin, rel=1e-12, abs=1e-15)
 
@@ -315,3 +321,76 @@ def test_fast_path_at_order_48():
     cert = dj.certify(K, dj.QSR.passive(2))
     assert cert.holds and cert.status == "riccati"
     assert dissipation_ok(K, dj.QSR.passive(2), cert.P, python_control=False)
+
+
+# -- the cheap disproof tried before the SDP ------------------------------------------------
+
+
+def _cvxpy_max_margin(A, B, C, D, qsr) -> float:
+    """max t s.t. KYP(P) <= -t I, P >= t I, t <= 1, written here with cvxpy (no library code)."""
+    n, p = B.shape
+    P, t = cp.Variable((n, n), symmetric=True), cp.Variable()
+    Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
+    M11 = A.T @ P @ A - P - C.T @ Q @ C
+    M12 = A.T @ P @ B - C.T @ (S + Q @ D)
+    M22 = B.T @ P @ B - D.T @ Q @ D - D.T @ S - S.T @ D - R
+    M = cp.bmat([[M11, M12], [M12.T, M22]])
+    cons = [(M + M.T) / 2 << -t * np.eye(n + p), P >> t * np.eye(n), t <= 1]
+    with warnings.catch_warnings():  # "may be inaccurate": the asserted clearance is 1e-6
+        warnings.simplefilter("ignore")
+        cp.Problem(cp.Maximize(t), cons).solve(solver=cp.CLARABEL)
+    return float(t.value)
+
+
+@pytest.mark.parametrize("qsr", [dj.QSR.passive(2), dj.QSR.bounded_gain(1.5, n_in=2, n_out=2),
+                                 dj.QSR.conic(-0.5, 2.0, dim=2),
+                                 dj.QSR(np.diag([1.0, -2.0]), np.eye(2), np.eye(2))],
+                         ids=["passive", "gain", "conic", "indefinite"])
+def test_disproof_agrees_with_an_independent_sdp(qsr):
+    """Random controllers, stable and not, inside and outside the rate: whenever the cheap
+    disproof fires, an independent cvxpy SDP finds no storage; it never fires on a
+    controller `certify` proves."""
+    rng = np.random.default_rng(5)
+    reasons = []
+    for trial in range(16):
+        A, B, C, D = _random_stable(rng, 3, 2)
+        if trial % 4 == 3:
+            A = A * 1.3 / max(abs(np.linalg.eigvals(A)))  # unstable
+        D = (0.5 if trial % 2 else -3.0) * np.eye(2) + 0.05 * rng.normal(size=(2, 2))
+        B = (0.1 + 0.3 * (trial % 3)) * B
+        reason = certify_fast.disproof(A, B, C, D, qsr)
+        cert = dj.certify(dj.LTIController(A, B, C, D), qsr)
+        if reason is None:
+            continue
+        reasons.append(reason)
+        assert not cert.holds and str(cert.source) == reason
+        assert cert.result == dj.Outcome.infeasible and cert.margin == -np.inf
+        # Clarabel's tolerances are ~1e-8; an infeasible problem's best t is clearly < 0.
+        assert _cvxpy_max_margin(A, B, C, D, qsr) < 1e-6, reason
+    for trial in range(8):  # certified controllers are never disproved
+        K = dj.project(dj.LTIController.random(jax.random.PRNGKey(trial), 3, 2, 2, scale=2.0),
+                       qsr).controller
+        mats = (np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
+        assert certify_fast.disproof(*mats, qsr) is None
+    assert reasons, "no controller was disproved: the test has no teeth"
+    if np.linalg.eigvalsh(qsr.Q)[-1] <= 0:
+        assert any("unstable" in r for r in reasons), reasons
+
+
+def test_disproof_skips_the_sdp_at_order_48(monkeypatch):
+    """At n = 48 the SDP of a non-dissipative controller takes minutes; an unstable one and
+    one whose feedthrough breaks the rate are refused without it."""
+    def no_sdp(*args, **kwargs):
+        raise AssertionError("the SDP was called")
+
+    monkeypatch.setattr(certify_sdp, "solve", no_sdp)
+    rng = np.random.default_rng(3)
+    A, B, C, _ = _random_stable(rng, 48, 2)
+    qsr = dj.QSR.passive(2)
+    unstable = dj.LTIController(1.5 * A / max(abs(np.linalg.eigvals(A))), B, C, np.eye(2))
+    cert = dj.certify(unstable, qsr)
+    assert cert.result == dj.Outcome.infeasible and str(cert.source).startswith("disproved: unstable")
+    active = dj.LTIController(A, 0.1 * B, 0.1 * C, -np.eye(2))  # He D < 0: not passive
+    cert = dj.certify(active, qsr, max_margin=True)
+    assert cert.result == dj.Outcome.infeasible and "feedthrough" in str(cert.source)
+    assert min_hermitian_part(A, 0.1 * B, 0.1 * C, -np.eye(2)) < 0  # independent: He G < 0
