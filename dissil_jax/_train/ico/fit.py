@@ -28,6 +28,9 @@ _CONVERGED, _MAX_STEPS, _LOSS_INCREASED, _NOT_CERTIFIED = (
 
 # Bounds on the Young weight's linearisation point, relative to its data-derived scale.
 _W_RANGE = 1e4
+# The SDP's KYP margin per unit of tr P, relative to the float64 check's round-off allowance
+# (`_margins`): 100 times it, so solver round-off cannot take a step's margin below it.
+_REL_MARGIN = 100 * _lmi.VERIFY_RTOL
 
 
 def _check_args(windows, qsr, num_inits, max_steps, atol, rtol, init_scale):
@@ -61,15 +64,28 @@ def _young_scale(pb: ICOProblem, theta) -> float:
     return float(np.clip(w if np.isfinite(w) and w > 0 else 1.0, 1e-6, 1e6))
 
 
+def _margins(pb: ICOProblem, theta, P) -> tuple[float, float]:
+    """The KYP margin `(eps, rel)` of the next SDP: `eps` $+$ `rel` $\\operatorname{tr}P$.
+
+    The margin is imposed on the un-congruenced LMI, so the new iterate has it again at the
+    next linearisation point; only solver round-off can eat into it, and then delta = 0 must
+    stay feasible: never ask for more margin than the current iterate has. Within that
+    budget, first `rel` $= \\rho\\,(1 + (\\lVert A\\rVert_F + \\lVert B\\rVert_F)^2)$,
+    `_REL_MARGIN` times the part of the float64 check's round-off allowance that grows with
+    $P$ (`kyp_scale`), then the absolute `pb.eps`.
+    """
+    budget = (1 - 1e-3) * pb.kyp_margin(theta, P)
+    A, B = pb.mats(theta)[:2]
+    tr = float(np.trace(P))
+    rel = min(_REL_MARGIN * (1 + (np.linalg.norm(A) + np.linalg.norm(B)) ** 2),
+              max(budget, 0.0) / tr)
+    return min(pb.eps, budget - rel * tr), rel
+
+
 def _step(pb: ICOProblem, solver: ICOSolver, theta, P, w_tilde):
     """One ICO SDP around (theta, P): `(dtheta, P_new, w_new, outcome)`, None on failure."""
-    eps = None
-    if pb.qsr is not None:
-        # The margin is imposed on the un-congruenced LMI, so the new iterate has it again at
-        # the next linearisation point; only solver round-off can eat into it, and then
-        # delta = 0 must stay feasible: never ask for more margin than we have.
-        eps = min(pb.eps, (1 - 1e-3) * pb.kyp_margin(theta, P))
-    dtheta, P_new, w_new, status, _ = solver.solve(theta, P, w_tilde, eps)
+    eps, rel = (None, 0.0) if pb.qsr is None else _margins(pb, theta, P)
+    dtheta, P_new, w_new, status, _ = solver.solve(theta, P, w_tilde, eps, rel)
     return dtheta, P_new, w_new, status
 
 
