@@ -104,7 +104,7 @@ class ICOProblem(TwoStepData):
     osig = _layout_alias("osig")
     nx = _layout_alias("nx")
 
-    def __init__(self, x0, uhat, target, qsr: QSR | None, *, eps=1e-6, prox=1e-4, reg=1e-6,
+    def __init__(self, x0, uhat, target, qsr: QSR | None, *, eps=1e-6, prox=1e-4, reg=1e-9,
                  window_cone: str = "stacked"):
         super().__init__(x0, uhat, target)
         self.qsr = qsr
