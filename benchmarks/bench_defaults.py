@@ -49,7 +49,7 @@ RESULTS = Path(__file__).parent / "results"
 #: The grid entry that is each trainer's default (step rule and initial scale).
 DEFAULT = {"pgd": "adam 0.1, init 0.3", "gd": "adam 0.1, init 0.3", "direct": "default",
            "ico": "default", "mlp": "default (1e-3)"}
-RTOLS = (1e-2, 1e-3, 1e-4, 1e-5, 3e-6, 1e-6, 1e-7)
+RTOLS = (1e-2, 1e-3, 1e-4, 1e-5, 3e-6, 1e-6, 1e-7, 1e-8, 1e-9)
 BUDGET = {"pgd": 150, "gd": 150, "direct": 150, "ico": 150, "mlp": 2000}
 NUM_INITS = 4
 
