@@ -233,8 +233,9 @@ def fit_ico(
     subject to the convexified dissipativity LMI (paper Corollary 1 + Remark 1, `docs/concepts.md`)
     linearised around the current $\\tilde P = P_i$, imposed with a margin
     $\\preceq -(\\varepsilon + \\rho\\operatorname{tr}P) I$ on its un-congruenced form so
-    that the current point stays feasible at the next linearisation. Hence $\\theta_{i+1} = \\theta_i + \\delta\\theta$ is
-    dissipative and $J(\\theta_{i+1}) \\le J(\\theta_i)$ (paper Theorem 2).
+    that the current point stays feasible at the next linearisation. Hence
+    $\\theta_{i+1} = \\theta_i + \\delta\\theta$ is dissipative and
+    $J(\\theta_{i+1}) \\le J(\\theta_i)$ (paper Theorem 2).
 
     **The overbound.** The step-0 residual is affine in $\\delta\\theta$; its square enters the
     objective as a quadratic. The step-1 residual is $e = \\bar e(\\delta) - \\delta C\\,\\delta z$
@@ -290,7 +291,7 @@ def fit_ico(
     ill-conditioned. With only an absolute margin $\\varepsilon$ the iterates inflated $P$
     until $\\varepsilon$ sank below the float64 check's round-off allowance, which grows with
     $P$, and the check refused the step; and Clarabel stopped on `NumericalError` once $P$'s
-    condition number passed about $10^4$. So the margin has a part
+    condition number passed about $5\\cdot10^4$. So the margin has a part
     $\\rho\\operatorname{tr}P$ in the decision variable $P$, with $\\rho$ 100 times the
     part of that allowance that grows with $P$ (the next iterate has it again at its own
     $P$), and the SDP solves for $X = \\tilde P^{-1/2}P\\tilde P^{-1/2}$, which stays near
