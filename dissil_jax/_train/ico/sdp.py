@@ -104,7 +104,7 @@ class ICOProblem(TwoStepData):
     osig = _layout_alias("osig")
     nx = _layout_alias("nx")
 
-    def __init__(self, x0, uhat, target, qsr: QSR | None, *, eps=1e-6, prox=1e-4, reg=1e-9,
+    def __init__(self, x0, uhat, target, qsr: QSR | None, *, eps=1e-6, prox=1e-4, reg=1e-6,
                  window_cone: str = "stacked"):
         super().__init__(x0, uhat, target)
         self.qsr = qsr
@@ -209,10 +209,9 @@ class ICOProblem(TwoStepData):
         controller can return $P\\sim10^{-6}$; near the edge of the dissipative set $P$'s
         condition number grows past $10^4$, and Clarabel then stopped on `NumericalError`
         when it solved for $P$ itself). The proximal term $\\frac\\nu2\\lVert X - I\\rVert^2$
-        is measured in the same unit, with $\\nu = 10^{-9}$ (`reg`): it only makes $P$
-        unique, and in this unit it weighs $P$'s small directions more than its large
-        ones, so the former $10^{-6}$ held back steps that needed $P$ to change there
-        (one small problem's run ended 17 times above the loss it reaches now).
+        is measured in the same unit ($\\nu$ = `reg` = $10^{-6}$: smaller weights left $P$,
+        and so the next step, determined only to the solver's tolerance, and broke the
+        runs' agreement under a change of the data's units, `tests/test_units.py`).
         """
         if P_tilde is None:
             return 1.0
