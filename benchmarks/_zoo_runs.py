@@ -53,12 +53,13 @@ def run_full(trainer: str, problem, *, num_inits: int, max_steps: int, **kw):
     return out["res"], rep
 
 
-def run_defaults(trainer: str, problem, *, num_inits: int):
-    """One run with the trainer's defaults (its stopping rule and returned iterate)."""
+def run_defaults(trainer: str, problem, *, num_inits: int, **kw):
+    """One run with the trainer's defaults (its stopping rule and returned iterate), but for
+    `kw` (a candidate default)."""
     out = {}
 
     def m(t):
-        out["res"] = method(trainer, num_inits=num_inits)(t)
+        out["res"] = method(trainer, num_inits=num_inits, **kw)(t)
         return out["res"]
 
     rep = zoo.evaluate(problem, m)

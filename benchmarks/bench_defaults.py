@@ -14,7 +14,9 @@ Parts (`--part`):
 - `report`: every trainer with its true defaults (its relative stopping rule, its returned
   iterate) and 8 initialisations on the HELD-OUT half, against the best of the grid above
   (run there without early stop): the regret, diverged runs, certified and stable shares.
-  Writes `benchmarks/results/defaults_report.json` and `.md`.
+  Writes `benchmarks/results/defaults_report.json` and `.md`. With `--half tuning` (and
+  optionally a candidate `--init-scale`), the same on the tuning half, to
+  `defaults_report_tuning.json`: where candidate defaults are compared.
 - `gd`: `fit_gd`'s step rules (the paper's at PGD's default and Adam at three rates) on both
   halves: diverged runs and the median final/initial loss.
 
@@ -47,7 +49,7 @@ RESULTS = Path(__file__).parent / "results"
 #: The grid entry that is each trainer's default (step rule and initial scale).
 DEFAULT = {"pgd": "adam 0.1, init 0.3", "gd": "adam 0.1, init 0.3", "direct": "default",
            "ico": "default", "mlp": "default (1e-3)"}
-RTOLS = (1e-2, 1e-3, 1e-4, 1e-5, 3e-6, 1e-6, 1e-7)
+RTOLS = (1e-2, 1e-3, 1e-4, 1e-5, 3e-6, 1e-6, 1e-7, 1e-8, 1e-9)
 BUDGET = {"pgd": 150, "gd": 150, "direct": 150, "ico": 150, "mlp": 2000}
 NUM_INITS = 4
 
@@ -213,19 +215,23 @@ def regret_table(out, names) -> str:
     return "\n".join(lines)
 
 
-def part_report(trainers, inits=8):
+def part_report(trainers, half="held_out", inits=8, **kw):
     """Every trainer with its true defaults (stopping rule, returned iterate) and `inits`
-    initialisations on the HELD-OUT half; written to `defaults_report.json`."""
-    path = RESULTS / "defaults_report.json"
+    initialisations on the HELD-OUT half; written to `defaults_report.json`. With
+    `half="tuning"`, the same on the tuning half (`defaults_report_tuning.json`), where
+    candidate defaults are compared (`kw` go to the trainer)."""
+    names = zoo.HELD_OUT if half == "held_out" else zoo.TUNING
+    path = RESULTS / ("defaults_report.json" if half == "held_out"
+                      else "defaults_report_tuning.json")
     out = json.loads(path.read_text()) if path.exists() else {}
     for trainer in trainers:
-        for name in zoo.HELD_OUT:
+        for name in names:
             p = zoo.problem(name)
-            key = f"{trainer}/{name}"
+            key = "/".join([trainer, name] + [f"{k} {v}" for k, v in kw.items()])
             if not applies(trainer, p) or key in out:
                 continue
             t = time.perf_counter()
-            res, rep = run_defaults(trainer, p, num_inits=inits)
+            res, rep = run_defaults(trainer, p, num_inits=inits, **kw)
             out[key] = dict(
                 final=[float(v) for v in np.asarray(res.final_loss)],
                 test_error=[float(v) for v in rep.imitation_error],
@@ -316,6 +322,8 @@ def main():
     ap.add_argument("--part", choices=("stop", "gd", "regret", "report"), required=True)
     ap.add_argument("--half", choices=("tuning", "held_out", "both"), default="both")
     ap.add_argument("--trainers", default=",".join(TRAINERS))
+    ap.add_argument("--init-scale", type=float, default=None,
+                    help="with `--part report --half tuning`: a candidate initial scale")
     args = ap.parse_args()
     RESULTS.mkdir(exist_ok=True)
     if args.part == "stop":
@@ -328,6 +336,10 @@ def main():
         part_regret(args.trainers.split(","), names, args.half)
         table = regret_table(load_regret(), zoo.TUNING + zoo.HELD_OUT)
         (RESULTS / "defaults_regret.md").write_text(table + "\n")
+    elif args.part == "report" and args.half == "tuning":
+        kw = {} if args.init_scale is None else dict(init_scale=args.init_scale)
+        report = part_report(args.trainers.split(","), "tuning", **kw)
+        table = json.dumps({k: v["reasons"] for k, v in report.items()}, indent=1)
     elif args.part == "report":
         report = part_report(args.trainers.split(","))
         table = report_table(report, load_regret()) + "\n\n" + choice_table(report)

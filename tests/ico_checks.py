@@ -68,8 +68,9 @@ def feasible_point(pb, dtheta, w, P, theta0, w_tilde, P_tilde=None):
     x = np.zeros(lay.nx)
     x[lay.col_theta] = dtheta
     if pb.qsr is not None:
-        x[lay.colP] = (np.asarray(P)[pb.lmi.p_rows, pb.lmi.p_cols]
-                       / pb.p_scale(P if P_tilde is None else P_tilde))
+        # the SDP's P variable is X = Ph^{-1} P Ph^{-1}, Ph = P~^{1/2} (`ICOProblem.p_scale`)
+        Ph_inv = np.linalg.inv(pb.p_scale(P if P_tilde is None else P_tilde))
+        x[lay.colP] = (Ph_inv @ np.asarray(P) @ Ph_inv)[pb.lmi.p_rows, pb.lmi.p_cols]
     x[lay.colY] = Y[0, 0] if lay.scalar_y else Y[lay.y_rows, lay.y_cols]
     if lay.n_sig == 1:  # one sigma for all windows ("stacked")
         sig = np.sum(sig, keepdims=True)

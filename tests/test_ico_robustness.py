@@ -25,8 +25,13 @@ def test_large_initial_draws_do_not_stop_ico_early():
     assert bool(jnp.all(res.certified)) and bool(jnp.all(res.steps > 0))
 
 
-def test_p_scale_is_lambda_max():
-    assert ICOProblem.p_scale(np.diag([1e-6, 3e-6])) == pytest.approx(3e-6)
+def test_p_scale_is_the_square_root_of_p():
+    rng = np.random.default_rng(0)
+    G = rng.standard_normal((3, 3))
+    P = G @ G.T + 1e-3 * np.eye(3)
+    Ph = ICOProblem.p_scale(P)
+    np.testing.assert_allclose(Ph, Ph.T, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(Ph @ Ph, P, rtol=1e-12, atol=1e-12)  # a few eigh round-offs
     assert ICOProblem.p_scale(None) == 1.0
 
 
@@ -37,11 +42,11 @@ def test_failed_solve_recentres_on_the_certificate_once(monkeypatch, fail_every_
     calls = {"solve": 0, "certify": 0}
     solve, certify = ICOSolver.solve, ico.certify
 
-    def flaky(self, theta0, P_tilde, w_tilde, eps=None):
+    def flaky(self, *args, **kwargs):
         calls["solve"] += 1
         if fail_every_time or calls["solve"] == 1:
             return None, None, None, _outcome.code("solver_failed"), 0.0
-        return solve(self, theta0, P_tilde, w_tilde, eps)
+        return solve(self, *args, **kwargs)
 
     def counted(*args, **kwargs):
         calls["certify"] += 1

@@ -350,3 +350,29 @@ def test_float32_training(getkey, constrained):
         assert bool(jnp.all(res.certified)) and res.P.dtype == jnp.float32
         for i in range(3):
             assert dissipation_ok(index(res.controllers, i), qsr, res.P[i])
+
+
+def test_kept_step_of_a_batch_equals_python_loop(getkey):
+    """Each lane of a batch (the initialisations are vmapped) reports as `kept_step` the step
+    of lowest loss that a plain Python loop, one run per initialisation, finds, and returns
+    that step's loss. The step is far too long for the problem, so the loss goes up and down
+    and the best step is not the last."""
+    w = random_windows(getkey(), N=12, n=2, gain=0.6)
+    key = getkey()
+    steps, lr = 8, 8.0
+    res = dj.fit_pgd(key, w, QSR, learning_rate=lr, decay=1.0, num_inits=4, max_steps=steps,
+                     atol=0.0, rtol=0.0, init_scale=0.3, throw=False)
+    K0, P0 = dj.project(init_controllers(key, 4, w, 0.3), QSR)
+    rtol = through_solves(steps + 1)  # as in `_check_against_loop`
+    kept = np.asarray(res.kept_step)
+    for i in range(4):
+        _, _, hist = _reference_pgd(index(K0, i), P0[i], w, QSR, lr, 1.0, steps, tol=0.0)
+        hist = np.asarray(hist)
+        best = int(np.argmin(hist))
+        # the premise: the best step is unambiguous at the runs' agreement (each history
+        # within rtol of the other, so a gap over 2 rtol cannot change the argmin)
+        assert np.all(np.delete(hist, best) > hist[best] * (1 + 3 * rtol))
+        np.testing.assert_allclose(res.loss_history[i], hist, rtol=rtol, atol=1e-12)
+        assert kept[i] == best
+        assert float(res.final_loss[i]) == pytest.approx(hist[best], rel=rtol)
+    assert np.any(kept < steps)  # some run's best iterate is not its last

@@ -16,7 +16,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 from .. import _outcome
 from .._data import Windows
 from ._checks import check_fit_args
-from ._iterate import RTOL_UNCONSTRAINED, Method, iterate
+from ._iterate import RTOL_MLP, Method, iterate
 from .result import FitResult, fit_timed
 
 _CONVERGED, _MAX_STEPS = _outcome.code("converged"), _outcome.code("max_steps")
@@ -147,7 +147,7 @@ def _train_batch(keys, X, T, hidden, max_steps, learning_rate, atol, rtol):
 
 def fit_mlp(
     key, windows: Windows, *, hidden: Sequence[int] = (150, 150), num_inits: int = 8,
-    max_steps: int = 2000, learning_rate: float = 1e-3, atol: float = 0.0, rtol: float = RTOL_UNCONSTRAINED,
+    max_steps: int = 2000, learning_rate: float = 1e-3, atol: float = 0.0, rtol: float = RTOL_MLP,
     throw: bool = True,
 ) -> FitResult:
     """Train the paper's NN baseline (NN + GD): a static ReLU MLP on the demonstration pairs.
@@ -170,8 +170,10 @@ def fit_mlp(
     - `hidden`: hidden-layer widths, all equal; `len(hidden) + 1` weight matrices (paper:
       three, `(150, 150)` linear and `(25, 25)` nonlinear).
     - `num_inits`, `max_steps`, `atol`, `rtol`: as for the other trainers (default
-      `atol` = 0, `rtol` = 1e-7: the unconstrained baselines' relative rule, see
-      [`fit_pgd`][dissil_jax.fit_pgd]).
+      `atol` = 0, `rtol` = 1e-9, the relative rule of [`fit_pgd`][dissil_jax.fit_pgd]
+      with the MLP's own value: on the zoo's tuning half, the largest that stops within
+      1 % of the 2,000-step budget's loss on the median problem and within 10 % on the
+      worst; at `fit_gd`'s 1e-7 the worst problem stopped 7.1 times above it).
     - `learning_rate`: Adam's step on the network's weights and biases (about how far
       each of them moves per step), in the data's own units: unlike the LTI trainers,
       `fit_mlp` does not normalise the windows.

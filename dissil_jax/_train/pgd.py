@@ -310,7 +310,7 @@ def fit_pgd(
       default, `atol` = 0 and `rtol` = 1e-6, does not depend on the data's units; it was
       chosen on the tuning half of `dissil_jax.experiments.zoo` (the largest `rtol` that
       stops within about 1 % of the full budget's loss, `benchmarks/bench_defaults.py`;
-      `fit_gd` and `fit_mlp` use 1e-7). The paper's
+      `fit_gd` uses 1e-7, `fit_mlp` 1e-9). The paper's
       $|\\Delta J| <$ tol is `atol` = tol, `rtol` = 0: 1e-3 linear, 1e-5 nonlinear; both
       `0.0` run every step), `init_scale` $\\sigma$ (default 1: the paper's N(0, 1) draw, see
       below), `eps` (LMI strictness margin).

@@ -28,10 +28,11 @@ class Iterate(NamedTuple):
     D: np.ndarray
     P: np.ndarray | None  # P~ (None for ICO-NC)
     w: float  # w~
-    eps: float  # KYP margin
-    ps: float  # the unit of the SDP's P variable (`ICOProblem.p_scale`)
+    eps: float  # KYP margin, absolute part
+    ps: np.ndarray | float  # P~^{1/2}, the unit of the SDP's P variable (`ICOProblem.p_scale`)
     z: np.ndarray  # [N, n] A_0 x0 + B_0 u0
     ebar: np.ndarray  # [N, m] step-1 residual at delta = 0
+    rel: float = 0.0  # KYP margin, part proportional to tr P (`KYPBlock`)
 
 
 class ConeBlock:
@@ -57,11 +58,21 @@ class ConeBlock:
 
 
 class KYPBlock(ConeBlock):
-    """The convexified KYP LMI $\\mathcal M_0 + \\sum_k x_k J_k \\preceq -\\varepsilon E$,
-    balanced by $T = \\mathrm{diag}(\\tilde P^{-1/2}, I, I, \\tilde P^{-1/2})$ (one PSD cone).
+    """The convexified KYP LMI $\\mathcal M_0 + \\sum_k x_k J_k \\preceq -(\\varepsilon +
+    \\rho\\operatorname{tr}P) E$, balanced by
+    $T = \\mathrm{diag}(\\tilde P^{-1/2}, I, I, \\tilde P^{-1/2})$ (one PSD cone).
 
-    It owns $P$: its columns (`layout.colP`, in units of `Iterate.ps`) and the linear part of
-    the proximal term $\\frac\\nu2\\lVert P - \\tilde P\\rVert^2$ (`reg` $= \\nu$).
+    The margin has an absolute part $\\varepsilon$ (`Iterate.eps`) and a part $\\rho$
+    (`Iterate.rel`) per unit of $\\operatorname{tr}P$. The float64 check that accepts a step
+    allows round-off relative to the size of the KYP matrix, which grows with $P$; an absolute
+    margin alone let the iterates inflate $P$ until the margin sank below that allowance.
+    The part in $\\operatorname{tr}P$ is linear in the decision variable $P$, so the new
+    iterate has it again at its own $P$ at the next linearisation.
+
+    It owns $P$: its columns hold $X$ with $P = \\tilde P^{1/2}X\\tilde P^{1/2}$
+    (`layout.colP`, `Iterate.ps` $= \\tilde P^{1/2}$), so that $X \\approx I$ and the balanced
+    LMI's coefficients of $X$ are of order one however ill-conditioned $\\tilde P$ is; and the
+    linear part of the proximal term $\\frac\\nu2\\lVert X - I\\rVert^2$ (`reg` $= \\nu$).
     """
 
     def __init__(self, lmi: ConvexifiedLMI, layout: VariableLayout, reg: float):
@@ -76,8 +87,10 @@ class KYPBlock(ConeBlock):
         dense = np.ones((n, n)) + np.eye(n)  # generic P~: every possible nonzero present
         rng = np.random.default_rng(0)  # a generic H0 for an indefinite Q, likewise
         H0 = (rng.standard_normal((layout.m, n)), rng.standard_normal((layout.m, layout.p)))
-        _, J, _ = self.blocks(dense, H0)
-        nonzero = svec(J, self._idx) != 0  # [nx_lmi, rows]
+        # a generic P~^{1/2} and margin in tr P (a round number could cancel an entry)
+        G = rng.standard_normal((n, n))
+        sJ = self._jacobian(dense, H0, G @ G.T + n * np.eye(n), rng.uniform(0.1, 1.0))[0]
+        nonzero = sJ != 0  # [nx_lmi, rows]
         self._var, self._rows = np.nonzero(nonzero)  # lmi variable, svec row
         lmi_cols = np.concatenate([layout.col_theta, layout.colP])  # lmi variable -> column
         self._cols = lmi_cols[self._var]
@@ -99,17 +112,37 @@ class KYPBlock(ConeBlock):
         J = T @ J @ T  # broadcast over the variables (einsum here was 10x slower)
         return M0, J, E
 
+    def _jacobian(self, P_tilde, H0, Ph, rel):
+        """svec of the balanced LMI's coefficients, `[nx_lmi, rows]`, in the variables
+        $(\\delta\\theta, X)$, the margin's part in $\\operatorname{tr}P$ moved to the left;
+        and `(M0, E)` of `blocks`."""
+        nth = self.layout.ntheta
+        M0, J, E = self.blocks(P_tilde, H0)
+        sJ = svec(J, self._idx)
+        sE = svec(E, self._idx)
+        r, c = self.lmi.p_rows, self.lmi.p_cols
+        sJ[nth:][r == c] += rel * sE  # + rel tr(P) E: tr P is the sum of P's diagonal entries
+        sJ[nth:] = self.unit_map(Ph).T @ sJ[nth:]  # P = Ph X Ph
+        return sJ, M0, sE
+
+    def unit_map(self, Ph) -> np.ndarray:
+        """$K$ with $\\operatorname{triu}(\\Phi X\\Phi) = K\\operatorname{triu}(X)$ for
+        symmetric $X$ and `Ph` $= \\Phi$ (the triangles row-major, as `layout.colP`)."""
+        Ph = np.asarray(Ph, np.float64)
+        r, c = self.lmi.p_rows, self.lmi.p_cols
+        # column (i, j) is triu(Ph E_ij Ph), E_ij = e_i e_j' + e_j e_i' (once on the diagonal)
+        K = Ph[r][:, r] * Ph[c][:, c].T
+        return K + np.where(r != c, 1.0, 0.0) * Ph[r][:, c] * Ph[r][:, c].T
+
     def fill(self, it):
         nth = self.layout.ntheta
-        M0, J, E = self.blocks(it.P, (it.C, it.D))
-        sJ = svec(J, self._idx)  # [nx_lmi, rows]
-        sJ[nth:] *= it.ps  # the SDP's P variable is P / ps (see `ICOProblem.p_scale`)
-        b = -svec(M0, self._idx) - it.eps * svec(E, self._idx) - it.theta @ sJ[:nth]
+        sJ, M0, sE = self._jacobian(it.P, (it.C, it.D), it.ps, it.rel)
+        b = -svec(M0, self._idx) - it.eps * sE - it.theta @ sJ[:nth]
         return sJ[self._var, self._rows], b
 
     def objective(self, it):
-        P = np.asarray(it.P)[self.lmi.p_rows, self.lmi.p_cols]
-        return self.layout.colP, -self.reg * P / it.ps
+        r, c = self.lmi.p_rows, self.lmi.p_cols
+        return self.layout.colP, -self.reg * (r == c)  # nu/2 |X - I|^2: X~ = I
 
     def margin(self, theta, P) -> float:
         """Margin $\\mu$ of δ = 0 at $\\tilde P = P$:

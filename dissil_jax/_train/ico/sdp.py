@@ -183,12 +183,13 @@ class ICOProblem(TwoStepData):
             raise ValueError("ICO-NC (`qsr` None) has no KYP constraint.")
         return self.kyp.margin(theta, P)
 
-    def data(self, theta0, P_tilde, w_tilde, eps=None):
-        """Numbers of the SDP at this iterate: `(q, A_values_csc, b, const, p_scale)`."""
+    def data(self, theta0, P_tilde, w_tilde, eps=None, rel=0.0):
+        """Numbers of the SDP at this iterate, with the KYP margin `eps` $+$ `rel`
+        $\\operatorname{tr}P$: `(q, A_values_csc, b, const, p_scale)`."""
         mats = self.mats(theta0)
         r0, z, ebar = self.residuals(*mats)
         it = Iterate(theta0, *mats, P_tilde, w_tilde, self.eps if eps is None else eps,
-                     self.p_scale(P_tilde), z, ebar)
+                     self.p_scale(P_tilde), z, ebar, float(rel))
         vals, b = zip(*(blk.fill(it) for blk in self.blocks))
         # step-0: c * sum ||r0 - dCD zeta||^2, r0 = t0 - C0 x0 - D0 u0 (target minus prediction)
         q = self.q_fixed.copy()
@@ -200,17 +201,22 @@ class ICOProblem(TwoStepData):
         return q, np.concatenate(vals)[self.order], np.concatenate(b), const, it.ps
 
     @staticmethod
-    def p_scale(P_tilde) -> float:
-        """The unit of the SDP's $P$ variable: $\\lambda_{\\max}(\\tilde P)$ (1 for ICO-NC).
+    def p_scale(P_tilde):
+        """The unit of the SDP's $P$ variable: $\\tilde P^{1/2}$ (1 for ICO-NC).
 
-        The SDP solves for $P/\\lambda_{\\max}(\\tilde P)$, which is of order one however
-        small or large the certificate is (the projection of a large random controller
-        can return $P\\sim10^{-6}$, and the solver then stalls on the badly scaled columns).
-        The proximal term $\\frac\\nu2\\lVert P - \\tilde P\\rVert^2$ is measured in the same unit.
+        The SDP solves for $X = \\tilde P^{-1/2}P\\tilde P^{-1/2}$, which is near $I$ however
+        small, large or ill-conditioned the certificate is (the projection of a large random
+        controller can return $P\\sim10^{-6}$; near the edge of the dissipative set $P$'s
+        condition number grows past $10^4$, and Clarabel then stopped on `NumericalError`
+        when it solved for $P$ itself). The proximal term $\\frac\\nu2\\lVert X - I\\rVert^2$
+        is measured in the same unit ($\\nu$ = `reg` = $10^{-6}$: smaller weights left $P$,
+        and so the next step, determined only to the solver's tolerance, and broke the
+        runs' agreement under a change of the data's units, `tests/test_units.py`).
         """
         if P_tilde is None:
             return 1.0
-        return float(np.linalg.eigvalsh(np.asarray(P_tilde, np.float64))[-1])
+        lam, V = np.linalg.eigh(np.asarray(P_tilde, np.float64))
+        return (V * np.sqrt(lam)) @ V.T
 
     def matrix(self, vals):
         return sp.csc_matrix((vals, self.indices, self.indptr), shape=(self.nrows, self.nx))

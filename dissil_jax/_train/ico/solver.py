@@ -18,15 +18,16 @@ class ICOSolver:
         self.settings: _sdp.SolverSettings = {**_sdp.ICO_SETTINGS, "max_iter": max_iter}
         self.obj_val = np.nan
 
-    def solve(self, theta0, P_tilde, w_tilde, eps=None):
-        """One ICO step: `(dtheta, P, w, outcome, solve_time)`; None fields on failure.
+    def solve(self, theta0, P_tilde, w_tilde, eps=None, rel=0.0):
+        """One ICO step with the KYP margin `eps` $+$ `rel` $\\operatorname{tr}P$ (`KYPBlock`):
+        `(dtheta, P, w, outcome, solve_time)`; None fields on failure.
 
         `outcome` is an `Outcome` code: `solved`, `infeasible` or `solver_failed`.
         """
         import clarabel
 
         pb = self.problem
-        q, vals, b, _, ps = pb.data(theta0, P_tilde, w_tilde, eps)
+        q, vals, b, _, ps = pb.data(theta0, P_tilde, w_tilde, eps, rel)
         if self.solver is None:
             self.solver = clarabel.DefaultSolver(pb.H, q, pb.matrix(vals), b, pb.cones,
                                                  _sdp.clarabel_settings(**self.settings))
@@ -38,5 +39,5 @@ class ICOSolver:
         if outcome != _outcome.code("solved"):
             return None, None, None, outcome, float(sol.solve_time)
         x = np.asarray(sol.x)
-        P = None if pb.qsr is None else pb.layout.P(x[pb.oP:pb.oY], ps)
+        P = None if pb.qsr is None else ps @ pb.layout.P(x[pb.oP:pb.oY]) @ ps  # P = P~^{1/2} X P~^{1/2}
         return x[:pb.ntheta], P, float(x[pb.ow]), outcome, float(sol.solve_time)
