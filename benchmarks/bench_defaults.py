@@ -141,7 +141,8 @@ def _grid():
                                                     init_scale=_r2(p)),
                 "init r1": lambda p: dict(init_scale=_r1(p)),
                 "init r2": lambda p: dict(init_scale=_r2(p))},
-        "ico": {"default": const(), "init 0.3": const(init_scale=0.3)},
+        "ico": {"default": const(), "init 0.3": const(init_scale=0.3),
+                "init 1 (the paper's)": const(init_scale=1.0)},
     }
 
 
