@@ -144,14 +144,6 @@ def direct_map(theta: DirectParams, qsr: QSR, margin: float = MARGIN):
 
     **Returns:** `(K, P)`: an `LTIController` and its storage matrix, in `theta`'s dtype.
     """
-    K, P, _, _ = direct_map_factors(theta, qsr, margin)
-    return K, P
-
-
-def direct_map_factors(theta: DirectParams, qsr: QSR, margin: float = MARGIN):
-    """`direct_map` with two of its intermediates: `(K, P, G_P, UK_F)`, where
-    $P = G_P^\\top G_P$ ($G_P$ upper triangular) and $[A\\ B] = G_P^{-1}UK_F$ (for the
-    REN map, which would otherwise factor $P$ again)."""
     X, W, V = theta.X, theta.W, theta.V
     n, dtype = X.shape[0], X.dtype
     p = W.shape[1] - n
@@ -172,9 +164,8 @@ def direct_map_factors(theta: DirectParams, qsr: QSR, margin: float = MARGIN):
     # (A, B): [A B]' P [A B] = K_F' U'U K_F < K_F' K_F = F(C, D) - eps G'G.
     K_F = jnp.sqrt(1.0 - margin) * _linalg.solve_triangular(G_W, Y_inv @ G, lower=False)
     U = _right_inv(V, _upper_chol(eye(n + p) + V.T @ V))
-    UK_F = U @ K_F
-    AB = _linalg.solve_triangular(G_P, UK_F, lower=False)
-    return LTIController(AB[:, :n], AB[:, n:], C, D), (P + P.T) / 2, G_P, UK_F
+    AB = _linalg.solve_triangular(G_P, U @ K_F, lower=False)
+    return LTIController(AB[:, :n], AB[:, n:], C, D), (P + P.T) / 2
 
 
 def init_params(key, num_inits: int, n: int, p: int, m: int, scale, dtype) -> DirectParams:

@@ -52,13 +52,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .. import _linalg
-from .._direct_map import (
-    MARGIN,
-    DirectParams,
-    direct_map_factors,
-    feedthrough_centre,
-    init_params,
-)
+from .._direct_map import MARGIN, DirectParams, direct_map, feedthrough_centre, init_params
 from .._supply import QSR
 from .controller import RENController
 
@@ -101,9 +95,9 @@ def ren_map(theta: RENParams, qsr: QSR, width: int, activation="tanh",
     nz, dtype = X.shape[0], X.dtype
     n = nz - q
     qsr_lti, G_phi = _shared_input(qsr, float(input_share))
-    # M = G_M' G_M and the LTI map's [A_z B_z] = G_M^{-1} U K_F: both factors from the map
-    Kz, M, G_M, UK_F = direct_map_factors(theta.lti, qsr_lti, margin)
-    UK = UK_F[:n]
+    Kz, M = direct_map(theta.lti, qsr_lti, margin)
+    G_M = _linalg.cholesky(M).T  # M = G_M' G_M; the LTI map's [A_z B_z] = G_M^{-1} U K_F
+    UK = (G_M @ jnp.concatenate([Kz.A, Kz.B], 1))[:n]
     P = (M[:n, :n] + M[:n, :n].T) / 2
     G_P = _linalg.cholesky(P).T
     Xi = _linalg.solve_triangular(G_P, UK, lower=False)  # [A B1 B2'] of the transformed loop
