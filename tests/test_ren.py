@@ -79,6 +79,35 @@ def test_predict_and_loss_vmapped_equal_python_loops():
         np.testing.assert_allclose(loss[i], ref, rtol=1e-12)
 
 
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+@pytest.mark.parametrize("activation", ["relu", "tanh"])
+def test_layer_unrolled_and_looped_match_the_definition(activation, monkeypatch):
+    """Both forms of the explicit layer (unrolled up to `UNROLL_MAX`, a row loop above)
+    against the numpy row-by-row definition, at a width on either side of the switch; and
+    their reverse-mode gradients agree with each other."""
+    from dissil_jax._ren import controller as ren_controller
+
+    rng = np.random.default_rng(7)
+    for q in (5, ren_controller.UNROLL_MAX + 3):
+        K = _random_ren(rng, q=q, activation=activation, scale=0.8 / np.sqrt(q))
+        x, u = rng.standard_normal(2), rng.standard_normal(2)
+        _, _, _, w_ref = _np_step(K, x, u)
+        # q-term sums in another order: round-off only
+        np.testing.assert_allclose(K.layer(jnp.asarray(x), jnp.asarray(u)), w_ref,
+                                   rtol=1e-12, atol=1e-12)
+
+        def g(K):
+            return jax.grad(lambda K: jnp.sum(jnp.sin(K.layer(jnp.asarray(x),
+                                                              jnp.asarray(u)))))(K)
+
+        unrolled = jax.jit(g)(K)
+        monkeypatch.setattr(ren_controller, "UNROLL_MAX", 0)
+        looped = jax.jit(g)(K)
+        monkeypatch.undo()
+        for a, b in zip(unrolled.matrices, looped.matrices):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+
+
 def _rollout_np(K, x, u):
     out = []
     for k in range(u.shape[0]):

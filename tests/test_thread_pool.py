@@ -46,6 +46,21 @@ def test_direct_run_compiles_without_custom_calls(getkey):
     assert any("potrf" in c for c in _custom_calls(chol, jnp.stack([jnp.eye(3)] * 2)))
 
 
+def test_ren_run_compiles_without_custom_calls(getkey):
+    # The REN trainer runs the LTI map at order n + q and its own factorisations batched
+    # over initialisations inside the same loop.
+    from dissil_jax.internal import ren_train
+
+    n, p = 2, 1
+    w = dj.Windows(jr.normal(getkey(), (4, n)), jr.normal(getkey(), (4, 3, p)),
+                   jr.normal(getkey(), (4, 3, p)))
+    run = lambda key, w: ren_train._run(
+        key, w, dj.QSR(-1.0, 0.5, 1.0), 0.03, 0.3, width=3, activation="relu",
+        optimizer=None, num_inits=4, n_state=n, max_steps=3, atol=0.0, rtol=0.0,
+        margin=1e-2, input_share=0.5)
+    assert _custom_calls(run, getkey(), w) == []
+
+
 def test_nmpc_expert_compiles_without_custom_calls():
     # The same cause hung the NMPC closed loop (its Newton solves run batched over states
     # inside a while_loop); it uses the same loop-based solves.
