@@ -8,6 +8,8 @@ from helpers import loop_loss, random_windows
 
 import dissil_jax as dj
 
+pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+
 
 @pytest.mark.parametrize("n", [None, 3])
 def test_sizes_and_the_sign_convention(getkey, n):

@@ -85,7 +85,7 @@ def test_layer_unrolled_and_looped_match_the_definition(activation, monkeypatch)
     """Both forms of the explicit layer (unrolled up to `UNROLL_MAX`, a row loop above)
     against the numpy row-by-row definition, at a width on either side of the switch; and
     their reverse-mode gradients agree with each other."""
-    from dissil_jax._ren import controller as ren_controller
+    from dissil_jax.internal import ren_controller
 
     rng = np.random.default_rng(7)
     for q in (5, ren_controller.UNROLL_MAX + 3):

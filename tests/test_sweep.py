@@ -171,6 +171,7 @@ def test_sweep_on_one_device_and_its_argument_errors():
         dj.sweep(fn, mesh="sweep")
 
 
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 def test_sweep_of_projections_equals_a_plain_loop(getkey):
     """The host-callback path on one device: each lane of a swept `dj.project` is the
     projection of that target alone, and is certified by the independent check."""
