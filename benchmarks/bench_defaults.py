@@ -50,7 +50,9 @@ RESULTS = Path(__file__).parent / "results"
 DEFAULT = {"pgd": "adam 0.1, init 0.3", "gd": "adam 0.1, init 0.3", "direct": "default",
            "ico": "default", "mlp": "default (1e-3)"}
 RTOLS = (1e-2, 1e-3, 1e-4, 1e-5, 3e-6, 1e-6, 1e-7, 1e-8, 1e-9)
-BUDGET = {"pgd": 150, "gd": 150, "direct": 150, "ico": 150, "mlp": 2000}
+#: Each trainer's default `max_steps`, so that the stop table and the grid measure against
+#: the budget a default run has.
+BUDGET = {"pgd": 150, "gd": 150, "direct": 600, "ico": 150, "mlp": 2000}
 NUM_INITS = 4
 
 

@@ -18,7 +18,13 @@ random order-n̂ passive expert ("real.", length 10, which some controller fits 
    steps, compiled), loop-based solves against the LAPACK custom calls in the same run (the
    latter in a subprocess with a timeout, since it can hang).
 
-Usage: python benchmarks/bench_high_order.py [--defaults] [--hang R] [--steps]
+4. **Order 16, every trainer** (`--order16`): `fit_direct`, `fit_pgd`, `fit_ico`, `fit_gd`
+   and `fit_mlp`, each with all its defaults (8 initialisations), on the realisable order-16
+   problem ("real.", two seeds): the final loss of each returned controller over its own
+   initial loss (median and worst), the share certified, and each trainer's median final
+   loss over the best trainer's.
+
+Usage: python benchmarks/bench_high_order.py [--defaults] [--hang R] [--steps] [--order16]
 """
 
 import argparse
@@ -166,13 +172,48 @@ print("RESULT", (time.perf_counter() - t) / 150)
               f"{t[False] / t[True]:.2f} |", flush=True)
 
 
+def order16(seeds=(0, 1)):
+    """Every trainer with its defaults (8 initialisations) on the realisable order-16
+    problem: per run, the returned controller's final loss over its initial loss; the
+    median and worst over runs, the share certified, the wall time; and each method's
+    median final loss over the best median of all methods."""
+    fits = {
+        "fit_direct": lambda k, w: dj.fit_direct(k, w, PASSIVE, throw=False),
+        "fit_pgd": lambda k, w: dj.fit_pgd(k, w, PASSIVE, throw=False),
+        "fit_ico": lambda k, w: dj.fit_ico(k, w, PASSIVE, throw=False),
+        "fit_gd": lambda k, w: dj.fit_gd(k, w, throw=False),
+        "fit_mlp": lambda k, w: dj.fit_mlp(k, w, throw=False),
+    }
+    print("| seed | trainer | final / initial, median | worst | certified | steps (median) "
+          "| wall (s) | median final / best method's |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    for seed in seeds:
+        w = realisable(seed, 16)
+        rows = {}
+        for name, fit in fits.items():
+            t = time.perf_counter()
+            r = fit(jr.PRNGKey(seed + 1), w)
+            wall = time.perf_counter() - t
+            rel = np.asarray(r.final_loss) / np.asarray(r.loss_history)[:, 0]
+            cert = "–" if r.certified is None else f"{np.mean(np.asarray(r.certified)):.0%}"
+            rows[name] = (rel, cert, float(np.median(np.asarray(r.steps))), wall,
+                          float(np.median(np.asarray(r.final_loss))))
+        best = min(v[4] for v in rows.values())
+        for name, (rel, cert, st, wall, med) in rows.items():
+            print(f"| {seed} | `{name}` | {np.median(rel):.3g} | {np.max(rel):.3g} | {cert} | "
+                  f"{st:.0f} | {wall:.1f} | {med / best:.2f} |", flush=True)
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--defaults", action="store_true")
     ap.add_argument("--hang", type=int, default=0)
     ap.add_argument("--lapack", action="store_true")
     ap.add_argument("--steps", action="store_true")
+    ap.add_argument("--order16", action="store_true")
     a = ap.parse_args()
+    if a.order16:
+        order16()
     if a.defaults:
         defaults()
     if a.hang:

@@ -50,8 +50,9 @@ from .. import _outcome
 #: initial loss, so that when a run stops does not depend on the data's units. Chosen on
 #: the tuning half of `dissil_jax.experiments.zoo` (`benchmarks/bench_defaults.py`, table
 #: `benchmarks/results/defaults_stop.md`): the largest `rtol` whose stopped loss is within
-#: about 1 % of the full budget's on the median problem and within 10 % on the worst (PGD,
-#: direct, ICO at 1e-6; GD at 1e-7; the MLP at 1e-9, `RTOL_MLP`).
+#: about 1 % of the full budget's on the median problem and within 10 % on the worst (PGD
+#: and ICO at 1e-6; GD at 1e-7; the MLP at 1e-9, `RTOL_MLP`; the direct map at 1e-8,
+#: `direct.RTOL_DIRECT`, against its larger budget).
 RTOL, RTOL_UNCONSTRAINED = 1e-6, 1e-7
 #: The MLP's Adam at 1e-3 descends slowly and noisily: on the nine tuning problems, at 1e-7
 #: it stopped 1.04x above its 2,000-step budget's loss on the median problem and 7.1x on the
