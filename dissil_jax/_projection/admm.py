@@ -156,8 +156,9 @@ def unscale(x, lam, V):
     return A, B, C, D, (P + P.T) / 2
 
 
-def _x_update(target, weights, W, qsr, rho):
-    """argmin over the scaled x of the weighted distance + (rho/2)|M(x; I) - W|_F^2."""
+def _x_update(target, weights, W, qsr, rho, floor=None):
+    """argmin over the scaled x of the weighted distance + (rho/2)|M(x; I) - W|_F^2
+    (+ (rho/2)|F(X) - W_2|_F^2 with `floor = (a, lam, W_2)`, `floor_map`)."""
     Ah, Bh, Ch, Dt = target
     wA, wB, wC, wX = weights
     n, dtype = Ah.shape[0], Ah.dtype
@@ -180,48 +181,96 @@ def _x_update(target, weights, W, qsr, rho):
     # X: mu lam_i lam_j (X - I) + rho (X + W11) + rho (X - 2I - W44) = 0.
     eye = jnp.eye(n, dtype=dtype)
     X = (wX * eye - rho * W11 + rho * (2 * eye + W44)) / (wX + 2 * rho)
+    if floor is not None:
+        X = _x_floor(wX, W11, W44, rho, *floor)
     return A, B, C, D, (X + X.T) / 2
 
 
-def solve(target, weights, c, qsr: QSR, *, tol, feas, max_iter, state):
+def floor_map(X, a, lam):
+    """The scaled conditioning bound $F(X) = X - a\operatorname{tr}(\Lambda X)\Lambda^{-1}
+    \succeq 0$, i.e. $P\succeq a\operatorname{tr}(P)I$ after the congruence ($a = \rho/\hat n$)."""
+    return X - a * jnp.sum(lam * jnp.diag(X)) * jnp.diag(1.0 / lam)
+
+
+def _x_floor(wX, W11, W44, rho, a, lam, W2):
+    """The X-update with the conditioning bound's term: off the diagonal elementwise; the
+    diagonal x solves (diag(w + 3 rho) + rho (J'J - I)) x = b + rho J' w2, J = I - a mu lam'
+    (mu = 1/lam), whose low-rank part rho [lam mu] C [lam mu]' (C = [[a^2 |mu|^2, -a],
+    [-a, 0]]) is inverted by Woodbury (a 2x2 system)."""
+    n = W11.shape[0]
+    eye = jnp.eye(n, dtype=W11.dtype)
+    X = rho * (-W11 + W44 + W2) / (wX + 3 * rho)
+    mu, wd = 1.0 / lam, jnp.diag(wX)
+    w2 = jnp.diag(W2)
+    rhs = wd - rho * jnp.diag(W11) + rho * (2 + jnp.diag(W44)) + rho * (w2 - a * lam * (mu @ w2))
+    dg = wd + 3 * rho
+    Uk = jnp.stack([lam, mu], 1)  # n x 2
+    m2 = mu @ mu
+    # C^{-1} / rho for C = rho [[a^2 m2, -a], [-a, 0]]
+    Cinv = jnp.array([[0.0, -1.0 / a], [-1.0 / a, -m2]], W11.dtype) / rho
+    y = rhs / dg
+    Ud = Uk / dg[:, None]
+    K = Cinv + Uk.T @ Ud
+    det = K[0, 0] * K[1, 1] - K[0, 1] * K[1, 0]
+    Kinv = jnp.array([[K[1, 1], -K[0, 1]], [-K[1, 0], K[0, 0]]]) / det
+    x = y - Ud @ (Kinv @ (Uk.T @ y))
+    return X * (1 - eye) + jnp.diag(x)
+
+
+def solve(target, weights, c, qsr: QSR, *, tol, feas, max_iter, state, floor=0.0, lam=None):
     """ADMM on the scaled problem (unbatched; vmap for batches).
 
     **Arguments:** the scaled `target`, `weights` and margin diagonal `c` (`scale`), the
     tolerance on the residuals relative to $1+\\lVert\\hat{\\mathcal M}\\rVert_F$, the
     bound `feas` on the primal residual that keeps the solution strictly feasible, `max_iter`,
-    and the start `state = (Z, U, rho)` (zeros for a cold start).
+    the start `state = (Z, U, Z2, U2, rho)` (zeros for a cold start), and the conditioning
+    bound's coefficient `floor` ($P\succeq\frac{\text{floor}}{\hat n}\operatorname{tr}(P)I$,
+    a second PSD block $Z_2 = F(X)$, `floor_map`; none when 0) with $\tilde P$'s
+    eigenvalues `lam`.
 
-    **Returns:** `(x, (Z, U, rho), iterations, converged)`, `x` scaled as `target`.
+    **Returns:** `(x, state, iterations, converged)`, `x` scaled as `target`.
     """
     dtype = c.dtype
     C_diag = jnp.diag(c)
+    n = target[0].shape[0]
+    a = floor / n
 
     def step(carry):
-        Z, U, rho, _, it, _ = carry
-        x = _x_update(target, weights, -C_diag - Z - U, qsr, rho)
-        M = lmi_matrix(*x, jnp.eye(x[0].shape[0], dtype=dtype), qsr)
+        Z, U, Z2, U2, rho, _, it, _ = carry
+        fl = (a, lam, Z2 + U2) if floor else None
+        x = _x_update(target, weights, -C_diag - Z - U, qsr, rho, fl)
+        M = lmi_matrix(*x, jnp.eye(n, dtype=dtype), qsr)
         K = -M - C_diag  # the constraint asks K >= 0
         K_rel = RELAX * K + (1 - RELAX) * Z
         Z_new = psd_part(K_rel - U)
         U_new = U + Z_new - K_rel
         nrm = 1.0 + jnp.sqrt(jnp.sum(M * M))
-        primal = jnp.sqrt(jnp.sum((Z_new - K) ** 2))
-        dual = rho * jnp.sqrt(jnp.sum((Z_new - Z) ** 2))
+        primal2 = jnp.sum((Z_new - K) ** 2)
+        dual2 = jnp.sum((Z_new - Z) ** 2)
+        if floor:
+            K2 = floor_map(x[4], a, lam)
+            K2_rel = RELAX * K2 + (1 - RELAX) * Z2
+            Z2_new = psd_part(K2_rel - U2)
+            U2 = U2 + Z2_new - K2_rel
+            primal2 += jnp.sum((Z2_new - K2) ** 2)
+            dual2 += jnp.sum((Z2_new - Z2) ** 2)
+            Z2 = Z2_new
+        primal, dual = jnp.sqrt(primal2), rho * jnp.sqrt(dual2)
         done = (primal < jnp.minimum(feas, tol * nrm)) & (dual < tol * nrm)
         adapt = (it % ADAPT_EVERY) == ADAPT_EVERY - 1
         factor = jnp.where(adapt & (primal > 10 * dual), 2.0,
                            jnp.where(adapt & (dual > 10 * primal), 0.5, 1.0))
-        return Z_new, U_new / factor, rho * factor, x, it + 1, done
+        return Z_new, U_new / factor, Z2, U2 / factor, rho * factor, x, it + 1, done
 
     def cond(carry):
-        return (carry[4] < max_iter) & ~carry[5]
+        return (carry[6] < max_iter) & ~carry[7]
 
-    Z, U, rho = state
+    Z, U, Z2, U2, rho = state
     x0 = tuple(jnp.zeros_like(a) for a in target) + (jnp.zeros_like(target[0]),)
-    Z, U, rho, x, it, done = jax.lax.while_loop(
-        cond, step, (Z, U, jnp.asarray(rho, dtype), x0, jnp.zeros((), jnp.int32),
+    Z, U, Z2, U2, rho, x, it, done = jax.lax.while_loop(
+        cond, step, (Z, U, Z2, U2, jnp.asarray(rho, dtype), x0, jnp.zeros((), jnp.int32),
                      jnp.zeros((), bool)))
-    return x, (Z, U, rho), it, done
+    return x, (Z, U, Z2, U2, rho), it, done
 
 
 @functools.lru_cache(maxsize=32)

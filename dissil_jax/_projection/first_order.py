@@ -68,15 +68,17 @@ def _frame(V, n, N):
 
 
 def cold_state(n: int, qsr: QSR, dtype):
-    """The ADMM state of a cold start: $Z = U = 0$, $\\rho$ = `RHO_FO`."""
+    """The ADMM state of a cold start: $Z = U = Z_2 = U_2 = 0$, $\\rho$ = `RHO_FO`."""
     *_, N = _admm.sizes(qsr, n)
-    zero = jnp.zeros((N, N), dtype)
-    return zero, zero, jnp.asarray(RHO_FO, dtype)
+    zero, zero2 = jnp.zeros((N, N), dtype), jnp.zeros((n, n), dtype)
+    return zero, zero, zero2, zero2, jnp.asarray(RHO_FO, dtype)
 
 
-def admm_round(target, P_tilde, qsr: QSR, state, *, margin, reg, tol, max_iter):
+def admm_round(target, P_tilde, qsr: QSR, state, *, eps, margin, reg, tol, max_iter,
+               floor=0.0):
     """One ADMM solve of the projection at $\\tilde P$ (unbatched; vmap for batches), from
-    `state = (Z, U, rho)` given in the original basis (a previous solve's, or `cold_state`).
+    `state = (Z, U, Z2, U2, rho)` given in the original basis (a previous solve's, or
+    `cold_state`); `floor`: the conditioning bound's coefficient (`project`'s `P_FLOOR`).
 
     **Returns:** `((A, B, C, D, P), state, iterations)`.
     """
@@ -86,26 +88,30 @@ def admm_round(target, P_tilde, qsr: QSR, state, *, margin, reg, tol, max_iter):
     usable = jnp.all(jnp.isfinite(lam)) & (jnp.min(lam) > 0)  # else: no iterations, fallback
     lam = jnp.where(usable, lam, 1.0)
     V = jnp.where(usable, V, jnp.eye(n, dtype=V.dtype))
-    tgt, weights, c = _admm.scale(target, lam, V, margin, reg, qsr)
+    # c: project's constraint M <= -eps I as Mhat <= -eps T^2; ADMM aims at c + margin I
+    # (a slack relative to the scaled LMI, whose identity blocks are O(1)).
+    tgt, weights, c = _admm.scale(target, lam, V, eps, reg, qsr)
     R = _frame(V, n, N)
-    Z, U, rho = state
+    Z, U, Z2, U2, rho = state
     # Without a strictly dissipative static gain (`repair`) the iterate itself must be
-    # feasible: M = T^{-1} Mhat T^{-1} <= -margin I + |E|_2 T^{-2} for Mhat = -c - Z + E,
-    # Z >= 0, so a primal residual |E|_F below margin / (2 max(1, lam_max)) is asked.
+    # feasible: Mhat = -c - margin I - Z + E with Z >= 0 satisfies Mhat <= -c once the
+    # primal residual |E|_F is below the slack margin.
     can_repair = _admm.static_point(qsr)[1] > 0
-    feas = jnp.inf if can_repair else 0.5 * margin / jnp.maximum(1.0, jnp.max(lam))
-    x, (Z, U, rho), it, _ = _admm.solve(
-        tgt, weights, c, qsr, tol=tol, feas=feas, max_iter=jnp.where(usable, max_iter, 0),
-        state=(R.T @ Z @ R, R.T @ U @ R, rho))
-    if can_repair:
+    feas = jnp.inf if can_repair else 0.5 * margin
+    x, (Z, U, Z2, U2, rho), it, _ = _admm.solve(
+        tgt, weights, c + margin, qsr, tol=tol, feas=feas,
+        max_iter=jnp.where(usable, max_iter, 0), floor=floor if n > 1 else 0.0, lam=lam,
+        state=(R.T @ Z @ R, R.T @ U @ R, V.T @ Z2 @ V, V.T @ U2 @ V, rho))
+    if can_repair:  # to project's own constraint; ADMM aimed beyond it, so t is ~0 mostly
         x, _ = _admm.repair(x, c, qsr)
-    return _admm.unscale(x, lam, V), (R @ Z @ R.T, R @ U @ R.T, rho), it
+    state = (R @ Z @ R.T, R @ U @ R.T, V @ Z2 @ V.T, V @ U2 @ V.T, rho)
+    return _admm.unscale(x, lam, V), state, it
 
 
 #: Defaults of the first-order path: the margin aimed at (above `project`'s eps, so that a
 #: solution with residual below it still satisfies the strict LMI), the residual tolerance
 #: relative to 1 + |M|_F, the iteration budget and the penalty.
-MARGIN_FO, TOL_FO, MAX_ITER_FO, RHO_FO = 1e-4, 1e-6, 5000, 1.0
+MARGIN_FO, TOL_FO, MAX_ITER_FO, RHO_FO = 1e-4, 1e-4, 5000, 0.1
 
 
 _SKIPPED, _UNCHANGED, _SOLVED = (_outcome.code(n) for n in ("skipped", "unchanged", "solved"))
@@ -165,7 +171,7 @@ _FALLBACK_LOCK = __import__("threading").Lock()
 
 
 def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, fallback,
-                margin=None, tol=None, max_iter=None, state=None):
+                margin=None, tol=None, max_iter=None, state=None, floor=0.0):
     """The unbatched first-order projection (vmap for batches): ADMM at $\\tilde P$ =
     `P_ref`, or from $\\tilde P = I$ with `refine` re-linearisations, then one
     `pure_callback` for the exact check (and the Clarabel fallback). `W` (the metric's
@@ -189,8 +195,8 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, fallb
     P_tilde, x, iters = P_ref, None, jnp.zeros((), jnp.int32)
     state = cold_state(n, qsr, dtype) if state is None else state
     for _ in range(1 if has_ref else max(1, refine)):
-        x, state, it = admm_round(target, P_tilde, qsr, state, margin=max(margin, eps),
-                                  reg=reg, tol=tol, max_iter=max_iter)
+        x, state, it = admm_round(target, P_tilde, qsr, state, eps=eps, margin=margin,
+                                  reg=reg, tol=tol, max_iter=max_iter, floor=floor)
         iters = iters + it
         # the next round linearises at the new P (if it is usable; else keep P~)
         good = jnp.all(jnp.isfinite(x[4])) & (jnp.min(jnp.diag(x[4])) > 0)

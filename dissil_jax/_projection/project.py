@@ -266,7 +266,8 @@ def _project_one(K: LTIController, P_ref, W: LTIController, active, K_ref, *, qs
 
 
 def _project_fo_cold(*args, **kwargs):
-    return _projection_fo.project_one(*args, fallback=_host_batch, **kwargs)[:3]
+    return _projection_fo.project_one(*args, fallback=_host_batch, floor=P_FLOOR,
+                                      **kwargs)[:3]
 
 
 def project_first_order_warm(K: LTIController, qsr: QSR, P_ref, state, *, active, eps: float,
@@ -278,7 +279,7 @@ def project_first_order_warm(K: LTIController, qsr: QSR, P_ref, state, *, active
     **Returns:** `(Projection, state)`, the latter for the next call.
     """
     fn = partial(_projection_fo.project_one, qsr=qsr, eps=eps, reg=reg, refine=1,
-                 fallback=_host_batch)
+                 fallback=_host_batch, floor=P_FLOOR)
     W = jax.tree.map(jnp.ones_like, K)
     K_out, P, codes, state = jax.vmap(
         lambda K, P, W, a, s: fn(K, P, W, a, K, state=s))(K, P_ref, W, active, state)
