@@ -237,9 +237,8 @@ def test_warm_start_from_the_solution_state(getkey):
 
 
 def test_warm_started_pgd_is_certified(getkey):
-    # PGD with the first-order path carries the ADMM state across steps: every returned
-    # controller passes the independent check, and the run equals a run whose steps are
-    # taken one by one in Python with the same warm starts (`project_first_order_warm`).
+    # PGD with the first-order path carries the ADMM state across steps (its `_PGD.warm`):
+    # every returned controller passes the independent check.
     from helpers import expert_windows
 
     w = expert_windows(0, 3, 1, 1)

@@ -68,6 +68,10 @@ def sign_schedule(floor: float = 1e-7, cap: float = 1.7) -> np.ndarray:
 
 
 SIGN_ALPHAS = sign_schedule()
+#: The ADMM iterations' schedule: eigenvalues below 1e-5 |X|_F are left unresolved (an error
+#: of at most their size, below the residual tolerance `TOL_FO` = 1e-4 relative); 25% fewer
+#: products than `SIGN_ALPHAS`. The repair's bound uses the full one.
+ADMM_SIGN_ALPHAS = sign_schedule(1e-5)
 
 
 def psd_part(X, alphas=None):
@@ -242,7 +246,7 @@ def solve(target, weights, c, qsr: QSR, *, tol, feas, max_iter, state, floor=0.0
         M = lmi_matrix(*x, jnp.eye(n, dtype=dtype), qsr)
         K = -M - C_diag  # the constraint asks K >= 0
         K_rel = RELAX * K + (1 - RELAX) * Z
-        Z_new = psd_part(K_rel - U)
+        Z_new = psd_part(K_rel - U, ADMM_SIGN_ALPHAS)
         U_new = U + Z_new - K_rel
         nrm = 1.0 + jnp.sqrt(jnp.sum(M * M))
         primal2 = jnp.sum((Z_new - K) ** 2)
@@ -250,7 +254,7 @@ def solve(target, weights, c, qsr: QSR, *, tol, feas, max_iter, state, floor=0.0
         if floor:
             K2 = floor_map(x[4], a, lam)
             K2_rel = RELAX * K2 + (1 - RELAX) * Z2
-            Z2_new = psd_part(K2_rel - U2)
+            Z2_new = psd_part(K2_rel - U2, ADMM_SIGN_ALPHAS)
             U2 = U2 + Z2_new - K2_rel
             primal2 += jnp.sum((Z2_new - K2) ** 2)
             dual2 += jnp.sum((Z2_new - Z2) ** 2)
