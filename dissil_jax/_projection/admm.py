@@ -191,8 +191,9 @@ def _x_update(target, weights, W, qsr, rho, floor=None):
 
 
 def floor_map(X, a, lam):
-    """The scaled conditioning bound $F(X) = X - a\operatorname{tr}(\Lambda X)\Lambda^{-1}
-    \succeq 0$, i.e. $P\succeq a\operatorname{tr}(P)I$ after the congruence ($a = \rho/\hat n$)."""
+    """The scaled conditioning bound $F(X) = X - a\\operatorname{tr}(\\Lambda X)\\Lambda^{-1}
+    \\succeq 0$, i.e. $P\\succeq a\\operatorname{tr}(P)I$ after the congruence
+    ($a = \\rho/\\hat n$)."""
     return X - a * jnp.sum(lam * jnp.diag(X)) * jnp.diag(1.0 / lam)
 
 
@@ -228,7 +229,7 @@ def solve(target, weights, c, qsr: QSR, *, tol, feas, max_iter, state, floor=0.0
     tolerance on the residuals relative to $1+\\lVert\\hat{\\mathcal M}\\rVert_F$, the
     bound `feas` on the primal residual that keeps the solution strictly feasible, `max_iter`,
     the start `state = (Z, U, Z2, U2, rho)` (zeros for a cold start), and the conditioning
-    bound's coefficient `floor` ($P\succeq\frac{\text{floor}}{\hat n}\operatorname{tr}(P)I$,
+    bound's coefficient `floor` ($P\\succeq\\frac{\\text{floor}}{\\hat n}\\operatorname{tr}(P)I$,
     a second PSD block $Z_2 = F(X)$, `floor_map`; none when 0) with $\tilde P$'s
     eigenvalues `lam`.
 
@@ -279,19 +280,21 @@ def solve(target, weights, c, qsr: QSR, *, tol, feas, max_iter, state, floor=0.0
 
 @functools.lru_cache(maxsize=32)
 def static_point(qsr: QSR):
-    """A strictly dissipative static gain $D_0 = \\tau S$ (host, cached): the one of a few
-    $\\tau$ that makes $\\begin{bmatrix}-D_0^\\top S-S^\\top D_0-R & D_0^\\top L\\\\ L^\\top D_0
-    & -I\\end{bmatrix}$ most negative, with $g_0$ minus its largest eigenvalue; $g_0\\le0$
-    if none is (then `repair` does nothing)."""
+    """A strictly dissipative static gain $D_0 = \\tau S$ (host, cached), with $g_0$ minus the
+    largest eigenvalue of $\\begin{bmatrix}-D_0^\\top S-S^\\top D_0-R & D_0^\\top L\\\\
+    L^\\top D_0 & -I\\end{bmatrix}$; $\\tau$ of a few maximises $\\min(g_0, 1) / (1 +
+    \\lVert D_0\\rVert_F)$, the depth of the point relative to how far `repair` moves towards
+    it. $g_0\\le0$ if no $\\tau$ gives a dissipative gain (then `repair` is not used)."""
     S, R, L = qsr.S, qsr.R, qsr.neg_q_factor()
     r = L.shape[1]
-    best = (np.zeros_like(S), -np.inf)
-    for tau in np.concatenate([[0.0], np.logspace(-3, 3, 25)]):
+    best, score = (np.zeros_like(S), -np.inf), -np.inf
+    for tau in np.concatenate([[0.0], np.logspace(-3, 3, 61)]):
         D = tau * S
         M = np.block([[-D.T @ S - S.T @ D - R, D.T @ L], [L.T @ D, -np.eye(r)]])
         g = -np.linalg.eigvalsh((M + M.T) / 2).max()
-        if g > best[1]:
-            best = (D, g)
+        value = min(g, 1.0) / (1.0 + np.linalg.norm(D))
+        if value > score:
+            best, score = (D, g), value
     return best
 
 
