@@ -188,7 +188,7 @@ def test_repair_reaches_the_constraint(getkey):
                                                [(n, n), (n, 2), (2, n), (2, 2), (n, n)]))
     x = x[:4] + ((x[4] + x[4].T) / 2,)
     lam = jnp.asarray(np.logspace(-2, 0, n))
-    c = 1e-4 * jnp.concatenate([1 / lam, jnp.ones(2), 1 / lam])
+    c = 1e-4 * jnp.concatenate([1 / lam, jnp.ones(4), 1 / lam])  # p + r = 2 + 2
     M0 = fo.lmi_matrix(*x, jnp.eye(n), qsr) + jnp.diag(c)
     assert np.linalg.eigvalsh(np.asarray(M0)).max() > 0.1  # far from feasible
     y, t = admm.repair(x, c, qsr)

@@ -6,25 +6,21 @@ $$\\min_{A,B,C,D,P}\\ \\tfrac12\\lVert(A,B,C,D)-(\\tilde A,\\tilde B,\\tilde C,\
 \\rVert_F^2 + \\tfrac\\mu2\\lVert P-\\tilde P\\rVert_F^2 \\quad\\text{s.t.}\\quad
 \\mathcal M(A,B,C,D,P;\\tilde P)\\preceq-\\varepsilon I,$$
 
-with $\\mathcal M$ the convexified KYP matrix (`ConvexifiedLMI`, built here densely in JAX
-from the matrices). ADMM on the splitting $Z = -\\mathcal M(x) - \\varepsilon I\\succeq0$
-(scaled dual $U$):
+with $\\mathcal M$ the convexified KYP matrix (`ConvexifiedLMI`, built densely in JAX), and
+for $\\hat n\\ge2$ the conditioning bound $P\\succeq\\frac{\\rho}{\\hat n}\\operatorname{tr}(P)I$
+of Clarabel's problem. ADMM (`admm.py`) runs in the eigenbasis of $\\tilde P$ after the
+congruence by $\\tilde P^{-1/2}$, where the LMI no longer carries $\\tilde P$'s scale and
+every block of the $x$-update is elementwise; $\\tilde P$'s eigen-decomposition is one
+host call per projection (numpy), outside the loop. The PSD projections use a scaled
+Newton-Schulz sign (matrix products only: a batched `eigh` inside a compiled loop can
+deadlock XLA's CPU thread pool, docs/scaling.md "Thread-pool deadlocks").
 
-- **$x$-update** in closed form, block by block: $A$ and $B$ appear only in
-  $A^\\top\\tilde P$ and $B^\\top\\tilde P$, so $(I + 2\\rho\\tilde P^2)[A\\ B] =
-  [\\tilde A\\ \\tilde B] + 2\\rho\\tilde P\\,T_{4,12}$ (one $\\hat n\\times\\hat n$ Cholesky
-  per projection); $C$ only in $C^\\top[-S\\ \\ L]$ (an $m\\times m$ system), $D$ in the
-  $(2,2)$ and $(2,3)$ blocks (an $mp\\times mp$ system, constant), $P$ in the diagonal
-  blocks (a scalar formula);
-- **$Z$-update**: the projection of a symmetric matrix onto the PSD cone,
-  $\\tfrac12(X + X\\operatorname{sign}X)$, with the matrix sign by the Newton-Schulz
-  iteration $Y\\leftarrow\\tfrac12Y(3I-Y^2)$: matrix products only. Not `eigh`: on CPU a
-  batched `eigh` inside a loop can deadlock XLA's thread pool (docs/scaling.md,
-  "Thread-pool deadlocks"); every factorisation here is loop-based (`_linalg.py`).
-
-The solver aims at a margin `margin_fo` larger than $\\varepsilon$, so that an approximate
-solution (residual below that margin) still satisfies the strict LMI. Its result is then
-checked exactly in float64 on the host, and a row that fails goes to Clarabel.
+ADMM aims at a slack `MARGIN_FO` beyond $\\varepsilon$ and stops at residuals `TOL_FO`
+relative to the scaled LMI; `admm.repair` then moves its answer towards a strictly
+dissipative static point just enough to satisfy $\\mathcal M\\preceq-\\varepsilon I$, so an
+approximate solution is still feasible. The result is rounded and checked exactly in
+float64 on the host, and a row that fails goes to Clarabel. A projection can start from
+the ADMM state of a previous one (`project_one`'s `state`; PGD carries it across steps).
 """
 
 from __future__ import annotations
@@ -36,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _outcome
+from .._certify import fast as _certify_fast
 from .._controller import LTIController
 from .._sdp import lmi as _lmi, sdp as _sdp
 from .._sdp.indefinite import is_indefinite
@@ -147,6 +144,8 @@ def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, active, shard, iters, *, q
         for o, M in zip(out, rounded):
             o[todo[ok]] = M[ok]
         codes[todo[ok]] = _SOLVED
+        # as Clarabel's path: `certify` of a returned controller then finds its storage
+        _certify_fast.remember(rA[ok], rB[ok], rC[ok], rD[ok], qsr, rP[ok])
         bad = todo[~ok]
         if len(bad):
             ones = [np.ones_like(t[bad]) for t in tgt]
