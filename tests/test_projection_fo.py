@@ -115,7 +115,7 @@ def test_method_argument(getkey):
     with pytest.raises(ValueError, match="`method='first_order'`"):
         dj.project(K, RATES["passive"], method="first_order",
                    metric=jax.tree.map(jnp.ones_like, K))
-    assert not fo.use_first_order("auto", K, None, RATES["passive"])  # Clarabel by default
+    assert not fo.use_first_order("auto", K, None, RATES["passive"])  # n = 3: Clarabel
     assert fo.use_first_order("first_order", K, None, RATES["passive"])
     # an indefinite Q (here Q = 0.5 I > 0) needs the linearisation only Clarabel's path has
     indefinite = dj.QSR(0.5 * np.eye(2), 0.5 * np.eye(2), -2.0 * np.eye(2))
@@ -251,3 +251,16 @@ def test_warm_started_pgd_is_certified(getkey):
     assert bool(res.certified.all())
     for i in range(3):
         assert dissipation_ok(index(res.controllers, i), qsr, res.P[i])
+
+
+def test_auto_follows_the_measured_order(getkey, monkeypatch):
+    qsr = RATES["passive"]
+    at = lambda n: dj.LTIController.random(getkey(), n, 2, 2)
+    lo = fo.AUTO_MIN_ORDER
+    assert lo is not None and lo > 6  # the paper's sizes (1, 6) keep Clarabel
+    assert fo.use_first_order("auto", at(lo), None, qsr)
+    assert not fo.use_first_order("auto", at(lo - 1), None, qsr)
+    metric = jax.tree.map(jnp.ones_like, at(lo))
+    assert not fo.use_first_order("auto", at(lo), metric, qsr)  # a metric: Clarabel
+    monkeypatch.setattr(fo, "AUTO_MIN_ORDER", None)
+    assert not fo.use_first_order("auto", at(lo), None, qsr)

@@ -356,7 +356,8 @@ def project(
     - `method`: `"clarabel"`, `"first_order"` (ADMM in JAX, the same float64 check,
       Clarabel where it fails; Frobenius only, $Q\\preceq0$ only;
       [Scaling out](scaling.md#a-first-order-projection)) or `"auto"` (first-order from
-      `first_order.AUTO_MIN_ORDER` states on; now never).
+      `first_order.AUTO_MIN_ORDER` = 12 states on, without a `metric`, for $Q\\preceq0$;
+      Clarabel otherwise).
 
     **Returns:** a [`Projection`][dissil_jax.Projection] `(K_proj, P)` with `.result`.
 
