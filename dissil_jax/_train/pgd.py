@@ -90,10 +90,9 @@ class _PGD(Method):
     def init(self):
         loss0, _ = _batched_loss(self.K0, self.windows)
         state = (self.K0, self.P0, jax.vmap(self.opt.init)(self.K0))
-        if self.warm:
-            num, n = self.K0.A.shape[0], self.K0.n_state
-            cold = _first_order.cold_state(n, self.qsr, self.K0.A.dtype)
-            state += (jax.tree.map(lambda a: jnp.broadcast_to(a, (num,) + a.shape), cold),)
+        if self.warm:  # one cold ADMM state per initialisation
+            cold = _first_order.cold_state(self.K0.n_state, self.qsr, self.K0.A.dtype)
+            state += (jax.tree.map(lambda a: jnp.broadcast_to(a, self.code0.shape + a.shape), cold),)
         return state, loss0, self.code0
 
     def step(self, state, active):
@@ -338,8 +337,10 @@ def fit_pgd(
     - `method`: $\\Pi$'s solver, as `project`'s `method`. `"first_order"`: ADMM in JAX
       (Frobenius projections only, so not with an adaptive optimiser's metric), every
       result still checked in float64 on the host, Clarabel where the check fails;
-      `"clarabel"`; `"auto"` (default): Clarabel at every size so far, since the
-      first-order path was slower on CPU ([Scaling out](scaling.md#a-first-order-projection)).
+      `"clarabel"`; `"auto"` (default): the first-order path from $\\hat n = 12$ on when the
+      step rule has no metric (the paper's rule, SGD), where it was measured faster, with
+      each step's ADMM warm-started from the previous one's; Clarabel otherwise
+      ([Scaling out](scaling.md#a-first-order-projection)).
 
     **Initialisation.** The paper draws "each matrix element from a normal distribution"
     and projects the draw (paper §4.1); `init_scale=1.0` is that N(0, 1), which the
