@@ -134,7 +134,7 @@ def _constant_systems(qsr: QSR):
     return G, g, Qg, h, Qd
 
 
-def scale(target, lam, V, margin, reg, qsr: QSR):
+def scale(target, lam, V, eps, reg, qsr: QSR):
     """The scaled problem's data: targets, weights and the margin's diagonal $\\varepsilon T^2$."""
     At, Bt, Ct, Dt = target
     p, m, r, N = sizes(qsr, At.shape[0])
@@ -145,7 +145,7 @@ def scale(target, lam, V, margin, reg, qsr: QSR):
     weights = (lam[None, :] / lam[:, None], 1.0 / lam[:, None], lam[None, :],
                reg * lam[:, None] * lam[None, :])
     one = jnp.ones(p + r, lam.dtype)
-    c = margin * jnp.concatenate([1.0 / lam, one, 1.0 / lam])
+    c = eps * jnp.concatenate([1.0 / lam, one, 1.0 / lam])
     return (Ah, Bh, Ch, Dt), weights, c
 
 
