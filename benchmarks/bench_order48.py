@@ -24,7 +24,7 @@ n, m = int(sys.argv[1]), int(sys.argv[2])
 qsr = dj.QSR.passive(m)
 K = dj.LTIController.random(jax.random.PRNGKey(n), n, m, m, scale=1.0)
 t = time.perf_counter()
-proj = dj.project(K, qsr, throw=False)
+proj = dj.project(K, qsr, throw=False, method="clarabel")
 jax.block_until_ready(proj[1])
 t_proj = time.perf_counter() - t
 Kp, P = proj

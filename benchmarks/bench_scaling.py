@@ -93,10 +93,10 @@ def cell(path, n, m, qsr, state):
     key = jax.random.PRNGKey(n * 10 + m)
     if path == "project":
         K = dj.LTIController.random(key, n, m, m, scale=1.0)
-        dj.project(K, qsr, refine=1, throw=False, active=False)  # trace: not timed
+        dj.project(K, qsr, refine=1, throw=False, active=False, method="clarabel")  # trace: not timed
         rss0, stats = _rss_mib(), _projection.solver_stats()
         s0, c0 = stats["solve_time"], stats["solves"]
-        t, proj = _timed(lambda: dj.project(K, qsr, refine=1, throw=False))
+        t, proj = _timed(lambda: dj.project(K, qsr, refine=1, throw=False, method="clarabel"))
         solve = stats["solve_time"] - s0
         state["K"], state["P"] = proj[0], proj[1]
         ok = bool(dj.certify(proj[0], qsr, P=proj[1]).holds)
@@ -114,11 +114,11 @@ def cell(path, n, m, qsr, state):
         # (`fit_pgd`'s callback; its gradients are microseconds next to it)
         keys = jax.random.split(key, 8)
         K0 = jax.vmap(lambda k: dj.LTIController.random(k, n, m, m, scale=1.0))(keys)
-        K0, P0 = dj.project(K0, qsr, refine=1)
+        K0, P0 = dj.project(K0, qsr, refine=1, method="clarabel")
         noise = jax.vmap(lambda k: dj.LTIController.random(k, n, m, m, scale=0.2))(
             jax.random.split(jax.random.PRNGKey(1), 8))
         target = jax.tree.map(lambda a, b: a + b, K0, noise)
-        proj = jax.jit(jax.vmap(lambda K, P: dj.project(K, qsr, P, throw=False)))
+        proj = jax.jit(jax.vmap(lambda K, P: dj.project(K, qsr, P, throw=False, method="clarabel")))
         jax.block_until_ready(proj(target, P0))  # compile and build the solvers
         t, out = _timed(lambda: proj(target, P0))
         ok = bool(np.all(np.asarray(dj.certify(out[0], qsr, P=out[1]).holds)))

@@ -6,14 +6,18 @@ layout can change behind this one list (as lineax's `internal`).
 
 Modules, for monkeypatching in tests and for benchmarks that time one layer alone:
 `certify_fast`, `certify_sdp`, `direct`, `direct_map`, `ico`, `ico_sdp`, `linalg`, `lmi`, `mlp`, `outcome`,
-`pgd`, `projection`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `rollout`,
+`pgd`, `projection`, `projection_admm`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `rollout`,
 `sdp`; and the functions and constants in
 `__all__`.
 """
 
 from . import _direct_map as direct_map, _linalg as linalg, _outcome as outcome, _rollout as rollout
 from ._certify import fast as certify_fast, sdp as certify_sdp
-from ._projection import first_order as projection_fo, project as projection
+from ._projection import (
+    admm as projection_admm,
+    first_order as projection_fo,
+    project as projection,
+)
 from ._projection.project import solver_stats
 from ._ren import certify as ren_certify, controller as ren_controller, map as ren_map
 from ._sdp import lmi, sdp
@@ -46,7 +50,8 @@ __all__ = [
     "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct",
     "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "init_controllers", "iterate",
     "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",
-    "optimizer_metric", "outcome", "pgd", "projection", "projection_fo", "ren_certify",
+    "optimizer_metric", "outcome", "pgd", "projection", "projection_admm", "projection_fo",
+    "ren_certify",
     "ren_controller",
     "ren_map", "ren_train", "rollout", "scaled", "sdp", "single_threaded_blas", "smat",
     "solver_stats", "stacked_factor", "svec_len",

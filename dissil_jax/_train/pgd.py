@@ -13,7 +13,8 @@ import optax
 from .. import _outcome
 from .._controller import LTIController
 from .._data import Windows
-from .._projection.project import project
+from .._projection import first_order as _first_order
+from .._projection.project import project, project_first_order_warm
 from .._rollout import imitation_loss
 from .._sdp import lmi as _lmi
 from .._supply import QSR
@@ -80,6 +81,7 @@ class _PGD(Method):
     qsr: QSR | None
     eps: float
     method: str
+    warm: bool  # the first-order projection, warm-started from the previous step's ADMM state
 
     @property
     def keep_non_finite(self) -> bool:  # GD returns its diverged iterate
@@ -87,10 +89,14 @@ class _PGD(Method):
 
     def init(self):
         loss0, _ = _batched_loss(self.K0, self.windows)
-        return (self.K0, self.P0, jax.vmap(self.opt.init)(self.K0)), loss0, self.code0
+        state = (self.K0, self.P0, jax.vmap(self.opt.init)(self.K0))
+        if self.warm:  # one cold ADMM state per initialisation
+            cold = _first_order.cold_state(self.K0.n_state, self.qsr, self.K0.A.dtype)
+            state += (jax.tree.map(lambda a: jnp.broadcast_to(a, self.code0.shape + a.shape), cold),)
+        return state, loss0, self.code0
 
     def step(self, state, active):
-        K, P, opt_state = state
+        K, P, opt_state, *warm = state
         _, grads = _batched_loss(K, self.windows)
         updates, opt_state = jax.vmap(self.opt.update)(grads, opt_state, K)
         # optax types its result as a generic pytree; it has K's structure
@@ -99,14 +105,18 @@ class _PGD(Method):
         if self.qsr is not None:
             # An indefinite Q's positive part is linearised at the certified iterate (K_ref),
             # once per step (refine=1; the next step re-linearises). No effect for Q <= 0.
-            proj = project(K_new, self.qsr, P, throw=False, active=active, eps=self.eps,
-                           metric=optimizer_metric(opt_state, K_new), K_ref=K, refine=1,
-                           method=self.method)
+            if self.warm:
+                proj, warm[0] = project_first_order_warm(K_new, self.qsr, P, warm[0],
+                                                         active=active, eps=self.eps)
+            else:
+                proj = project(K_new, self.qsr, P, throw=False, active=active, eps=self.eps,
+                               metric=optimizer_metric(opt_state, K_new), K_ref=K, refine=1,
+                               method=self.method)
             codes = _outcome.codes(proj.result)
             code = jnp.where(_outcome.failed(codes), codes, code)
             K_new, P_new = proj
         loss, _ = _batched_loss(K_new, self.windows)
-        return (K_new, P_new, opt_state), loss, code
+        return (K_new, P_new, opt_state, *warm), loss, code
 
 
 def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_inits,
@@ -124,8 +134,10 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
         K0, P0 = proj = project(K0, qsr, throw=False, eps=eps, method=method)
         code0 = _outcome.codes(proj.result)
     opt = paper_rule(learning_rate, decay) if optimizer is None else optimizer
-    pgd = _PGD(K0, P0, code0, scaled(windows, s2), opt, qsr, eps, method)
-    (K, P, _), hist, loss, steps, reason, kept = iterate(
+    warm = qsr is not None and _first_order.use_first_order(
+        method, K0, optimizer_metric(jax.vmap(opt.init)(K0), K0), qsr)
+    pgd = _PGD(K0, P0, code0, scaled(windows, s2), opt, qsr, eps, method, warm)
+    (K, P, *_), hist, loss, steps, reason, kept = iterate(
         pgd, max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
     hist, loss = hist * s2, loss * s2
     return FitResult(
@@ -325,8 +337,10 @@ def fit_pgd(
     - `method`: $\\Pi$'s solver, as `project`'s `method`. `"first_order"`: ADMM in JAX
       (Frobenius projections only, so not with an adaptive optimiser's metric), every
       result still checked in float64 on the host, Clarabel where the check fails;
-      `"clarabel"`; `"auto"` (default): Clarabel at every size so far, since the
-      first-order path was slower on CPU ([Scaling out](scaling.md#a-first-order-projection)).
+      `"clarabel"`; `"auto"` (default): the first-order path from $\\hat n = 12$ on when the
+      step rule has no metric (the paper's rule, SGD), where it was measured faster, with
+      each step's ADMM warm-started from the previous one's; Clarabel otherwise
+      ([Scaling out](scaling.md#a-first-order-projection)).
 
     **Initialisation.** The paper draws "each matrix element from a normal distribution"
     and projects the draw (paper §4.1); `init_scale=1.0` is that N(0, 1), which the
