@@ -37,3 +37,36 @@ def built_site(tmp_path_factory) -> Path:
     assert result.returncode == 0, f"mkdocs build --strict failed:\n{result.stderr[-4000:]}"
     return out
 
+
+
+#: The longest tests of `make test` (subprocesses, or many compilations), most expensive first.
+#: `--dist loadgroup` hands the xdist groups out first, then the ungrouped tests one at a
+#: time in collection order; a long test collected last (the alphabet put the thread-pool
+#: reproducer and the examples late) keeps one worker busy while the other has finished.
+#: Started first, they overlap with the groups and the short tests fill in around them; the
+#: ones that compile the NMPC expert's loop alternate with others, so that one of them has
+#: put it in the shared compilation cache when the next starts.
+LONG_FIRST = (
+    "test_examples.py::test_example_runs_quick[ren]",
+    "test_thread_pool.py::test_issue_reproducer_does_not_hang",
+    "test_examples.py::test_example_runs_quick[horizons]",
+    "test_experiments_cli.py::test_entry_point_with_jobs_gives_the_serial_records",
+    "test_examples.py::test_example_runs_quick[no_state]",
+    "test_examples.py::test_example_runs_quick[indefinite_q]",
+    "test_experiments_cli.py::test_cli_writes_summary_tables_and_figures",
+    "test_examples.py::",
+    "test_direct.py::test_sharded_sweep_equals_unsharded",
+    "test_direct.py::test_defaults_follow_the_order",
+    "test_direct.py::test_issue_failure_case_q_minus_1e4",
+    "test_direct.py::test_the_run_is_pure_jax_and_differentiable",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Move the tests in `LONG_FIRST` to the front, in that order (a stable sort: the
+    order within each entry, and of every other test, is pytest's)."""
+    def rank(item):
+        return next((i for i, prefix in enumerate(LONG_FIRST) if prefix in item.nodeid),
+                    len(LONG_FIRST))
+
+    items.sort(key=rank)

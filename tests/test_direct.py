@@ -156,21 +156,30 @@ def test_training_loss_within_2x_of_ico_small():
     assert float(jnp.median(res.final_loss)) <= 2 * float(jnp.median(ico.final_loss))
 
 
-def _reference_adam(theta, windows, qsr, lr, max_steps, tol):
-    """A plain Python loop for one initialisation: Adam on J(K(theta)) / s^2."""
+def _reference_adam(windows, qsr, lr, max_steps, tol):
+    """A plain Python loop for one initialisation: Adam on J(K(theta)) / s^2. Returns
+    `run(theta) -> (theta, losses)`; its loss, gradient and Adam step are compiled once
+    for all initialisations (each step a separate call from Python)."""
     s2 = float(np.mean(np.sum(np.asarray(windows.y) ** 2, axis=(1, 2)))
                + np.mean(np.sum(np.asarray(windows.x0) ** 2, axis=1)))
     J = jax.jit(lambda t: dj.imitation_loss(dm.direct_map(t, qsr)[0], windows))
     grad = jax.jit(jax.grad(lambda t: J(t) / s2))
     opt = optax.adam(lr)
-    state, hist = opt.init(theta), [float(J(theta))]
-    for _ in range(max_steps):
+
+    @jax.jit
+    def adam_step(theta, state):
         updates, state = opt.update(grad(theta), state, theta)
-        theta = optax.apply_updates(theta, updates)
-        hist.append(float(J(theta)))
-        if abs(hist[-1] - hist[-2]) < tol:
-            break
-    return theta, hist
+        return optax.apply_updates(theta, updates), state
+
+    def run(theta):
+        state, hist = opt.init(theta), [float(J(theta))]
+        for _ in range(max_steps):
+            theta, state = adam_step(theta, state)
+            hist.append(float(J(theta)))
+            if abs(hist[-1] - hist[-2]) < tol:
+                break
+        return theta, hist
+    return run
 
 
 def test_batched_training_equals_python_loop(getkey):
@@ -181,8 +190,9 @@ def test_batched_training_equals_python_loop(getkey):
                         init_scale=0.7)
     th0 = dm.init_params(key, 3, 1, 1, 1, 0.7, jnp.float64)
     stopped_early = False
+    reference = _reference_adam(w, qsr, 0.05, 40, 1e-3)
     for i in range(3):
-        th, hist = _reference_adam(index(th0, i), w, qsr, 0.05, 40, 1e-3)
+        th, hist = reference(index(th0, i))
         n = len(hist)
         stopped_early |= n < 41
         assert int(res.steps[i]) == n - 1
@@ -203,8 +213,9 @@ def test_learning_rate_sweep_with_vmap_equals_loop(getkey):
                                    atol=1e-6)
     swept = jax.jit(jax.vmap(run))(jnp.asarray(lrs))
     assert swept.loss_history.shape == (3, 2, 16) and swept.certified is None
+    run_one = jax.jit(run)  # traced once: the rate is an argument, not a constant
     for j, lr in enumerate(lrs):
-        one = jax.jit(run)(lr)
+        one = run_one(lr)
         for a, b in zip(jax.tree.leaves(index(swept, j)), jax.tree.leaves(one)):
             np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
 
@@ -260,8 +271,11 @@ def test_defaults_follow_the_order(getkey):
     n, p = 10, 2
     w = dj.Windows(jr.normal(getkey(), (6, n)), jr.normal(getkey(), (6, 3, p)),
                    jr.normal(getkey(), (6, 3, p)))
-    run = lambda **kw: dj.direct_run(jr.PRNGKey(0), w, dj.QSR.passive(p), num_inits=2,
-                                     max_steps=3, atol=0.0, rtol=0.0, **kw).loss_history
+    # Jitted (the hyperparameters, Python floats, are static): one compilation for the
+    # whole run instead of one per operation outside its loop.
+    run = eqx.filter_jit(lambda **kw: dj.direct_run(
+        jr.PRNGKey(0), w, dj.QSR.passive(p), num_inits=2, max_steps=3, atol=0.0, rtol=0.0,
+        **kw).loss_history)
     lr, s = direct.default_hyperparameters(n, p)
     np.testing.assert_array_equal(run(), run(learning_rate=lr, init_scale=s))
     assert not np.array_equal(run(), run(learning_rate=0.3, init_scale=0.5))
@@ -281,7 +295,7 @@ def test_failed_check_is_projected_and_flagged(getkey):
     """The fallback: a controller that fails the float64 check is projected and flagged."""
     qsr = SUPPLY_RATES["passive"]
     w = expert_windows(8, 2, 2, 2)
-    res = dj.direct_run(getkey(), w, qsr, num_inits=3, max_steps=10)
+    res = eqx.filter_jit(dj.direct_run)(getkey(), w, qsr, num_inits=3, max_steps=10)
     broken = eqx.tree_at(lambda r: r.controllers.B, res, res.controllers.B.at[1].mul(50.0))
     out = direct.certify_or_project(broken, qsr, w, eps=1e-6)
     np.testing.assert_array_equal(out.projected, [False, True, False])
