@@ -195,7 +195,7 @@ def order16(seeds=(0, 1)):
             try:
                 r = fit(jr.PRNGKey(seed + 1), w)
             except ValueError as e:  # a trainer that does not accept the problem
-                print(f"| {seed} | `{name}` | refuses: {str(e).split('. ')[0]} | | | | | |",
+                print(f"| {seed} | `{name}` | refuses: {str(e).split(', but')[0]} | | | | | |",
                       flush=True)
                 continue
             wall = time.perf_counter() - t
