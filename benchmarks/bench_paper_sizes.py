@@ -18,13 +18,19 @@ Cases: n̂ = 1 with the nonlinear example's supply rate, n̂ = 6 with m = p = 3 
 n̂ = 10, m = p = 2, passive, on 100 random windows of length 10 (the report of issue 23),
 once per library, and prints how each run stopped and its loss.
 
+`--compile` instead times each trainer's one-off compilation at the paper's sizes (n̂ = 6,
+m = p = 3, passive, 100 windows of length 2, 8 initialisations, 150 steps): `direct_run`
+and `pgd_run` (the paper's rule) lowered and compiled under `jax.jit`; `fit_ren` (width 4),
+`fit_mlp` and `fit_gd` as their first call minus their second (compilation plus one-off
+setup). Each child starts with an empty in-memory cache and no persistent one.
+
 `--step-at N` instead times the host half of one PGD step at order N (m = p = 2, passive):
 8 certified iterates perturbed by N(0, 0.2^2) projected at their own P in one batched
 `jax.jit(jax.vmap(dj.project))` call (compiled and solvers built before timing), and the
 setup (first call), alternating ours and ref `--repeats` times.
 
 Usage: python benchmarks/bench_paper_sizes.py --ref /tmp/ref [--repeats 3] [--order10]
-       [--step-at 24]
+       [--step-at 24] [--compile]
 """
 
 import argparse
@@ -71,6 +77,38 @@ for name, qsr, n in cases:
     res = fit()
     out[name + " pgd"] = 8 * 30 / (time.perf_counter() - t)
     out[name + " pgd loss"] = float(np.median(np.asarray(res.final_loss)))
+print("RESULT " + json.dumps(out))
+"""
+
+
+COMPILE = r"""
+import json, time
+import jax, numpy as np
+jax.config.update("jax_enable_x64", True)
+import dissil_jax as dj
+qsr, n, m = dj.QSR.passive(3), 6, 3
+rng = np.random.default_rng(0)
+y = rng.normal(size=(100, 2, m))
+w = dj.Windows(rng.normal(size=(100, n)), y, -0.5 * y)
+key, out = jax.random.PRNGKey(0), {"lib": dj.__file__}
+kw = dict(num_inits=8, max_steps=150, atol=0.0, rtol=0.0, throw=False)
+runs = {"direct_run": lambda k: dj.direct_run(k, w, qsr, **kw),
+        "pgd_run": lambda k: dj.pgd_run(k, w, qsr, learning_rate=1.0, decay=0.99, **kw)}
+for name, fn in runs.items():
+    t = time.perf_counter()
+    lowered = jax.jit(fn).lower(key)
+    t1 = time.perf_counter()
+    lowered.compile()
+    out[name + " trace"], out[name + " compile"] = t1 - t, time.perf_counter() - t1
+fits = {"fit_ren": lambda: dj.fit_ren(key, w, qsr, width=4, **kw),
+        "fit_mlp": lambda: dj.fit_mlp(key, w, num_inits=8, max_steps=150, atol=0.0, rtol=0.0),
+        "fit_gd": lambda: dj.fit_gd(key, w, **kw)}
+for name, fn in fits.items():
+    t = time.perf_counter()
+    jax.block_until_ready(fn())
+    t1 = time.perf_counter()
+    jax.block_until_ready(fn())
+    out[name + " first - second"] = (t1 - t) - (time.perf_counter() - t1)
 print("RESULT " + json.dumps(out))
 """
 
@@ -135,6 +173,7 @@ def main():
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--order10", action="store_true")
     ap.add_argument("--step-at", type=int, default=0)
+    ap.add_argument("--compile", action="store_true")
     args = ap.parse_args()
     ours_path = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     if args.step_at:
@@ -149,7 +188,7 @@ def main():
     runs = {"ours": [], "ref": []}
     for _ in range(args.repeats):
         for who, path in (("ours", ours_path), ("ref", os.path.abspath(args.ref))):
-            runs[who].append(run(path))
+            runs[who].append(run(path, COMPILE if args.compile else CHILD))
             print(who, runs[who][-1], flush=True)
     keys = [k for k in runs["ours"][0] if k != "lib"]
     print("\n| measure | ours | ref | ref / ours |")
@@ -158,7 +197,7 @@ def main():
         a = float(sorted(r[k] for r in runs["ours"])[args.repeats // 2])
         b = float(sorted(r[k] for r in runs["ref"])[args.repeats // 2])
         unit = "/s" if k.endswith("pgd") else ("" if "loss" in k else " ms")
-        scale = 1e3 if unit == " ms" else 1.0
+        unit, scale = (" s", 1.0) if args.compile else (unit, 1e3 if unit == " ms" else 1.0)
         ratio = b / a if not k.endswith("pgd") else a / b  # above 1: ours faster
         print(f"| {k}{unit} | {a * scale:.4g} | {b * scale:.4g} | {ratio:.2f} |")
 

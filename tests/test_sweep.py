@@ -80,15 +80,18 @@ def test_each_shard_calls_back_with_its_local_batch(found):
     # 4 learning rates x 2 initialisations: the initial projection (2 inits, the same for
     # every rate) on each shard, then one callback per training step with the shard's
     # 2 rates x 2 inits, until the shard's own rates have stopped (shard 0's run all 15
-    # steps, shard 1's stop earlier).
+    # steps, shard 1's stop earlier), and one after the last step, in which no lane is
+    # active, so that it solves nothing (the driver loop's last `update`).
     steps = found["steps"]
     own = [max(steps[:2]), max(steps[2:])]
     assert own[0] == 15 > own[1], steps
     for name in ("pgd", "recipe"):
         calls = _calls(found[name])
         for shard in (0, 1):
-            assert calls[shard] == [(2,)] + [(2, 2)] * own[shard], (name, shard, calls)
-    assert _calls(found["plain"])[0] == [(2,)] + [(4, 2)] * max(steps)
+            assert calls[shard] == [(2,)] + [(2, 2)] * (own[shard] + 1), (name, shard, calls)
+            last = [c for c in found[name]["calls"] if c[0] == shard][-1]
+            assert last[2] == 0, (name, shard, last)  # peak solves at once: none
+    assert _calls(found["plain"])[0] == [(2,)] + [(4, 2)] * (max(steps) + 1)
     # 8 keys x 2 random draws (ICO's initialisations), 4 keys per shard.
     assert _calls(found["project"]) == {0: [(4, 2)], 1: [(4, 2)]}
     assert _calls(found["gd"]) == {}
@@ -153,7 +156,9 @@ def test_two_processes_each_solve_their_own_shard():
         assert found["diff"] <= 1e-12, found["diff"]
         assert {shard for shard, *_ in found["calls"]} == {pid}, found["calls"]
         own = max(found["steps"][2 * pid:2 * pid + 2])  # this process's learning rates
-        assert [tuple(b) for _, b, _ in found["calls"]] == [(2,)] + [(2, 2)] * own
+        # the initial projection, one per step, and the empty one after the last step
+        assert [tuple(b) for _, b, _ in found["calls"]] == [(2,)] + [(2, 2)] * (own + 1)
+        assert found["calls"][-1][2] == 0, found["calls"]
 
 
 def test_sweep_on_one_device_and_its_argument_errors():

@@ -193,6 +193,8 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, fallb
     target = (K.A, K.B, K.C, K.D)
     P_tilde, x, iters = P_ref, None, jnp.zeros((), jnp.int32)
     state = cold_state(n, qsr, dtype) if state is None else state
+    # an inactive lane (a stopped PGD run) takes no ADMM iteration; its row is skipped
+    max_iter = jnp.where(jnp.asarray(active, bool), max_iter, 0)
     for _ in range(1 if has_ref else max(1, refine)):
         x, state, it = admm_round(target, P_tilde, qsr, state, eps=eps, margin=margin,
                                   reg=reg, tol=tol, max_iter=max_iter, floor=floor)

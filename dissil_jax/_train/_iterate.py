@@ -1,18 +1,21 @@
 """The one driver loop of the gradient trainers (PGD, GD, the direct map, the MLP).
 
 A trainer is a `Method`: an `eqx.Module` holding its data (windows, optimiser,
-supply rate, ...) with two methods, and `iterate` runs it:
+supply rate, ...) with three methods, and `iterate` runs it:
 
-- `init() -> (state, J_0, code_0)`: the initial iterate, evaluated. `state` is any pytree
-  whose leaves have the lanes' shape in front (the initialisations: `[num_inits]`, or `()`
-  for a method vmapped by its caller, like the MLP); `J_0` the loss per lane; `code_0` an
-  [`Outcome`][dissil_jax.Outcome] code per lane (`_outcome.code`): `max_steps` for a lane
-  that may start, a failure (e.g. a failed initial projection) for one that takes no step.
-- `step(state, active) -> (state, J, code)`: one step of every lane from `state`, evaluated.
-  `active` (bool per lane) says which lanes are still running (a method may use it to skip
-  work, e.g. the projection); `code` is `converged` where the step succeeded and the
-  failure otherwise (a failed projection). A method reports a non-finite gradient as a
-  NaN `J`.
+- `init() -> (pending_0, code_0)`: the initial iterate, not yet evaluated. Its leaves have
+  the lanes' shape in front (the initialisations: `[num_inits]`, or `()` for a method
+  vmapped by its caller, like the MLP); `code_0` an [`Outcome`][dissil_jax.Outcome] code
+  per lane (`_outcome.code`): `max_steps` for a lane that may start, a failure (e.g. a
+  failed initial projection) for one that takes no step.
+- `evaluate(pending) -> (state, J)`: an iterate evaluated: its loss `J` per lane and
+  whatever the next step needs (the gradient). A method reports a non-finite gradient
+  as a NaN `J`.
+- `update(state, active) -> (pending, code)`: one step of every lane from an evaluated
+  `state` (the optimiser's update, the projection), not yet evaluated. `active` (bool per
+  lane) says which lanes are still running (a method may use it to skip work, e.g. the
+  projection); `code` is `converged` where the step succeeded and the failure otherwise
+  (a failed projection).
 - `select(accept, new, old)` (optional): the next state from the lanes that accept the
   step; by default a per-lane `jnp.where` on every leaf (override it for state shared by
   all lanes, like the direct map's one optimiser state).
@@ -72,17 +75,22 @@ def where(mask, new, old):
 
 
 class Method(eqx.Module):
-    """A trainer for `iterate`: `init`, `step`, `select`, `keep_non_finite` (module doc)."""
+    """A trainer for `iterate`: `init`, `evaluate`, `update`, `select`, `keep_non_finite`
+    (module doc)."""
 
     keep_non_finite: ClassVar[bool] = False
 
     @abc.abstractmethod
-    def init(self) -> tuple[Any, jax.Array, jax.Array]:
-        """`(state, J_0, code_0)`."""
+    def init(self) -> tuple[Any, jax.Array]:
+        """`(pending_0, code_0)`: the initial iterate, not yet evaluated."""
 
     @abc.abstractmethod
-    def step(self, state, active) -> tuple[Any, jax.Array, jax.Array]:
-        """`(state, J, code)` after one step of every lane."""
+    def evaluate(self, pending) -> tuple[Any, jax.Array]:
+        """`(state, J)`: the iterate `pending` evaluated (its loss, and what `update` needs)."""
+
+    @abc.abstractmethod
+    def update(self, state, active) -> tuple[Any, jax.Array]:
+        """`(pending, code)`: one step of every lane from the evaluated `state`."""
 
     def select(self, accept, new, old):
         """The next state: `new` on the lanes that `accept` the step, `old` elsewhere."""
@@ -101,6 +109,11 @@ def iterate(method: Method, *, max_steps: int, atol, rtol, keep: str = "best"):
     `keep="last"` returns the last accepted state of every method (the paper's Algorithm 2
     outputs its last iterate).
 
+    The loop's body is `evaluate` (at iteration 0 the initial iterate), the bookkeeping,
+    then `update`. So the loss and its gradient, usually the largest part of the compiled
+    program, appear once in it rather than once for $J_0$ and once per step (a third less
+    compilation for the direct map).
+
     **Returns:** `(state, loss_history, final_loss, steps, code, kept_step)`: the returned
     state (the best accepted one, or the last for `keep="last"` and `keep_non_finite`
     methods),
@@ -109,24 +122,33 @@ def iterate(method: Method, *, max_steps: int, atol, rtol, keep: str = "best"):
     initial iterate).
     """
     keep_best = keep == "best" and not method.keep_non_finite
-    state0, loss0, code0 = method.init()
-    finite0 = jnp.isfinite(loss0)
-    start = ~_outcome.failed(code0) & finite0
-    code0 = jnp.where(finite0 | _outcome.failed(code0), code0, _NON_FINITE)
-    hist = jnp.full(loss0.shape + (max_steps + 1,), jnp.nan, loss0.dtype).at[..., 0].set(loss0)
-    carry = dict(k=jnp.zeros((), jnp.int32), state=state0, loss=loss0, hist=hist, done=~start,
-                 steps=jnp.zeros(loss0.shape, jnp.int32),
-                 code=jnp.where(start, _MAX_STEPS, code0).astype(jnp.int32),
-                 at=jnp.zeros(loss0.shape, jnp.int32))
+    pending0, code0 = method.init()
+    code0 = jnp.asarray(code0, jnp.int32)
+    zeros = lambda s: jnp.zeros(s.shape, s.dtype)
+    state_z, loss_z = jax.tree.map(zeros, jax.eval_shape(method.evaluate, pending0))
+    lanes = loss_z.shape
+    int_z = jnp.zeros(lanes, jnp.int32)
+    carry = dict(k=jnp.zeros((), jnp.int32), pending=pending0, step_code=code0, state=state_z,
+                 loss=loss_z, loss0=loss_z, hist=jnp.full(lanes + (max_steps + 1,), jnp.nan,
+                                                          loss_z.dtype),
+                 done=jnp.zeros(lanes, bool), steps=int_z, code=code0, at=int_z)
     if keep_best:
-        carry.update(best=state0, best_loss=loss0)
+        carry.update(best=state_z, best_loss=loss_z)
 
-    def cond(c):
-        return (c["k"] < max_steps) & jnp.any(~c["done"])
+    def first(c, state, loss):
+        # Iteration 0: the initial iterate; a lane whose `init` failed takes no step.
+        finite = jnp.isfinite(loss)
+        start = ~_outcome.failed(code0) & finite
+        code = jnp.where(finite | _outcome.failed(code0), code0, _NON_FINITE)
+        new = dict(c, state=state, loss=loss, loss0=loss, hist=c["hist"].at[..., 0].set(loss),
+                   done=~start, code=jnp.where(start, _MAX_STEPS, code).astype(jnp.int32))
+        if keep_best:
+            new.update(best=state, best_loss=loss)
+        return new
 
-    def body(c):
-        active = ~c["done"]
-        state, loss, code = method.step(c["state"], active)
+    def later(c, state, loss):
+        # Iteration k >= 1: step k, made by the previous iteration's `update`.
+        k, active, code = c["k"], ~c["done"], c["step_code"]
         failed = code != _CONVERGED
         finite = jnp.isfinite(loss)
         code = jnp.where(failed | finite, code, _NON_FINITE)
@@ -134,10 +156,10 @@ def iterate(method: Method, *, max_steps: int, atol, rtol, keep: str = "best"):
         state = method.select(accept, state, c["state"])
         loss = jnp.where(accept, loss, c["loss"])
         ok = ~failed & finite
-        stop = active & terminate(loss, c["loss"], loss0, ok, atol=atol, rtol=rtol)
+        stop = active & terminate(loss, c["loss"], c["loss0"], ok, atol=atol, rtol=rtol)
         new = dict(
-            k=c["k"] + 1, state=state, loss=loss,
-            hist=c["hist"].at[..., c["k"] + 1].set(jnp.where(active, loss, jnp.nan)),
+            c, state=state, loss=loss,
+            hist=c["hist"].at[..., k].set(jnp.where(active, loss, jnp.nan)),
             done=c["done"] | stop, steps=c["steps"] + active.astype(jnp.int32),
             code=jnp.where(stop, code, c["code"]).astype(jnp.int32))
         if keep_best:
@@ -145,10 +167,25 @@ def iterate(method: Method, *, max_steps: int, atol, rtol, keep: str = "best"):
             better = accept & (loss < c["best_loss"])
             new.update(best=method.select(better, state, c["best"]),
                        best_loss=jnp.where(better, loss, c["best_loss"]),
-                       at=jnp.where(better, c["k"] + 1, c["at"]))
+                       at=jnp.where(better, k, c["at"]))
         else:
-            new.update(at=jnp.where(accept, c["k"] + 1, c["at"]))
+            new.update(at=jnp.where(accept, k, c["at"]))
         return new
+
+    def cond(c):
+        return (c["k"] <= max_steps) & ((c["k"] == 0) | jnp.any(~c["done"]))
+
+    def body(c):
+        # Evaluate the pending iterate, book it, then make the next step. No `update` sits
+        # in a `lax.cond`: under `vmap` (a swept hyperparameter) a batched predicate would
+        # run it anyway. After the last step the update is made with no lane active (the
+        # projection skips inactive lanes), and it is not evaluated.
+        state, loss = method.evaluate(c["pending"])
+        c = jax.lax.cond(c["k"] == 0, first, later, c, state, loss)
+        active = ~c["done"] & (c["k"] < max_steps)
+        pending, code = method.update(c["state"], active)
+        return dict(c, k=c["k"] + 1, pending=pending,
+                    step_code=jnp.broadcast_to(code, lanes).astype(jnp.int32))
 
     c = jax.lax.while_loop(cond, body, carry)
     if keep_best:

@@ -99,29 +99,30 @@ class MapDescent(Method):
     opt: optax.GradientTransformation
     loss_fn: Callable
 
-    def _evaluate(self, theta):
+    def init(self):
+        lanes = jax.tree.leaves(self.theta0)[0].shape[:1]
+        return (self.theta0, self.opt.init(self.theta0)), \
+            jnp.full(lanes, _outcome.code("max_steps"), jnp.int32)
+
+    def evaluate(self, pending):
+        theta, opt_state = pending
         (loss, aux), grad = self.loss_fn(theta, self.windows)
         finite = jnp.isfinite(loss)
         for g in jax.tree.leaves(grad):
             finite &= jnp.all(jnp.isfinite(g), axis=tuple(range(1, g.ndim)))
-        return jnp.where(finite, loss, jnp.nan), grad, aux
-
-    def init(self):
-        loss, grad, aux = self._evaluate(self.theta0)
-        return (self.theta0, grad, aux, self.opt.init(self.theta0)), loss, \
-            jnp.zeros(loss.shape, jnp.int32) + _outcome.code("max_steps")
+        return (theta, grad, aux, opt_state), jnp.where(finite, loss, jnp.nan)
 
     def select(self, accept, new, old):
         # One optimiser state for the whole batch (as before the driver loop existed): it
         # moves on every step, the lanes' iterates only where accepted.
         return (*where(accept, new[:3], old[:3]), new[3])
 
-    def step(self, state, active):
+    def update(self, state, active):
         theta, grad, _, opt_state = state
         updates, opt_state = self.opt.update(grad, opt_state, theta)
         theta = optax.apply_updates(theta, updates)
-        loss, grad, aux = self._evaluate(theta)
-        return (theta, grad, aux, opt_state), loss, jnp.full(loss.shape, _CONVERGED, jnp.int32)
+        lanes = jax.tree.leaves(theta)[0].shape[:1]
+        return (theta, opt_state), jnp.full(lanes, _CONVERGED, jnp.int32)
 
 
 def _run(key, windows, qsr, learning_rate, init_scale, *, optimizer, num_inits, n_state,

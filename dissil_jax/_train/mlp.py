@@ -112,15 +112,17 @@ class _Adam(Method):
                                                      self.T))(params)
 
     def init(self):
-        J, g = self._value_and_grad(self.params)
-        return (self.params, g, self.opt.init(self.params)), J, jnp.asarray(_MAX_STEPS)
+        return (self.params, self.opt.init(self.params)), jnp.asarray(_MAX_STEPS)
 
-    def step(self, state, active):
+    def evaluate(self, pending):
+        params, opt_state = pending
+        J, g = self._value_and_grad(params)
+        return (params, g, opt_state), J
+
+    def update(self, state, active):
         params, g, opt_state = state
         updates, opt_state = self.opt.update(g, opt_state, params)
-        params = optax.apply_updates(params, updates)
-        J, g = self._value_and_grad(params)
-        return (params, g, opt_state), J, jnp.asarray(_CONVERGED)
+        return (optax.apply_updates(params, updates), opt_state), jnp.asarray(_CONVERGED)
 
 
 def _train_one(key, X, T, *, hidden, max_steps, learning_rate, atol, rtol):

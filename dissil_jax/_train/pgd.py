@@ -88,16 +88,20 @@ class _PGD(Method):
         return self.qsr is None
 
     def init(self):
-        loss0, _ = _batched_loss(self.K0, self.windows)
-        state = (self.K0, self.P0, jax.vmap(self.opt.init)(self.K0))
+        pending = (self.K0, self.P0, jax.vmap(self.opt.init)(self.K0))
         if self.warm:  # one cold ADMM state per initialisation
             cold = _first_order.cold_state(self.K0.n_state, self.qsr, self.K0.A.dtype)
-            state += (jax.tree.map(lambda a: jnp.broadcast_to(a, self.code0.shape + a.shape), cold),)
-        return state, loss0, self.code0
+            pending += (jax.tree.map(lambda a: jnp.broadcast_to(a, self.code0.shape + a.shape),
+                                     cold),)
+        return pending, self.code0
 
-    def step(self, state, active):
-        K, P, opt_state, *warm = state
-        _, grads = _batched_loss(K, self.windows)
+    def evaluate(self, pending):
+        K, P, opt_state, *warm = pending
+        loss, grads = _batched_loss(K, self.windows)
+        return (K, P, opt_state, grads, *warm), loss
+
+    def update(self, state, active):
+        K, P, opt_state, grads, *warm = state
         updates, opt_state = jax.vmap(self.opt.update)(grads, opt_state, K)
         # optax types its result as a generic pytree; it has K's structure
         K_new, P_new = cast(LTIController, optax.apply_updates(K, updates)), P
@@ -115,8 +119,7 @@ class _PGD(Method):
             codes = _outcome.codes(proj.result)
             code = jnp.where(_outcome.failed(codes), codes, code)
             K_new, P_new = proj
-        loss, _ = _batched_loss(K_new, self.windows)
-        return (K_new, P_new, opt_state, *warm), loss, code
+        return (K_new, P_new, opt_state, *warm), code
 
 
 def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_inits,
