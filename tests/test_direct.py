@@ -254,6 +254,8 @@ def test_no_retracing_across_calls(getkey, monkeypatch):
     qsr = SUPPLY_RATES["strict_paper"]
     w1, w2 = expert_windows(5, 1, 1, 1), expert_windows(6, 1, 1, 1)
     dj.fit_direct(getkey(), w1, qsr, num_inits=2, max_steps=5)
+    # the tolerances are traced: other values reuse the compiled run
+    dj.fit_direct(getkey(), w1, qsr, num_inits=2, max_steps=5, atol=1e-9, rtol=1e-3)
     dj.fit_direct(getkey(), w2, dj.QSR(-29.867, 3.556, 0.601), num_inits=2, max_steps=5,
                   learning_rate=0.01, init_scale=0.5)
     with pytest.raises(RuntimeError, match="traced"):

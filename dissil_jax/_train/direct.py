@@ -330,7 +330,10 @@ def fit_direct(
     return fit_timed(
         lambda *h: _run_jit(key, windows, qsr, *h, optimizer=optimizer,
                             num_inits=int(num_inits), n_state=n_state,
-                            max_steps=int(max_steps), atol=float(atol), rtol=float(rtol),
+                            max_steps=int(max_steps),
+                            # traced: another tolerance does not recompile the run
+                            atol=jnp.asarray(atol, windows.y.dtype),
+                            rtol=jnp.asarray(rtol, windows.y.dtype),
                             margin=margin, keep=check_keep(keep)),
         (learning_rate, init_scale), windows.y.dtype,
         lambda res: certify_or_project(res, qsr, windows, eps=float(fallback_eps)), throw)

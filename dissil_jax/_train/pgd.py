@@ -262,7 +262,10 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
     return fit_timed(
         lambda *h: _run_jit(key, windows, qsr, *h, optimizer=optimizer,
                             num_inits=int(num_inits), n_state=n_state,
-                            max_steps=int(max_steps), atol=float(atol), rtol=float(rtol),
+                            max_steps=int(max_steps),
+                            # traced: another tolerance does not recompile the run
+                            atol=jnp.asarray(atol, windows.y.dtype),
+                            rtol=jnp.asarray(rtol, windows.y.dtype),
                             eps=float(eps), method=method, keep=check_keep(keep)),
         (learning_rate, decay, init_scale), windows.y.dtype, certify, throw)
 

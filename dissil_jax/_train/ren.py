@@ -179,7 +179,8 @@ def fit_ren(
     res = _run_jit(key, windows, qsr, jnp.asarray(learning_rate, dtype),
                    jnp.asarray(init_scale, dtype), width=int(width), activation=activation,
                    optimizer=optimizer, num_inits=int(num_inits), n_state=n_state,
-                   max_steps=int(max_steps), atol=float(atol), rtol=float(rtol), margin=margin,
+                   max_steps=int(max_steps), atol=jnp.asarray(atol, dtype),
+                   rtol=jnp.asarray(rtol, dtype), margin=margin,
                    input_share=float(input_share), keep=check_keep(keep))
     jax.block_until_ready(res)
     res = _certify_all(res, qsr)
