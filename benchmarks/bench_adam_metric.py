@@ -3,7 +3,7 @@
 Adam steps by -lr m / sqrt(nu) per entry. Projected in the Frobenius distance, such a step
 is biased at the boundary of the dissipative set (the preconditioned normal component of the
 gradient has a part along the boundary), and the iterate can drift uphill. `fit_pgd`
-therefore projects in the metric W = sqrt(nu) (`dissil_jax._train.pgd.optimizer_metric`).
+therefore projects in the metric W = sqrt(nu) (`dissil_jax._train.steps.optimizer_metric`).
 The reference in the same run is the same loop with that metric switched off.
 
 Problems: those of `bench_optimizers.py` (realisable, noisy, the paper's linear and nonlinear

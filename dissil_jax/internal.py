@@ -41,7 +41,7 @@ from ._train.ico.sdp import ICOProblem
 from ._train.ico.solver import ICOSolver
 from ._train.ico.windows import stacked_factor
 from ._train.mlp import demonstration_pairs
-from ._train.pgd import METRIC_FLOOR, optimizer_metric
+from ._train.steps import METRIC_FLOOR, optimizer_metric
 from .experiments._paper import FIGURES, TABLES
 
 __all__ = [

@@ -309,7 +309,8 @@ def repair(x, c, qsr: QSR):
     the margin, only an accurate direction. Returns `(x, t)`."""
     D0, g0 = static_point(qsr)
     n, dtype = x[0].shape[0], x[0].dtype
-    M = lmi_matrix(*x, jnp.eye(n, dtype=dtype), qsr) + jnp.diag(c)
+    A, B, C, D, P = x
+    M = lmi_matrix(A, B, C, D, P, jnp.eye(n, dtype=dtype), qsr) + jnp.diag(c)
     nrm = jnp.sqrt(jnp.sum(M * M))
     plus = psd_part(M)
     delta = jnp.sqrt(jnp.sum(plus * plus)) + 1e-6 * nrm

@@ -23,44 +23,11 @@ from ._init import init_controllers
 from ._iterate import RTOL, RTOL_UNCONSTRAINED, Method, iterate
 from ._scale import loss_scale, scaled
 from .result import FitResult, fit_timed, raise_if_failed
+from .steps import optimizer_metric, paper_rule
 
 _CONVERGED, _MAX_STEPS = _outcome.code("converged"), _outcome.code("max_steps")
 
 _batched_loss = jax.vmap(jax.value_and_grad(imitation_loss), in_axes=(0, None))
-
-
-def paper_rule(learning_rate, decay) -> optax.GradientTransformation:
-    """The paper's step rule: gradient steps $\\eta_i = \\eta_0\\rho^{\\,i}$ ("an
-    exponentially decaying learning rate", paper §4.2); `learning_rate` and `decay` may be
-    traced (a vmapped sweep)."""
-    return optax.sgd(learning_rate=lambda count: learning_rate * decay**count)
-
-
-#: Smallest weight of the optimiser's metric relative to its largest, per controller: an
-#: entry whose gradient has been (near) zero so far must not become free to move.
-METRIC_FLOOR = 1e-3
-
-
-def optimizer_metric(opt_state, K):
-    """The projection metric that matches a diagonally preconditioned optimiser, or None.
-
-    Adam, RMSProp, AdaBelief, Yogi, ... step by $-\\eta\\, m/\\sqrt{\\nu}$ per entry. A
-    Euclidean projection of that step is biased: at a point of the boundary where the
-    gradient is normal to the set, the preconditioned step has a component along the
-    boundary, and the projected iterate drifts away from the constrained minimum. The
-    projection in the metric $W = \\sqrt{\\nu}$ has the constrained minima as fixed points.
-    `opt_state` is searched for a single second-moment field `nu` shaped like the
-    controllers; weights below `METRIC_FLOOR` times the controller's largest are raised to
-    it. Optimisers without one (SGD, momentum, the paper's rule) keep the Frobenius
-    distance.
-    """
-    found = optax.tree_utils.tree_get_all_with_path(opt_state, "nu")
-    if len(found) != 1 or jax.tree.structure(found[0][1]) != jax.tree.structure(K):
-        return None
-    W = jax.tree.map(jnp.sqrt, found[0][1])
-    top = jnp.max(jnp.stack([jnp.max(w, axis=(-2, -1)) for w in jax.tree.leaves(W)]), axis=0)
-    floor = jnp.where(top > 0, METRIC_FLOOR * top, 1.0)[:, None, None]
-    return jax.tree.map(lambda w: jnp.maximum(w, floor), W)
 
 
 class _PGD(Method):
@@ -90,6 +57,7 @@ class _PGD(Method):
     def init(self):
         pending = (self.K0, self.P0, jax.vmap(self.opt.init)(self.K0))
         if self.warm:  # one cold ADMM state per initialisation
+            assert self.qsr is not None  # `warm` is the first-order projection's
             cold = _first_order.cold_state(self.K0.n_state, self.qsr, self.K0.A.dtype)
             pending += (jax.tree.map(lambda a: jnp.broadcast_to(a, self.code0.shape + a.shape),
                                      cold),)
@@ -138,7 +106,7 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
         code0 = _outcome.codes(proj.result)
     opt = paper_rule(learning_rate, decay) if optimizer is None else optimizer
     warm = qsr is not None and _first_order.use_first_order(
-        method, K0, optimizer_metric(jax.vmap(opt.init)(K0), K0), qsr)
+        method, K0, optimizer_metric(jax.vmap(opt.init)(cast(Any, K0)), K0), qsr)
     pgd = _PGD(K0, P0, code0, scaled(windows, s2), opt, qsr, eps, method, warm)
     (K, P, *_), hist, loss, steps, reason, kept = iterate(
         pgd, max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
