@@ -111,8 +111,8 @@ def iterate(method: Method, *, max_steps: int, atol, rtol, keep: str = "best"):
 
     The loop's body is `evaluate` (at iteration 0 the initial iterate), the bookkeeping,
     then `update`. So the loss and its gradient, usually the largest part of the compiled
-    program, appear once in it rather than once for $J_0$ and once per step (a third less
-    compilation for the direct map).
+    program, appear once in it rather than once for $J_0$ and once per step (30 % less
+    compilation for the direct map, `benchmarks/bench_paper_sizes.py --compile`).
 
     **Returns:** `(state, loss_history, final_loss, steps, code, kept_step)`: the returned
     state (the best accepted one, or the last for `keep="last"` and `keep_non_finite`
