@@ -191,18 +191,25 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, fallb
     has_ref = P_ref is not None
     P_ref = jnp.asarray(P_ref, dtype) if has_ref else jnp.eye(n, dtype=dtype)
     target = (K.A, K.B, K.C, K.D)
-    P_tilde, x, iters = P_ref, None, jnp.zeros((), jnp.int32)
     state = cold_state(n, qsr, dtype) if state is None else state
     # an inactive lane (a stopped PGD run) takes no ADMM iteration; its row is skipped
     max_iter = jnp.where(jnp.asarray(active, bool), max_iter, 0)
-    for _ in range(1 if has_ref else max(1, refine)):
+
+    def one_round(carry):
+        _, state, P_tilde, iters = carry
         x, state, it = admm_round(target, P_tilde, qsr, state, eps=eps, margin=margin,
                                   reg=reg, tol=tol, max_iter=max_iter, floor=floor)
-        iters = iters + it
         # the next round linearises at the new P (if it is usable; else keep P~)
         good = jnp.all(jnp.isfinite(x[4])) & (jnp.min(jnp.diag(x[4])) > 0)
-        P_tilde = jnp.where(good, x[4], P_tilde)
-    assert x is not None  # set by the first round (there is at least one)
+        return x, state, jnp.where(good, x[4], P_tilde), iters + it
+
+    rounds = 1 if has_ref else max(1, refine)
+    carry = ((*(jnp.zeros_like(M) for M in target), jnp.zeros_like(P_ref)), state, P_ref,
+             jnp.zeros((), jnp.int32))
+    # Several re-linearisation rounds in a loop, so that ADMM is compiled once, not once
+    # per round; one round (PGD's steps, at P_ref) as it is.
+    x, state, _, iters = (one_round(carry) if rounds == 1 else
+                          jax.lax.fori_loop(0, rounds, lambda _, c: one_round(c), carry))
     shard, shards = _sdp.shard()
     shapes = tuple(jax.ShapeDtypeStruct(M.shape, dtype) for M in (*target, P_ref))
     callback = functools.partial(_host_check, qsr=qsr, has_ref=has_ref, eps=float(eps),
