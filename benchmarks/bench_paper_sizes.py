@@ -22,7 +22,8 @@ once per library, and prints how each run stopped and its loss.
 m = p = 3, passive, 100 windows of length 2, 8 initialisations, 150 steps): `direct_run`
 and `pgd_run` (the paper's rule) lowered and compiled under `jax.jit`; `fit_ren` (width 4),
 `fit_mlp` and `fit_gd` as their first call minus their second (compilation plus one-off
-setup). Each child starts with an empty in-memory cache and no persistent one.
+setup); and `dj.project(..., method="first_order")` of 4 controllers of order 12 (m = p =
+2, passive, no `P_ref`: three re-linearisation rounds) compiled. Each child starts with an empty in-memory cache and no persistent one.
 
 `--step-at N` instead times the host half of one PGD step at order N (m = p = 2, passive):
 8 certified iterates perturbed by N(0, 0.2^2) projected at their own P in one batched
@@ -100,6 +101,13 @@ for name, fn in runs.items():
     t1 = time.perf_counter()
     lowered.compile()
     out[name + " trace"], out[name + " compile"] = t1 - t, time.perf_counter() - t1
+K12 = jax.vmap(lambda k: dj.LTIController.random(k, 12, 2, 2, scale=1.0))(
+    jax.random.split(key, 4))
+lowered = jax.jit(lambda K: dj.project(K, dj.QSR.passive(2), throw=False,
+                                       method="first_order")).lower(K12)
+t = time.perf_counter()
+lowered.compile()
+out["first-order project n12 compile"] = time.perf_counter() - t
 fits = {"fit_ren": lambda: dj.fit_ren(key, w, qsr, width=4, **kw),
         "fit_mlp": lambda: dj.fit_mlp(key, w, num_inits=8, max_steps=150, atol=0.0, rtol=0.0),
         "fit_gd": lambda: dj.fit_gd(key, w, **kw)}
