@@ -6,16 +6,16 @@ supply rate, ...) with three methods, and `iterate` runs it:
 - `init() -> (pending_0, code_0)`: the initial iterate, not yet evaluated. Its leaves have
   the lanes' shape in front (the initialisations: `[num_inits]`, or `()` for a method
   vmapped by its caller, like the MLP); `code_0` an [`Outcome`][dissil_jax.Outcome] code
-  per lane (`_outcome.code`): `max_steps` for a lane that may start, a failure (e.g. a
-  failed initial projection) for one that takes no step.
+  per lane, or one for all (`_outcome.code`): `max_steps` for a lane that may start, a
+  failure (e.g. a failed initial projection) for one that takes no step.
 - `evaluate(pending) -> (state, J)`: an iterate evaluated: its loss `J` per lane and
   whatever the next step needs (the gradient). A method reports a non-finite gradient
   as a NaN `J`.
 - `update(state, active) -> (pending, code)`: one step of every lane from an evaluated
   `state` (the optimiser's update, the projection), not yet evaluated. `active` (bool per
   lane) says which lanes are still running (a method may use it to skip work, e.g. the
-  projection); `code` is `converged` where the step succeeded and the failure otherwise
-  (a failed projection).
+  projection); `code` (per lane, or one for all) is `converged` where the step succeeded
+  and the failure otherwise (a failed projection).
 - `select(accept, new, old)` (optional): the next state from the lanes that accept the
   step; by default a per-lane `jnp.where` on every leaf (override it for state shared by
   all lanes, like the direct map's one optimiser state).
@@ -123,10 +123,10 @@ def iterate(method: Method, *, max_steps: int, atol, rtol, keep: str = "best"):
     """
     keep_best = keep == "best" and not method.keep_non_finite
     pending0, code0 = method.init()
-    code0 = jnp.asarray(code0, jnp.int32)
     zeros = lambda s: jnp.zeros(s.shape, s.dtype)
     state_z, loss_z = jax.tree.map(zeros, jax.eval_shape(method.evaluate, pending0))
     lanes = loss_z.shape
+    code0 = jnp.broadcast_to(jnp.asarray(code0, jnp.int32), lanes)  # a code, or one per lane
     int_z = jnp.zeros(lanes, jnp.int32)
     carry = dict(k=jnp.zeros((), jnp.int32), pending=pending0, step_code=code0, state=state_z,
                  loss=loss_z, loss0=loss_z, hist=jnp.full(lanes + (max_steps + 1,), jnp.nan,

@@ -100,9 +100,7 @@ class MapDescent(Method):
     loss_fn: Callable
 
     def init(self):
-        lanes = jax.tree.leaves(self.theta0)[0].shape[:1]
-        return (self.theta0, self.opt.init(self.theta0)), \
-            jnp.full(lanes, _outcome.code("max_steps"), jnp.int32)
+        return (self.theta0, self.opt.init(self.theta0)), _outcome.code("max_steps")
 
     def evaluate(self, pending):
         theta, opt_state = pending
@@ -120,9 +118,7 @@ class MapDescent(Method):
     def update(self, state, active):
         theta, grad, _, opt_state = state
         updates, opt_state = self.opt.update(grad, opt_state, theta)
-        theta = optax.apply_updates(theta, updates)
-        lanes = jax.tree.leaves(theta)[0].shape[:1]
-        return (theta, opt_state), jnp.full(lanes, _CONVERGED, jnp.int32)
+        return (optax.apply_updates(theta, updates), opt_state), _CONVERGED
 
 
 def _run(key, windows, qsr, learning_rate, init_scale, *, optimizer, num_inits, n_state,
