@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.core
@@ -49,6 +51,17 @@ def _map_batch(fn, K: LTIController) -> np.ndarray:
     return out
 
 
+@functools.partial(jax.jit, static_argnums=(2, 3, 4, 5))
+def _random_matrices(key, scale, n, n_in, n_out, dtype):
+    """`LTIController.random`'s draws, compiled once per size (not once per matrix shape)."""
+    keys = jr.split(key, 4)
+    shapes = ((n, n), (n, n_in), (n_out, n), (n_out, n_in))
+    # The barrier keeps XLA from folding `scale` into the draw's own constants, so the
+    # entries are bit for bit those of the eager `scale * jr.normal(...)`.
+    draws = jax.lax.optimization_barrier([jr.normal(k, s, dtype) for k, s in zip(keys, shapes)])
+    return tuple(scale * z for z in draws)
+
+
 class LTIController(eqx.Module):
     """A discrete-time LTI controller $K = (A, B, C, D)$ (paper §3).
 
@@ -90,7 +103,8 @@ class LTIController(eqx.Module):
                 raise ValueError(f"`{name}` must be a floating-point array, got {M.dtype}.")
         check_abcd(*mats)
         for name, M in zip(names, mats):
-            if _is_concrete(M) and not bool(jnp.all(jnp.isfinite(M))):
+            # numpy, not an eager jnp reduction: that would compile once per new shape
+            if _is_concrete(M) and not np.isfinite(np.asarray(M)).all():
                 raise ValueError(f"`{name}` contains NaN or inf.")
 
     @property
@@ -150,10 +164,8 @@ class LTIController(eqx.Module):
         """
         n, n_in, n_out = (check_int(name, d) for name, d in
                           (("n_state", n_state), ("n_in", n_in), ("n_out", n_out)))
-        dtype = dtype or jnp.result_type(float)
-        kA, kB, kC, kD = jr.split(key, 4)
-        shapes = ((n, n), (n, n_in), (n_out, n), (n_out, n_in))
-        return cls(*(scale * jr.normal(k, s, dtype) for k, s in zip((kA, kB, kC, kD), shapes)))
+        dtype = jnp.dtype(dtype or jnp.result_type(float))
+        return cls(*_random_matrices(key, jnp.asarray(scale, dtype), n, n_in, n_out, dtype))
 
     def to_statespace(self, dt=True):
         """Convert to discrete-time `control.StateSpace` systems (float64).

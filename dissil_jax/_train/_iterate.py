@@ -41,6 +41,7 @@ stopped lanes are frozen. A new trainer (e.g. a nonlinear controller) is one mor
 from __future__ import annotations
 
 import abc
+import functools
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -103,6 +104,11 @@ def terminate(loss, prev, loss0, ok, *, atol, rtol):
     return ~ok | (jnp.abs(loss - prev) < atol + rtol * jnp.abs(loss0))
 
 
+@eqx.filter_jit
+def _evaluate(method, pending):
+    return method.evaluate(pending)
+
+
 def iterate(method: Method, *, max_steps: int, atol, rtol, keep: str = "best"):
     """Run `method` for at most `max_steps` steps per lane (module docstring).
 
@@ -123,8 +129,11 @@ def iterate(method: Method, *, max_steps: int, atol, rtol, keep: str = "best"):
     """
     keep_best = keep == "best" and not method.keep_non_finite
     pending0, code0 = method.init()
+    # Jitted so that its trace, made here for the carry's shapes, is reused (not redone)
+    # inside the loop's body: one trace of the loss and its gradient, not two.
+    evaluate = functools.partial(_evaluate, method)
     zeros = lambda s: jnp.zeros(s.shape, s.dtype)
-    state_z, loss_z = jax.tree.map(zeros, jax.eval_shape(method.evaluate, pending0))
+    state_z, loss_z = jax.tree.map(zeros, jax.eval_shape(evaluate, pending0))
     lanes = loss_z.shape
     code0 = jnp.broadcast_to(jnp.asarray(code0, jnp.int32), lanes)  # a code, or one per lane
     int_z = jnp.zeros(lanes, jnp.int32)
@@ -180,7 +189,7 @@ def iterate(method: Method, *, max_steps: int, atol, rtol, keep: str = "best"):
         # in a `lax.cond`: under `vmap` (a swept hyperparameter) a batched predicate would
         # run it anyway. After the last step the update is made with no lane active (the
         # projection skips inactive lanes), and it is not evaluated.
-        state, loss = method.evaluate(c["pending"])
+        state, loss = evaluate(c["pending"])
         c = jax.lax.cond(c["k"] == 0, first, later, c, state, loss)
         active = ~c["done"] & (c["k"] < max_steps)
         pending, code = method.update(c["state"], active)
