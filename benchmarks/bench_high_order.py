@@ -24,7 +24,14 @@ random order-n̂ passive expert ("real.", length 10, which some controller fits 
    initial loss (median and worst), the share certified, and each trainer's median final
    loss over the best trainer's.
 
+5. **Plain GD's step** (`--gd`): `fit_gd` (8 initialisations, 150 steps, its defaults
+   otherwise) with Adam at the fixed 0.1 and at the two width rules 0.1 min(1, 9/w) and
+   0.1 min(1, sqrt(9/w)), w = n̂ + p: final over initial loss per run (median, worst) on
+   the chains (the tuning problems); `--gd --report` runs the realisable order-16 problem
+   (held out: the rule was chosen on the chains).
+
 Usage: python benchmarks/bench_high_order.py [--defaults] [--hang R] [--steps] [--order16]
+       [--gd [--report]]
 """
 
 import argparse
@@ -40,6 +47,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import jax.random as jr  # noqa: E402
 import numpy as np  # noqa: E402
+import optax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
@@ -210,6 +218,24 @@ def order16(seeds=(0, 1)):
                   f"{st:.0f} | {wall:.1f} | {med / best:.2f} |", flush=True)
 
 
+def gd_rule(report=False):
+    probs = ([("real.", s, 16) for s in (0, 1)] if report else
+             [("chain", s, n) for s in (0, 1) for n in (6, 12, 24, 48)])
+    rules = (("0.1", lambda w: 0.1), ("0.1 min(1, 9/w)", lambda w: 0.1 * min(1, 9 / w)),
+             ("0.1 min(1, sqrt(9/w))", lambda w: 0.1 * min(1, (9 / w) ** 0.5)))
+    print("| problem | n̂ | " + " | ".join(f"{name}: median, worst" for name, _ in rules) + " |")
+    print("|---|---:|" + "---:|" * len(rules))
+    for kind, seed, n in probs:
+        w = chain_windows(seed, n // 2) if kind == "chain" else realisable(seed, n)
+        cells = []
+        for _, rule in rules:
+            r = dj.fit_gd(jr.PRNGKey(seed + 1), w, optimizer=optax.adam(rule(n + w.n_in)),
+                          n_state=n, throw=False)
+            rel = np.asarray(r.final_loss) / np.asarray(r.loss_history)[:, 0]
+            cells.append(f"{np.median(rel):.3g}, {np.max(rel):.3g}")
+        print(f"| {kind} {seed} | {n} | " + " | ".join(cells) + " |", flush=True)
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--defaults", action="store_true")
@@ -217,7 +243,11 @@ if __name__ == "__main__":
     ap.add_argument("--lapack", action="store_true")
     ap.add_argument("--steps", action="store_true")
     ap.add_argument("--order16", action="store_true")
+    ap.add_argument("--gd", action="store_true")
+    ap.add_argument("--report", action="store_true")
     a = ap.parse_args()
+    if a.gd:
+        gd_rule(a.report)
     if a.order16:
         order16()
     if a.defaults:

@@ -41,13 +41,13 @@ from ._train.ico.sdp import ICOProblem
 from ._train.ico.solver import ICOSolver
 from ._train.ico.windows import stacked_factor
 from ._train.mlp import demonstration_pairs
-from ._train.steps import METRIC_FLOOR, optimizer_metric
+from ._train.steps import METRIC_FLOOR, gd_learning_rate, optimizer_metric
 from .experiments._paper import FIGURES, TABLES
 
 __all__ = [
     "ConvexifiedLMI", "FIGURES", "ICOProblem", "ICOSolver", "INIT_SCALE", "Iterate",
     "METRIC_FLOOR", "MapDescent", "Method", "TABLES", "certified", "certify_fast", "certify_sdp",
-    "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct",
+    "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct", "gd_learning_rate",
     "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "init_controllers", "iterate",
     "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",
     "optimizer_metric", "outcome", "pgd", "projection", "projection_admm", "projection_fo",

@@ -23,7 +23,12 @@ from ._init import init_controllers
 from ._iterate import RTOL, RTOL_UNCONSTRAINED, Method, iterate
 from ._scale import loss_scale, scaled
 from .result import FitResult, fit_timed, raise_if_failed
-from .steps import optimizer_metric, paper_rule
+from .steps import (
+    ADAM_LEARNING_RATE as ADAM_LEARNING_RATE,  # re-exported
+    default_rule,
+    optimizer_metric,
+    paper_rule,
+)
 
 _CONVERGED, _MAX_STEPS = _outcome.code("converged"), _outcome.code("max_steps")
 
@@ -126,30 +131,12 @@ _run_jit = eqx.filter_jit(_run)
 #: confirmed by the reproduction's own step-size sweeps (`docs/results/lr_sweep_*`).
 LEARNING_RATE, DECAY = 1.0, 0.99
 
-#: The default step of `fit_pgd`, `pgd_run` and `fit_gd` when none of `optimizer`,
-#: `learning_rate` and `decay` is given: Adam at this rate in the same normalised units (PGD
-#: projects in Adam's metric), chosen on the tuning half of `dissil_jax.experiments.zoo`
-#: (`benchmarks/bench_defaults.py`). For GD the paper's rule diverged in 138 of 144 runs;
-#: for PGD Adam had a worst regret of 1.07 on the tuning half against the paper rule's 74.
-ADAM_LEARNING_RATE = 0.1
-#: Their default initial scale, chosen there too: from N(0, 1) draws 150 Adam steps ended
-#: up to 80x (GD) and 9x (PGD) above the runs from N(0, 0.3^2); scales that shrink with the
+#: The default initial scale of `fit_pgd`, `pgd_run` and `fit_gd`, chosen on the zoo too:
+#: from N(0, 1) draws 150 Adam steps ended up to 80x (GD) and 9x (PGD) above the runs from N(0, 0.3^2); scales that shrink with the
 #: order and the window length, min(1, 1/sqrt(n)) and min(1, 1/sqrt(n (h - 1))), did worse
 #: than the constant (worst tuning regret 9.8 and 3.7 against 1.07).
 ADAM_INIT_SCALE = 0.3
 
-
-#: One instance, so that the compiled runs (the optimiser is a static argument) are reused
-#: across calls instead of retraced.
-_ADAM = optax.adam(ADAM_LEARNING_RATE)
-
-
-def default_rule(optimizer, learning_rate, decay):
-    """`optax.adam(ADAM_LEARNING_RATE)` when no step argument is given, else `optimizer`
-    (None: the paper's rule with the given `learning_rate`/`decay`)."""
-    if optimizer is None and learning_rate is None and decay is None:
-        return _ADAM
-    return optimizer
 
 
 def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, decay, atol,
@@ -201,8 +188,8 @@ def pgd_run(
     ```
     """
     optimizer, learning_rate, decay, n_state = _options(
-        windows, qsr, num_inits, max_steps, optimizer=default_rule(optimizer, learning_rate,
-                                                                   decay),
+        windows, qsr, num_inits, max_steps, optimizer=default_rule(
+            optimizer, learning_rate, decay, windows if qsr is None else None, n_state),
         learning_rate=learning_rate, decay=decay, atol=atol, rtol=rtol, init_scale=init_scale,
         n_state=n_state, method=method)
     res = _run(key, windows, qsr, learning_rate, decay, init_scale, optimizer=optimizer,
@@ -353,12 +340,15 @@ def fit_gd(
     """Plain gradient descent on the imitation loss: [`fit_pgd`][dissil_jax.fit_pgd] without $\\Pi$.
 
     The paper's unconstrained baseline; no stability guarantee (`P` and `certified` are
-    None). Same arguments and defaults as `fit_pgd`, the stopping rule's `rtol` (1e-7)
-    excepted; from N(0, 1) draws the GD runs of the zoo ended up to 80x higher than from
-    the default N(0, 0.3²), since nothing projects a wild first draw back. The default
-    step is `fit_pgd`'s, `optax.adam(ADAM_LEARNING_RATE)`
-    ($\\eta = 0.1$ in the normalised units). Adam moves each entry by about $\\eta$ per step
-    whatever the gradient's size, so a run cannot blow up within its step budget: with the
+    None). Same arguments and defaults as `fit_pgd`, except the stopping rule's `rtol`
+    (1e-7) and Adam's step for wide controllers; from N(0, 1) draws the GD runs of the zoo
+    ended up to 80x higher than from the default N(0, 0.3²), since nothing projects a wild
+    first draw back. The default step is Adam at $\\eta = 0.1\\min(1, 9/w)$ in the
+    normalised units, $w = \\hat n + p$ (`gd_learning_rate`): `fit_pgd`'s $\\eta = 0.1$ up
+    to $w = 9$ (the paper's sizes and every problem of the zoo), smaller for wider
+    controllers, where a step of 0.1 changes $A$ enough to leave the stable controllers
+    (at $\\hat n = 48$ it ended runs up to 1.4e4 times above their initial loss). Adam
+    moves each entry by about $\\eta$ per step whatever the gradient's size: with the
     paper's rule at $\\eta_0 = 1$, GD diverged on every problem of the zoo
     (`dissil_jax.experiments.zoo`, `benchmarks/bench_defaults.py`), where PGD's projection
     keeps the iterates bounded. `learning_rate` and `decay` are, as in `fit_pgd`, the
@@ -367,7 +357,8 @@ def fit_gd(
     `optimizer=optax.adam(step)`. With `throw=True` a diverging run (`non_finite`)
     raises.
     """
-    return _fit(key, windows, None, optimizer=default_rule(optimizer, learning_rate, decay),
+    return _fit(key, windows, None,
+                optimizer=default_rule(optimizer, learning_rate, decay, windows, n_state),
                 learning_rate=learning_rate, decay=decay, init_scale=init_scale,
                 num_inits=num_inits, n_state=n_state, max_steps=max_steps, atol=atol,
                 rtol=rtol, eps=0.0, throw=throw)
