@@ -12,8 +12,9 @@ For each output/input size m = p and each order n̂ it measures, in one process:
   gradients are microseconds beside it);
 - one ICO iteration (one initialisation): the median time between `dj.fit_ico`'s
   per-iteration callbacks (setup excluded);
-- one direct step (8 initialisations): `dj.fit_direct` with `max_steps=1050` minus `50`
-  (both compiled first), divided by the extra steps taken.
+- one direct step (8 initialisations): `dj.fit_direct` with `max_steps=10 + k` minus `10`
+  (both compiled first), divided by the extra steps taken; `k` (50 to 1,000) makes the
+  difference last about 20 s, from a first estimate with 30 against 10 steps.
 
 Windows: 100 two-step windows of a random stable order-n̂ expert; supply rate `QSR.passive(m)`.
 A path whose next cell, extrapolated from its previous two by a power law, would exceed
@@ -135,7 +136,11 @@ def cell(path, n, m, qsr, state):
         return t, (f"certified={bool(np.all(np.asarray(res.certified)))} "
                    f"{len(stamps) - 1} iterations")
     fit = lambda s: dj.fit_direct(key, w, qsr, max_steps=s, atol=0.0, rtol=0.0, throw=False)
-    t, total, res = _per_step(fit, 50, 1050)
+    # a first estimate from 10 against 30 steps sizes the measured difference to about
+    # 20 s (between 50 and 1,000 extra steps): 1,000 steps at n = 48 took minutes
+    guess, _, _ = _per_step(fit, 10, 30)
+    extra = 1000 if not guess else int(np.clip(20.0 / guess, 50, 1000))
+    t, total, res = _per_step(fit, 10, 10 + extra)
     if t is None:
         return None, f"no steps taken ({res.result_names()[0]})"
     return t, (f"certified={bool(np.all(np.asarray(res.certified)))} run {total:.1f} s, "

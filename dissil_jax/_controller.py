@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import functools
-
 import equinox as eqx
 import jax
 import jax.core
@@ -49,17 +47,6 @@ def _map_batch(fn, K: LTIController) -> np.ndarray:
     for idx in np.ndindex(*K.batch_shape):
         out[idx] = fn(*(M[idx] for M in mats))
     return out
-
-
-@functools.partial(jax.jit, static_argnums=(2, 3, 4, 5))
-def _random_matrices(key, scale, n, n_in, n_out, dtype):
-    """`LTIController.random`'s draws, compiled once per size (not once per matrix shape)."""
-    keys = jr.split(key, 4)
-    shapes = ((n, n), (n, n_in), (n_out, n), (n_out, n_in))
-    # The barrier keeps XLA from folding `scale` into the draw's own constants, so the
-    # entries are bit for bit those of the eager `scale * jr.normal(...)`.
-    draws = jax.lax.optimization_barrier([jr.normal(k, s, dtype) for k, s in zip(keys, shapes)])
-    return tuple(scale * z for z in draws)
 
 
 class LTIController(eqx.Module):
@@ -164,8 +151,10 @@ class LTIController(eqx.Module):
         """
         n, n_in, n_out = (check_int(name, d) for name, d in
                           (("n_state", n_state), ("n_in", n_in), ("n_out", n_out)))
-        dtype = jnp.dtype(dtype or jnp.result_type(float))
-        return cls(*_random_matrices(key, jnp.asarray(scale, dtype), n, n_in, n_out, dtype))
+        dtype = dtype or jnp.result_type(float)
+        kA, kB, kC, kD = jr.split(key, 4)
+        shapes = ((n, n), (n, n_in), (n_out, n), (n_out, n_in))
+        return cls(*(scale * jr.normal(k, s, dtype) for k, s in zip((kA, kB, kC, kD), shapes)))
 
     def to_statespace(self, dt=True):
         """Convert to discrete-time `control.StateSpace` systems (float64).

@@ -160,19 +160,15 @@ def test_gd_default_step_follows_the_width(getkey):
     from dissil_jax.internal import gd_learning_rate
     assert gd_learning_rate(6, 3) == 0.1 and gd_learning_rate(1, 1) == 0.1
     assert gd_learning_rate(16, 2) == pytest.approx(0.05)
+    # A width-14 controller (n = 13, p = 1): the default must be Adam at 0.1 * 9 / 14.
+    w, key = random_windows(getkey(), N=6, n=13), getkey()
     kw = dict(num_inits=2, max_steps=4, atol=0.0, rtol=0.0)
-    for n, rate in ((7, 0.1), (13, 0.1 * 9 / 14)):  # widths 8 and 14
-        w = random_windows(getkey(), N=6, n=n)
-        key = getkey()
-        default = dj.fit_gd(key, w, **kw)
-        same = dj.fit_gd(key, w, optimizer=optax.adam(rate), **kw)
-        other = dj.fit_gd(key, w, optimizer=optax.adam(0.1 if rate != 0.1 else 0.05), **kw)
-        run = dj.pgd_run(key, w, None, **kw)
-        np.testing.assert_array_equal(default.controllers.A, same.controllers.A)
-        # pgd_run is not compiled as one program here: the same arithmetic, fused
-        # differently (a few ulps over four steps)
-        np.testing.assert_allclose(run.controllers.A, same.controllers.A, rtol=1e-10)
-        assert not np.allclose(default.controllers.A, other.controllers.A)
+    default = dj.fit_gd(key, w, **kw)
+    same = dj.fit_gd(key, w, optimizer=optax.adam(0.1 * 9 / 14), **kw)
+    run = eqx.filter_jit(lambda: dj.pgd_run(key, w, None, throw=False, **kw))()
+    np.testing.assert_array_equal(default.controllers.A, same.controllers.A)
+    # pgd_run compiled as another program: the same arithmetic, fused differently
+    np.testing.assert_allclose(run.controllers.A, same.controllers.A, rtol=1e-10)
 
 
 def test_stop_reasons(getkey):
