@@ -132,11 +132,11 @@ _run_jit = eqx.filter_jit(_run)
 LEARNING_RATE, DECAY = 1.0, 0.99
 
 #: The default initial scale of `fit_pgd`, `pgd_run` and `fit_gd`, chosen on the zoo too:
-#: from N(0, 1) draws 150 Adam steps ended up to 80x (GD) and 9x (PGD) above the runs from N(0, 0.3^2); scales that shrink with the
-#: order and the window length, min(1, 1/sqrt(n)) and min(1, 1/sqrt(n (h - 1))), did worse
-#: than the constant (worst tuning regret 9.8 and 3.7 against 1.07).
+#: from N(0, 1) draws 150 Adam steps ended up to 80x (GD) and 9x (PGD) above the runs from
+#: N(0, 0.3^2); scales that shrink with the order and the window length, min(1, 1/sqrt(n))
+#: and min(1, 1/sqrt(n (h - 1))), did worse than the constant (worst tuning regret 9.8 and
+#: 3.7 against 1.07).
 ADAM_INIT_SCALE = 0.3
-
 
 
 def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, decay, atol,
