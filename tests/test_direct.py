@@ -52,7 +52,7 @@ def test_map_is_dissipative_with_its_margin_for_every_theta(getkey, name):
     _, Phi0 = dm.feedthrough_centre(qsr)
     for scale in (0.3, 1.0, 3.0):
         th = _random_theta(getkey(), 40, n, qsr, scale)
-        K, P = jax.vmap(lambda t: dm.direct_map(t, qsr))(th)
+        K, P = jax.jit(jax.vmap(lambda t: dm.direct_map(t, qsr)))(th)
         assert bool(np.all(certified(K.A, K.B, K.C, K.D, qsr, P)))
         M = dj.kyp_matrix(*(np.asarray(a, np.float64) for a in (K.A, K.B, K.C, K.D)), qsr,
                           np.asarray(P, np.float64))
@@ -70,7 +70,7 @@ def test_map_is_well_conditioned_near_q_zero():
     (-Q)^{-1} S = 5000 I at Q = -1e-4 I (the published maps' failure)."""
     passive = dj.QSR.passive(3)
     th = _random_theta(jr.PRNGKey(0), 8, 4, passive, 1.0)
-    K0, P0 = jax.vmap(lambda t: dm.direct_map(t, passive))(th)
+    K0, P0 = jax.jit(jax.vmap(lambda t: dm.direct_map(t, passive)))(th)
     D0_passive = dm.feedthrough_centre(passive)[0]
     np.testing.assert_allclose(D0_passive, I3, rtol=0.2)
     for delta in (1e-4, 1e-8):
@@ -78,7 +78,7 @@ def test_map_is_well_conditioned_near_q_zero():
         D0, Phi0, G_phi, T_u, N = dm._constants(qsr, dm.MARGIN)
         assert np.linalg.norm(D0, 2) < 2.0 and np.linalg.cond(Phi0) < 10
         assert np.linalg.norm(D0 - D0_passive) < 100 * delta
-        K, P = jax.vmap(lambda t: dm.direct_map(t, qsr))(th)
+        K, P = jax.jit(jax.vmap(lambda t: dm.direct_map(t, qsr)))(th)
         for a, b in zip(jax.tree.leaves((K, P)), jax.tree.leaves((K0, P0))):
             assert float(jnp.max(jnp.abs(a - b))) < 1e3 * delta * (1 + float(jnp.max(jnp.abs(b))))
 

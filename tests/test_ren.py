@@ -261,7 +261,7 @@ def test_a_non_dissipative_ren_is_rejected():
 def test_map_values_are_certified_for_every_q(name):
     qsr = SUPPLY_RATES[name]
     theta = rm.init_ren_params(jr.PRNGKey(2), 6, 2, 4, 2, 2, 1.0, jnp.float64)
-    K, P, lam = jax.vmap(lambda t: rm.ren_map(t, qsr, 4, "tanh", input_share=0.5))(theta)
+    K, P, lam = jax.jit(jax.vmap(lambda t: rm.ren_map(t, qsr, 4, "tanh", input_share=0.5)))(theta)
     cert = dj.certify_ren(K, qsr, P=P, multiplier=lam)
     assert cert.holds.all() and (np.asarray(lam) > 0).all()
     assert np.abs(np.asarray(K.D12)).min() > 0  # the neurons' direct input is in use
@@ -345,7 +345,8 @@ def test_failed_end_check_gets_an_sdp_certificate(monkeypatch):
 
 def test_input_share_zero_gives_no_direct_input():
     theta = rm.init_ren_params(jr.PRNGKey(7), 2, 1, 3, 2, 2, 1.0, jnp.float64)
-    K, P, lam = jax.vmap(lambda t: rm.ren_map(t, SUPPLY_RATES["passive"], 3, input_share=0.0))(
+    K, P, lam = jax.jit(jax.vmap(lambda t: rm.ren_map(t, SUPPLY_RATES["passive"], 3,
+                                                   input_share=0.0)))(
         theta)
     assert not np.asarray(K.D12).any()
     assert dj.certify_ren(K, SUPPLY_RATES["passive"], P=P, multiplier=lam).holds.all()
