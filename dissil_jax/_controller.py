@@ -10,7 +10,7 @@ import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ._validate import check_abcd, check_int
+from ._validate import check_abcd, check_int, has_non_finite
 
 
 def _is_concrete(x) -> bool:
@@ -90,8 +90,7 @@ class LTIController(eqx.Module):
                 raise ValueError(f"`{name}` must be a floating-point array, got {M.dtype}.")
         check_abcd(*mats)
         for name, M in zip(names, mats):
-            # numpy, not an eager jnp reduction: that would compile once per new shape
-            if _is_concrete(M) and not np.isfinite(np.asarray(M)).all():
+            if has_non_finite(M):
                 raise ValueError(f"`{name}` contains NaN or inf.")
 
     @property

@@ -2,7 +2,19 @@
 
 from __future__ import annotations
 
+import jax.core
 import numpy as np
+
+
+def has_non_finite(x) -> bool:
+    """True if concrete `x` has a NaN or inf entry; False for a tracer (it cannot be read).
+
+    In numpy: an eager `jnp.all(jnp.isfinite(x))` compiles a reduction for every new shape,
+    which made argument checks cost compilations.
+    """
+    if isinstance(x, jax.core.Tracer):
+        return False
+    return not np.isfinite(np.asarray(x)).all()
 
 
 def check_int(name: str, value, *, minimum: int = 1) -> int:

@@ -15,6 +15,7 @@ from jaxtyping import Array, Float
 from .._controller import LTIController
 from .._data import Windows
 from .._rollout import scan_outputs
+from .._validate import has_non_finite
 
 #: The activations known to be slope-restricted in $[0, 1]$ with $\sigma(0) = 0$.
 ACTIVATIONS: dict[str, Callable] = {"relu": jax.nn.relu, "tanh": jnp.tanh}
@@ -136,7 +137,7 @@ class RENController(eqx.Module):
                     f"{p} inputs (columns of B2) and {m} outputs (rows of C2) it must be "
                     f"{batch + expected[name]}.")
         for name, M in mats.items():
-            if not isinstance(M, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(M))):
+            if has_non_finite(M):
                 raise ValueError(f"`{name}` contains NaN or inf.")
         D11 = self.D11
         if not isinstance(D11, jax.core.Tracer) and q and bool(jnp.any(jnp.triu(D11) != 0)):

@@ -26,7 +26,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._controller import LTIController
 from .._linalg import solve
-from .._validate import check_int
+from .._validate import check_int, has_non_finite
 
 PLANT_NOISE = 0.04
 CONTROL_NOISE = 0.02
@@ -70,7 +70,7 @@ def _check_x0(x0, n_state: int) -> Array:
     if x0.ndim != 2 or x0.shape[1] != n_state:
         raise ValueError(f"`x0` must have shape [N, {n_state}] (one plant state per row), "
                          f"got {x0.shape}.")
-    if not bool(jnp.all(jnp.isfinite(x0))):
+    if has_non_finite(x0):
         raise ValueError("`x0` contains NaN or inf.")
     return x0
 
@@ -239,7 +239,7 @@ def _initial_controller_state(plant, controllers, x0, xhat0) -> Array:
     xhat0 = jnp.asarray(xhat0)
     if xhat0.ndim != 2 or xhat0.shape[0] != x0.shape[0]:
         raise ValueError(f"`xhat0` must have shape [{x0.shape[0]}, n̂], got {xhat0.shape}.")
-    if not bool(jnp.all(jnp.isfinite(xhat0))):
+    if has_non_finite(xhat0):
         raise ValueError("`xhat0` contains NaN or inf.")
     return xhat0
 

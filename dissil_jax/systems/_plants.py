@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import equinox as eqx
-import jax
-import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._validate import check_abcd
+from .._validate import check_abcd, has_non_finite
 
 
 def _matrix(name: str, value) -> Array:
@@ -20,7 +18,7 @@ def _matrix(name: str, value) -> Array:
         raise ValueError(f"`{name}` must be a matrix (or a scalar), got shape {arr.shape}.")
     if not jnp.issubdtype(arr.dtype, jnp.floating):
         arr = arr.astype(jnp.result_type(float))
-    if not isinstance(arr, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(arr))):
+    if has_non_finite(arr):
         raise ValueError(f"`{name}` contains NaN or inf.")
     return arr
 
@@ -119,7 +117,7 @@ class SectorPlant(_ABCDPlant):
         alpha = jnp.asarray(alpha, dtype=self.A.dtype)
         if alpha.ndim != 0:
             raise ValueError(f"`alpha` must be a scalar, got shape {alpha.shape}.")
-        if not isinstance(alpha, jax.core.Tracer) and not bool(jnp.isfinite(alpha)):
+        if has_non_finite(alpha):
             raise ValueError("`alpha` must be finite.")
         self.alpha = alpha
 
