@@ -3,18 +3,12 @@
 from __future__ import annotations
 
 import equinox as eqx
-import jax
-import jax.core
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from ._validate import check_abcd, check_int, has_non_finite
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
 
 
 def _collect_systems(sys) -> tuple[tuple[int, ...], list]:

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import equinox as eqx
-import jax
-import jax.core
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
+
+from ._validate import has_non_finite
 
 
 class Windows(eqx.Module):
@@ -98,7 +97,7 @@ class Windows(eqx.Module):
             raise ValueError("`Windows` needs at least one window of horizon at least 1.")
         for name in ("x0", "y", "u"):
             arr = getattr(self, name)
-            if arr is not None and not isinstance(arr, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(arr))):
+            if arr is not None and has_non_finite(arr):
                 raise ValueError(f"`{name}` contains NaN or inf; clean the demonstrations first.")
 
     @property
