@@ -3,7 +3,7 @@
 import jax.random as jr
 import numpy as np
 import pytest
-from helpers import ICO_TOL, dissipation_ok, index, through_solves
+from helpers import dissipation_ok, index, through_solves
 
 import dissil_jax as dj
 from dissil_jax.experiments import realisable_windows
@@ -52,10 +52,17 @@ def test_pgd_is_unit_free(c):
     _check_unit_free(dj.fit_pgd, c, through_solves(16), num_inits=3, max_steps=15)
 
 
+# ICO's path is far more sensitive than PGD's: its early SDPs are nearly flat at their optimum,
+# so a round-off change of the data (the scaling here, or XLA's compilation settings) moved
+# the loss at step 3 by up to 1.2e-2 relative and the controllers by up to 3e-3, far beyond
+# the solver's tolerance. A unit error is of another order: without the normalisation the
+# SDP at c = 1e4 is infeasible, and a loss in the wrong units is off by a factor c or c^2.
+ICO_PATH_RTOL = 5e-2
+
+
 @pytest.mark.parametrize("c", [1e-4, 1e4])
 def test_ico_is_unit_free(c):
-    _check_unit_free(dj.fit_ico, c, through_solves(1) + through_solves(6, ICO_TOL),
-                     num_inits=2, max_steps=6)
+    _check_unit_free(dj.fit_ico, c, ICO_PATH_RTOL, num_inits=2, max_steps=6)
 
 
 def test_ico_trains_on_data_scaled_by_1e6():
