@@ -35,34 +35,45 @@ def _certified(res, qsr=QSR):
         assert dissipation_ok(index(res.controllers, i), qsr, res.P[i])
 
 
-def _check_unit_free(fit, c, rtol, **kw):
-    """Same controllers for data scaled by c; losses reported in the user's units (c^2 J)."""
+def _check_unit_free(fit, c, rtol, path=True, **kw):
+    """Same controllers for data scaled by c; losses reported in the user's units (c^2 J).
+    `path=False`: of the loss history only the first entry and the final loss are compared."""
     ref = fit(jr.PRNGKey(0), _windows(1.0), QSR, atol=0.0, rtol=0.0, **kw)
     res = fit(jr.PRNGKey(0), _windows(c), QSR, atol=0.0, **kw)
     _same_controllers(res, ref, rtol)
-    np.testing.assert_allclose(res.loss_history, c**2 * ref.loss_history, rtol=rtol)
+    if path:
+        np.testing.assert_allclose(res.loss_history, c**2 * ref.loss_history, rtol=rtol)
+    else:
+        np.testing.assert_allclose(res.loss_history[:, 0], c**2 * ref.loss_history[:, 0],
+                                   rtol=through_solves(1))
+        np.testing.assert_allclose(res.final_loss, c**2 * ref.final_loss, rtol=rtol)
     _certified(res)
 
 
 # Scaled data are the same problem up to round-off, so the runs agree to the solvers'
 # tolerances compounded over their solves (helpers.through_solves): PGD's initial projection
-# and 15 steps (Clarabel, 1e-8), ICO's initial projection (1e-8) and 6 SDPs (1e-10).
+# and 15 steps (Clarabel, 1e-8).
 @pytest.mark.parametrize("c", [1e-4, 1e-2, 1e2, 1e4])
 def test_pgd_is_unit_free(c):
     _check_unit_free(dj.fit_pgd, c, through_solves(16), num_inits=3, max_steps=15)
 
 
-# ICO's path is far more sensitive than PGD's: its early SDPs are nearly flat at their optimum,
-# so a round-off change of the data (the scaling here, or XLA's compilation settings) moved
-# the loss at step 3 by up to 1.2e-2 relative and the controllers by up to 3e-3, far beyond
-# the solver's tolerance. A unit error is of another order: without the normalisation the
-# SDP at c = 1e4 is infeasible, and a loss in the wrong units is off by a factor c or c^2.
+# ICO's path is far more sensitive to round-off than PGD's. Its SDP leaves P nearly free
+# (P enters only through the LMI and the small margin term rho tr P), so the P it returns,
+# around which the next step is linearised, moves far more than the solver's tolerance, and
+# the next step with it. Measured (XLA's default settings): data scaled by 1 + 1e-12 moved
+# the loss at step 3 by 2.2e-2 relative, though the initial losses agreed to 4e-16 and a
+# solver tolerance of 1e-12 instead of 1e-10 changed nothing; the final (step-6) losses
+# agreed to 8e-4 and the controllers to 5e-3. So the initial loss is compared to the
+# initial projection's tolerance, and the final losses and controllers at 5e-2. A unit
+# error is of another order: without the normalisation the SDP at c = 1e4 is infeasible, and
+# a loss in the wrong units is off by a factor c or c^2.
 ICO_PATH_RTOL = 5e-2
 
 
 @pytest.mark.parametrize("c", [1e-4, 1e4])
 def test_ico_is_unit_free(c):
-    _check_unit_free(dj.fit_ico, c, ICO_PATH_RTOL, num_inits=2, max_steps=6)
+    _check_unit_free(dj.fit_ico, c, ICO_PATH_RTOL, path=False, num_inits=2, max_steps=6)
 
 
 def test_ico_trains_on_data_scaled_by_1e6():
