@@ -28,9 +28,10 @@ WITH_CACHE = cache=$$(mktemp -d) && trap 'rm -rf "$$cache"' EXIT && \
 # The suite compiles at XLA's cheapest settings (the CPU backend's older loop emitters, LLVM
 # at -O0): a training loop compiles about 3x faster and runs about 2x slower
 # (benchmarks/bench_test_xla.py), and the tests' arithmetic is small, so the suite takes half
-# the time (measured: 8 min 53 s -> 4 min 31 s). The semantics are XLA's either way; the rounding differs, which the tolerances allow
-# for. `test-kernels` runs the numerically tight tests at XLA's default settings, so that CI
-# covers both. (A setting of the test run only: the library sets no XLA configuration.)
+# the time (measured: 8 min 53 s -> 4 min 31 s). The semantics are XLA's either way; the
+# rounding differs, which the tolerances allow for. `test-kernels` runs the numerically tight
+# tests at XLA's default settings, so that CI covers both. (A setting of the test run only:
+# the library sets no XLA configuration.)
 FAST_XLA := --xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0
 
 test: $(STAMP)

@@ -31,7 +31,6 @@ def tree_allclose(a, b, rtol=1e-7, atol=1e-9):
 # listed in the issue note were checked to fail the tests that use these allowances.
 
 CLARABEL_TOL = 1e-8  # Clarabel's default tol_gap_abs/rel and tol_feas (the projection)
-ICO_TOL = 1e-10  # the ICO SDP's gap and feasibility tolerances
 
 
 def through_solves(k: int, tol: float = CLARABEL_TOL) -> float:
