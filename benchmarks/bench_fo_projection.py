@@ -10,10 +10,18 @@ loss relative to Clarabel's, the share of iterates the exact float64 check certi
 the mean number of ADMM iterations per projection (the first-order run warm-starts each
 step's ADMM from the previous step's state).
 
+`--against-default`: instead, `pgd_run` with all its defaults (Adam with its metric, so
+Clarabel projections) against the paper's rule (`learning_rate=1.0`, Frobenius, so
+`method="auto"` takes the first-order path from `AUTO_MIN_ORDER` on), on the chains of
+`--seeds`: seconds per step, its ratio, and the median and worst final/initial loss of each.
+
 Usage: python benchmarks/bench_fo_projection.py [--steps 10] [--orders 6,12,24]
+       python benchmarks/bench_fo_projection.py --against-default [--steps 150] [--orders 12]
+              [--seeds 0,1]
 """
 
 import argparse
+import itertools
 import os
 import sys
 import time
@@ -33,10 +41,11 @@ import dissil_jax as dj  # noqa: E402
 from dissil_jax.internal import projection_fo as _projection_fo  # noqa: E402
 
 
-def run(windows, method, steps):
+def run(windows, method, steps, **step_rule):
+    step_rule = step_rule or {"learning_rate": 1.0}
     fn = jax.jit(lambda key: dj.pgd_run(key, windows, PASSIVE, num_inits=8, max_steps=steps,
-                                        learning_rate=1.0, atol=0.0, rtol=0.0, throw=False,
-                                        method=method))
+                                        atol=0.0, rtol=0.0, throw=False, method=method,
+                                        **step_rule))
     jax.block_until_ready(fn(jr.PRNGKey(0)))
     before = dict(_projection_fo.FALLBACKS)
     t = time.perf_counter()
@@ -65,9 +74,30 @@ def main(steps, orders):
               flush=True)
 
 
+def against_default(steps, orders, seeds):
+    print("| n̂ | chain seed | default (s/step) | paper rule (s/step) | speed-up | default: median "
+          "(worst) final/initial | paper rule: median (worst) | certified (default, paper) |")
+    print("|---|---|---|---|---|---|---|---|")
+    for n, seed in itertools.product(orders, seeds):
+        w = chain_windows(seed, n // 2)
+        rd, td, _ = run(w, "auto", steps, optimizer=None, learning_rate=None)
+        rp, tp, _ = run(w, "auto", steps)
+        rel = [np.asarray(r.final_loss) / np.asarray(r.loss_history)[:, 0] for r in (rd, rp)]
+        cells = [f"{np.median(r):.2g} ({np.max(r):.2g})" for r in rel]
+        cert = [f"{np.mean(np.asarray(r.certified)):.0%}" for r in (rd, rp)]
+        print(f"| {n} | {seed} | {td:.3f} | {tp:.3f} | {td / tp:.1f}x | {cells[0]} | {cells[1]} "
+              f"| {cert[0]}, {cert[1]} |", flush=True)
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--orders", default="6,12,24")
+    ap.add_argument("--against-default", action="store_true")
+    ap.add_argument("--seeds", default="0,1")
     a = ap.parse_args()
-    main(a.steps, [int(x) for x in a.orders.split(",")])
+    orders = [int(x) for x in a.orders.split(",")]
+    if a.against_default:
+        against_default(a.steps, orders, [int(x) for x in a.seeds.split(",")])
+    else:
+        main(a.steps, orders)
