@@ -41,11 +41,11 @@ import dissil_jax as dj  # noqa: E402
 from dissil_jax.internal import projection_fo as _projection_fo  # noqa: E402
 
 
-def run(windows, method, steps, **step_rule):
-    step_rule = step_rule or {"learning_rate": 1.0}
+def run(windows, method, steps, learning_rate=1.0):
+    """PGD with the paper's rule at `learning_rate` (None: `pgd_run`'s default step)."""
     fn = jax.jit(lambda key: dj.pgd_run(key, windows, PASSIVE, num_inits=8, max_steps=steps,
-                                        atol=0.0, rtol=0.0, throw=False, method=method,
-                                        **step_rule))
+                                        learning_rate=learning_rate, atol=0.0, rtol=0.0,
+                                        throw=False, method=method))
     jax.block_until_ready(fn(jr.PRNGKey(0)))
     before = dict(_projection_fo.FALLBACKS)
     t = time.perf_counter()
@@ -80,7 +80,7 @@ def against_default(steps, orders, seeds):
     print("|---|---|---|---|---|---|---|---|")
     for n, seed in itertools.product(orders, seeds):
         w = chain_windows(seed, n // 2)
-        rd, td, _ = run(w, "auto", steps, optimizer=None, learning_rate=None)
+        rd, td, _ = run(w, "auto", steps, learning_rate=None)
         rp, tp, _ = run(w, "auto", steps)
         rel = [np.asarray(r.final_loss) / np.asarray(r.loss_history)[:, 0] for r in (rd, rp)]
         cells = [f"{np.median(r):.2g} ({np.max(r):.2g})" for r in rel]

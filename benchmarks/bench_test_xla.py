@@ -14,15 +14,15 @@ Usage: python benchmarks/bench_test_xla.py [--rounds 3]
 import argparse
 import json
 import os
+import pathlib
 import subprocess
 import sys
 
-SETTINGS = {
-    "default": "",
-    "old emitters": "--xla_cpu_use_fusion_emitters=false",
-    "-O0": "--xla_backend_optimization_level=0",
-    "FAST_XLA (both)": "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0",
-}
+# The flags as `make test` sets them (the Makefile's `FAST_XLA := ...`), and each alone.
+_MAKEFILE = pathlib.Path(__file__).resolve().parents[1] / "Makefile"
+FAST_XLA = next(line.split(":=", 1)[1].strip() for line in _MAKEFILE.read_text().splitlines()
+                if line.startswith("FAST_XLA :="))
+SETTINGS = {"default": "", **{flag: flag for flag in FAST_XLA.split()}, "FAST_XLA": FAST_XLA}
 
 CHILD = """
 import json, time
