@@ -55,14 +55,14 @@ def run(windows, method, steps, learning_rate=1.0):
     return res, per_step, diff
 
 
-def main(steps, orders):
+def main(steps, orders, learning_rate=1.0):
     print("| n̂ | Clarabel (s/step) | first-order (s/step) | speed-up | loss FO / Clarabel "
           "| certified (FO, Clarabel) | rows to Clarabel | ADMM iterations / projection |")
     print("|---|---|---|---|---|---|---|---|")
     for n in orders:
         w = chain_windows(0, n // 2)
-        rc, tc, _ = run(w, "clarabel", steps)
-        rf, tf, fb = run(w, "first_order", steps)
+        rc, tc, _ = run(w, "clarabel", steps, learning_rate)
+        rf, tf, fb = run(w, "first_order", steps, learning_rate)
         ratio = float(np.median(rf.final_loss) / np.median(rc.final_loss))
         cert = (np.mean(np.asarray(rf.certified)), np.mean(np.asarray(rc.certified)))
         its = fb["iterations"] / max(fb["projections"], 1)
@@ -95,9 +95,11 @@ if __name__ == "__main__":
     ap.add_argument("--orders", default="6,12,24")
     ap.add_argument("--against-default", action="store_true")
     ap.add_argument("--seeds", default="0,1")
+    ap.add_argument("--adam", action="store_true",
+                    help="PGD's default step (Adam, projected in its metric) for both methods")
     a = ap.parse_args()
     orders = [int(x) for x in a.orders.split(",")]
     if a.against_default:
         against_default(a.steps, orders, [int(x) for x in a.seeds.split(",")])
     else:
-        main(a.steps, orders)
+        main(a.steps, orders, None if a.adam else 1.0)

@@ -10,6 +10,10 @@ For each output/input size m = p and each order n̂ it measures, in one process:
 - one PGD step (8 initialisations): its host half, the 8 iterates projected at their own
   `P` in one batched `jax.jit(jax.vmap(dj.project))` call (compiled before timing; the
   gradients are microseconds beside it);
+- one PGD step with `fit_pgd`'s defaults (`pgd_default`, 8 initialisations): projected
+  Adam, whose projections `method="auto"` gives to the first-order path from n̂ = 12 on,
+  warm-started across steps; `max_steps=6` minus `max_steps=2` (both compiled first),
+  divided by the extra steps taken;
 - one ICO iteration (one initialisation): the median time between `dj.fit_ico`'s
   per-iteration callbacks (setup excluded);
 - one direct step (8 initialisations): `dj.fit_direct` with `max_steps=10 + k` minus `10`
@@ -23,7 +27,7 @@ exponents t ~ n̂^k fitted on n̂ >= 8 (least squares in log-log), beside the ex
 and of the nonzeros.
 
 Usage: python benchmarks/bench_scaling.py [--quick] [--budget SECONDS] [--sizes 2 4 ...]
-       [--io 1 2 4] [--paths project certify pgd ico direct]
+       [--io 1 2 4] [--paths project certify pgd pgd_default ico direct]
 """
 
 import argparse
@@ -45,7 +49,7 @@ from dissil_jax.internal import (  # noqa: E402
     projection as _projection,
 )
 
-PATHS = ("project", "certify", "certify_sdp", "pgd", "ico", "direct")
+PATHS = ("project", "certify", "certify_sdp", "pgd", "pgd_default", "ico", "direct")
 ICO_MAX_N = 24  # ICO's documented range
 
 
@@ -124,6 +128,13 @@ def cell(path, n, m, qsr, state):
         t, out = _timed(lambda: proj(target, P0))
         ok = bool(np.all(np.asarray(dj.certify(out[0], qsr, P=out[1]).holds)))
         return t, f"8 projections at P_ref, certified={ok}"
+    if path == "pgd_default":
+        fit = lambda s: dj.fit_pgd(key, w, qsr, max_steps=s, atol=0.0, rtol=0.0, throw=False)
+        t, total, res = _per_step(fit, 2, 6)
+        if t is None:
+            return None, f"no steps taken ({res.result_names()[0]})"
+        return t, (f"certified={bool(np.all(np.asarray(res.certified)))} run {total:.1f} s, "
+                   f"{_steps(res)} steps")
     if path == "ico":
         if n > ICO_MAX_N:
             return None, f"ICO beyond n̂ = {ICO_MAX_N} not measured"

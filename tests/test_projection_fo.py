@@ -26,9 +26,18 @@ def _batch(key, num, n=3):
         jr.split(key, num))
 
 
-def _dist(K, T):
-    return sum(float(jnp.sum((a - b) ** 2)) for a, b in zip(jax.tree.leaves(K),
-                                                              jax.tree.leaves(T)))
+def _dist(K, T, W=None):
+    W = jax.tree.map(jnp.ones_like, K) if W is None else W
+    return sum(float(jnp.sum(w * (a - b) ** 2)) for a, b, w in
+               zip(jax.tree.leaves(K), jax.tree.leaves(T), jax.tree.leaves(W)))
+
+
+def _metric(key, K, spread=2.0):
+    """Positive per-entry weights over about e^(+-2 spread): Adam's sqrt(nu) spans decades."""
+    leaves, tree = jax.tree.flatten(K)
+    keys = jr.split(key, len(leaves))
+    return jax.tree.unflatten(tree, [jnp.exp(spread * jr.normal(k, a.shape))
+                                     for k, a in zip(keys, leaves)])
 
 
 @pytest.mark.parametrize("name", RATES)
@@ -79,12 +88,15 @@ def test_first_order_agrees_with_clarabel_and_is_certified(getkey, monkeypatch, 
         assert abs(da - db) <= 1e-3 * db + 1e-9
 
 
-def test_vmapped_equals_a_python_loop(getkey):
+@pytest.mark.parametrize("weighted", [False, True])
+def test_vmapped_equals_a_python_loop(getkey, weighted):
     qsr, K = RATES["strict"], _batch(getkey(), 3)
+    W = _metric(getkey(), K) if weighted else None
     P_ref = jnp.broadcast_to(jnp.eye(3), (3, 3, 3))
-    batched = dj.project(K, qsr, P_ref, method="first_order")
+    batched = dj.project(K, qsr, P_ref, method="first_order", metric=W)
     for i in range(3):
-        one = dj.project(index(K, i), qsr, jnp.eye(3), method="first_order")
+        one = dj.project(index(K, i), qsr, jnp.eye(3), method="first_order",
+                         metric=None if W is None else index(W, i))
         # A batched while_loop freezes converged rows, so each row runs the same
         # iterations as alone; only the summation order of batched products differs.
         for x, y in zip(jax.tree.leaves(index(batched.controller, i)),
@@ -92,14 +104,16 @@ def test_vmapped_equals_a_python_loop(getkey):
             np.testing.assert_allclose(x, y, atol=1e-9)
 
 
-def test_fallback_to_clarabel_when_the_budget_is_too_small(getkey, monkeypatch):
+@pytest.mark.parametrize("weighted", [False, True])
+def test_fallback_to_clarabel_when_the_budget_is_too_small(getkey, monkeypatch, weighted):
     qsr, K = RATES["passive"], _batch(getkey(), 2)
+    W = _metric(getkey(), K) if weighted else None  # the fallback projects in it too
     monkeypatch.setattr(fo, "MAX_ITER_FO", 1)  # one ADMM step: far from feasible
     # and no repair towards the static point (as for a supply rate without one)
     monkeypatch.setattr(admm, "static_point", lambda qsr: (np.zeros((2, 2)), -1.0))
     fo.FALLBACKS["rows"] = 0
-    a = dj.project(K, qsr, method="first_order")
-    b = dj.project(K, qsr, method="clarabel")
+    a = dj.project(K, qsr, method="first_order", metric=W)
+    b = dj.project(K, qsr, method="clarabel", metric=W)
     assert fo.FALLBACKS["rows"] == 2
     assert bool(np.all(a.result == b.result))
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):  # Clarabel's own answer
@@ -112,11 +126,9 @@ def test_method_argument(getkey):
     K = _batch(getkey(), 1)
     with pytest.raises(ValueError, match="`method`"):
         dj.project(K, RATES["passive"], method="admm")
-    with pytest.raises(ValueError, match="`method='first_order'`"):
-        dj.project(K, RATES["passive"], method="first_order",
-                   metric=jax.tree.map(jnp.ones_like, K))
     assert not fo.use_first_order("auto", K, None, RATES["passive"])  # n = 3: Clarabel
     assert fo.use_first_order("first_order", K, None, RATES["passive"])
+    assert fo.use_first_order("first_order", K, K, RATES["passive"])  # with a metric too
     # an indefinite Q (here Q = 0.5 I > 0) needs the linearisation only Clarabel's path has
     indefinite = dj.QSR(0.5 * np.eye(2), 0.5 * np.eye(2), -2.0 * np.eye(2))
     assert not fo.use_first_order("auto", K, None, indefinite)
@@ -130,14 +142,12 @@ def test_pgd_with_the_first_order_projection(getkey):
 
     w = expert_windows(0, 2, 1, 1)
     qsr = dj.QSR.passive(1)
-    res = dj.fit_pgd(getkey(), w, qsr, num_inits=3, max_steps=5, atol=0.0, rtol=0.0,
-                     learning_rate=1.0, method="first_order")  # the paper's rule
-    # the default step, projected Adam, needs its metric: refused up front, with the fix
-    with pytest.raises(ValueError, match="`method='first_order'`.*paper's rule"):
-        dj.fit_pgd(getkey(), w, qsr, num_inits=3, max_steps=5, method="first_order")
-    assert bool(res.certified.all())
-    for i in range(3):
-        assert dissipation_ok(index(res.controllers, i), qsr, res.P[i])
+    for kw in (dict(learning_rate=1.0), {}):  # the paper's rule; Adam, in its metric
+        res = dj.fit_pgd(getkey(), w, qsr, num_inits=3, max_steps=5, atol=0.0, rtol=0.0,
+                         method="first_order", **kw)
+        assert bool(res.certified.all())
+        for i in range(3):
+            assert dissipation_ok(index(res.controllers, i), qsr, res.P[i])
 
 
 def test_psd_part_resolves_small_eigenvalues(getkey):
@@ -158,26 +168,35 @@ def _kappa_ref(key, n, cond):
     return jnp.asarray((Q * np.logspace(0, np.log10(cond), n)) @ Q.T / cond)
 
 
+@pytest.mark.parametrize("weighted", [False, True])
 @pytest.mark.parametrize("name", RATES)
-def test_ill_conditioned_reference_agrees_with_clarabel(getkey, monkeypatch, name):
+def test_ill_conditioned_reference_agrees_with_clarabel(getkey, monkeypatch, name, weighted):
     # The congruence by P~^{-1/2} keeps ADMM's work independent of cond(P~). With a tight
     # tolerance (1e-7 relative) and the scaled slack 1e-6 the solution is Clarabel's to the
-    # sensitivity of the projection to these (O(1) here): 1e-3 on the distance.
+    # sensitivity of the projection to these (O(1) here): 1e-3 on the distance. With a
+    # metric (weights over e^+-4, the consensus block) the distance is the weighted one.
     monkeypatch.setattr(fo, "TOL_FO", 1e-7)
     monkeypatch.setattr(fo, "MARGIN_FO", 1e-6)
     monkeypatch.setattr(fo, "MAX_ITER_FO", 20000)
     qsr, n = RATES[name], 4
     K = _batch(getkey(), 2, n)
+    W = _metric(getkey(), K) if weighted else None
     P_ref = jnp.stack([_kappa_ref(getkey(), n, 1e3) for _ in range(2)])
     fo.FALLBACKS["rows"] = 0
-    a = dj.project(K, qsr, P_ref, method="first_order", throw=False)
-    b = dj.project(K, qsr, P_ref, method="clarabel", throw=False)
+    a = dj.project(K, qsr, P_ref, method="first_order", throw=False, metric=W)
+    b = dj.project(K, qsr, P_ref, method="clarabel", throw=False, metric=W)
     assert fo.FALLBACKS["rows"] == 0
     for i in range(2):
-        Ki = index(K, i)
+        Ki, Wi = index(K, i), None if W is None else index(W, i)
         assert dissipation_ok(index(a.controller, i), qsr, a.P[i])
-        da, db = _dist(index(a.controller, i), Ki), _dist(index(b.controller, i), Ki)
+        da, db = (_dist(index(r.controller, i), Ki, Wi) for r in (a, b))
         assert abs(da - db) <= 1e-3 * db + 1e-9
+    if weighted:  # and the metric matters: the Frobenius projection is far in it
+        c = dj.project(K, qsr, P_ref, method="first_order", throw=False)
+        for i in range(2):
+            Ki, Wi = index(K, i), index(W, i)
+            assert _dist(index(c.controller, i), Ki, Wi) > 1.2 * _dist(index(a.controller, i),
+                                                                      Ki, Wi)
 
 
 def test_repair_reaches_the_constraint(getkey):
@@ -209,32 +228,35 @@ def test_conditioning_bound_holds(getkey):
         assert np.linalg.eigvalsh(P).min() >= (projection_mod.P_FLOOR - 1e-3) * mean
 
 
-def test_warm_start_from_the_solution_state(getkey):
+@pytest.mark.parametrize("weighted", [False, True])
+def test_warm_start_from_the_solution_state(getkey, weighted):
     # A second solve of the same problem from the first one's final ADMM state starts at its
     # fixed point: it stops within a few iterations (the penalty adaptation's period) and
-    # returns the same projection to the tolerance.
+    # returns the same projection to the tolerance. With a metric the state holds the
+    # consensus block too (the cold one starts it at the target).
     qsr, n = RATES["passive"], 4
     K = _batch(getkey(), 3, n)
+    W = _metric(getkey(), K) if weighted else None
     P_ref = jnp.stack([_kappa_ref(getkey(), n, 1e2) for _ in range(3)])
-    cold = jax.tree.map(lambda a: jnp.broadcast_to(a, (3,) + a.shape),
-                        fo.cold_state(n, qsr, K.A.dtype))
+    cold = jax.vmap(lambda K: fo.cold_state(n, qsr, K.A.dtype,
+                                            (K.A, K.B, K.C, K.D) if weighted else None))(K)
     warm_fn = projection_mod.project_first_order_warm
     active = jnp.ones(3, bool)
     before = fo.FALLBACKS["iterations"]
-    a, state = warm_fn(K, qsr, P_ref, cold, active=active, eps=1e-6)
+    a, state = warm_fn(K, qsr, P_ref, cold, active=active, eps=1e-6, metric=W)
     first = fo.FALLBACKS["iterations"] - before
     before = fo.FALLBACKS["iterations"]
-    b, _ = warm_fn(K, qsr, P_ref, state, active=active, eps=1e-6)
+    b, _ = warm_fn(K, qsr, P_ref, state, active=active, eps=1e-6, metric=W)
     second = fo.FALLBACKS["iterations"] - before
     assert second <= 3 * admm.ADAPT_EVERY < first
     for i in range(3):
         assert dissipation_ok(index(b.controller, i), qsr, b.P[i])
         # both stop at residuals 1e-4 |Mhat|; the distance moves by that relative amount
-        da, db = _dist(index(a.controller, i), index(K, i)), _dist(index(b.controller, i),
-                                                                   index(K, i))
+        Wi = None if W is None else index(W, i)
+        da, db = (_dist(index(r.controller, i), index(K, i), Wi) for r in (a, b))
         assert abs(da - db) <= 1e-3 * da + 1e-9
     # the cold call through `project` is the same computation as the first one
-    c = dj.project(K, qsr, P_ref, method="first_order")
+    c = dj.project(K, qsr, P_ref, method="first_order", metric=W)
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(c)):
         np.testing.assert_allclose(x, y, atol=1e-12)
 
@@ -260,7 +282,12 @@ def test_auto_follows_the_measured_order(getkey, monkeypatch):
     assert lo is not None and lo > 6  # the paper's sizes (1, 6) keep Clarabel
     assert fo.use_first_order("auto", at(lo), None, qsr)
     assert not fo.use_first_order("auto", at(lo - 1), None, qsr)
-    metric = jax.tree.map(jnp.ones_like, at(lo))
-    assert not fo.use_first_order("auto", at(lo), metric, qsr)  # a metric: Clarabel
+    lo_w = fo.AUTO_MIN_ORDER_METRIC  # with a metric (projected Adam's)
+    assert lo_w is not None and lo_w > 6
+    metric = jax.tree.map(jnp.ones_like, at(lo_w))
+    assert fo.use_first_order("auto", at(lo_w), metric, qsr)
+    assert not fo.use_first_order("auto", at(lo_w - 1), metric, qsr)
     monkeypatch.setattr(fo, "AUTO_MIN_ORDER", None)
     assert not fo.use_first_order("auto", at(lo), None, qsr)
+    monkeypatch.setattr(fo, "AUTO_MIN_ORDER_METRIC", None)
+    assert not fo.use_first_order("auto", at(lo_w), metric, qsr)

@@ -64,18 +64,26 @@ def _frame(V, n, N):
     return R.at[:n, :n].set(V).at[N - n:, N - n:].set(V)
 
 
-def cold_state(n: int, qsr: QSR, dtype):
-    """The ADMM state of a cold start: $Z = U = Z_2 = U_2 = 0$, $\\rho$ = `RHO_FO`."""
+def cold_state(n: int, qsr: QSR, dtype, target=None):
+    """The ADMM state of a cold start: $Z = U = Z_2 = U_2 = 0$, $\\rho$ = `RHO_FO`; with a
+    metric, also the consensus block's $Y$ = `target` ($(A, B, C, D)$) and $U_Y = 0$."""
     *_, N = _admm.sizes(qsr, n)
     zero, zero2 = jnp.zeros((N, N), dtype), jnp.zeros((n, n), dtype)
-    return zero, zero, zero2, zero2, jnp.asarray(RHO_FO, dtype)
+    cold = (zero, zero, zero2, zero2, jnp.asarray(RHO_FO, dtype))
+    if target is None:
+        return cold
+    Y = tuple(jnp.asarray(M, dtype) for M in target)
+    return cold + ((Y, tuple(jnp.zeros_like(M) for M in Y)),)
 
 
 def admm_round(target, P_tilde, qsr: QSR, state, *, eps, margin, reg, tol, max_iter,
-               floor=0.0):
+               floor=0.0, weights=None):
     """One ADMM solve of the projection at $\\tilde P$ (unbatched; vmap for batches), from
     `state = (Z, U, Z2, U2, rho)` given in the original basis (a previous solve's, or
     `cold_state`); `floor`: the conditioning bound's coefficient (`project`'s `P_FLOOR`).
+    `weights`: the metric's per-entry weights of $(A, B, C, D)$ (largest 1), or None for
+    the Frobenius distance; with them `state` also holds the consensus block
+    (`admm.solve`'s `metric`).
 
     **Returns:** `((A, B, C, D, P), state, iterations)`.
     """
@@ -87,21 +95,22 @@ def admm_round(target, P_tilde, qsr: QSR, state, *, eps, margin, reg, tol, max_i
     V = jnp.where(usable, V, jnp.eye(n, dtype=V.dtype))
     # c: project's constraint M <= -eps I as Mhat <= -eps T^2; ADMM aims at c + margin I
     # (a slack relative to the scaled LMI, whose identity blocks are O(1)).
-    tgt, weights, c = _admm.scale(target, lam, V, eps, reg, qsr)
+    tgt, scaled_weights, c = _admm.scale(target, lam, V, eps, reg, qsr)
     R = _frame(V, n, N)
-    Z, U, Z2, U2, rho = state
+    Z, U, Z2, U2, rho, *cons = state
     # Without a strictly dissipative static gain (`repair`) the iterate itself must be
     # feasible: Mhat = -c - margin I - Z + E with Z >= 0 satisfies Mhat <= -c once the
     # primal residual |E|_F is below the slack margin.
     can_repair = _admm.static_point(qsr)[1] > 0
     feas = jnp.inf if can_repair else 0.5 * margin
-    x, (Z, U, Z2, U2, rho), it, _ = _admm.solve(
-        tgt, weights, c + margin, qsr, tol=tol, feas=feas,
+    x, (Z, U, Z2, U2, rho, *cons), it, _ = _admm.solve(
+        tgt, scaled_weights, c + margin, qsr, tol=tol, feas=feas,
         max_iter=jnp.where(usable, max_iter, 0), floor=floor if n > 1 else 0.0, lam=lam,
-        state=(R.T @ Z @ R, R.T @ U @ R, V.T @ Z2 @ V, V.T @ U2 @ V, rho))
+        state=(R.T @ Z @ R, R.T @ U @ R, V.T @ Z2 @ V, V.T @ U2 @ V, rho, *cons),
+        metric=None if weights is None else (target, weights, V))
     if can_repair:  # to project's own constraint; ADMM aimed beyond it, so t is ~0 mostly
         x, _ = _admm.repair(x, c, qsr)
-    state = (R @ Z @ R.T, R @ U @ R.T, V @ Z2 @ V.T, V @ U2 @ V.T, rho)
+    state = (R @ Z @ R.T, R @ U @ R.T, V @ Z2 @ V.T, V @ U2 @ V.T, rho, *cons)
     return _admm.unscale(x, lam, V), state, it
 
 
@@ -114,8 +123,8 @@ MARGIN_FO, TOL_FO, MAX_ITER_FO, RHO_FO = 1e-4, 1e-4, 5000, 0.1
 _SKIPPED, _UNCHANGED, _SOLVED = (_outcome.code(n) for n in ("skipped", "unchanged", "solved"))
 
 
-def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, active, shard, iters, *, qsr, has_ref, eps,
-                reg, refine, shards, fallback):
+def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, WA, WB, WC, WD, active, shard, iters, *,
+                qsr, has_ref, eps, reg, refine, shards, fallback):
     """pure_callback target: the exact float64 check of the ADMM results, Clarabel for the
     rows that fail it (`fallback`, `_projection._host_batch`), codes as `project`'s."""
     dtype = np.asarray(A).dtype
@@ -124,6 +133,7 @@ def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, active, shard, iters, *, q
     sol = [flat(M) for M in (A, B, C, D, P)]
     tgt = [flat(M) for M in (tA, tB, tC, tD)]
     ref = flat(P_ref)
+    weights = [flat(M) for M in (WA, WB, WC, WD)]
     act = np.asarray(active).reshape(-1)
     with _FALLBACK_LOCK:
         FALLBACKS["projections"] += int(np.sum(act))
@@ -148,10 +158,10 @@ def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, active, shard, iters, *, q
         _certify_fast.remember(rA[ok], rB[ok], rC[ok], rD[ok], qsr, rP[ok])
         bad = todo[~ok]
         if len(bad):
-            ones = [np.ones_like(t[bad]) for t in tgt]
             # C0, D0: the linearisation point of an indefinite Q, which this path refuses
             res = fallback(
-                *(t[bad] for t in tgt), ref[bad], *ones, np.ones(len(bad), bool),
+                *(t[bad] for t in tgt), ref[bad], *(w[bad] for w in weights),
+                np.ones(len(bad), bool),
                 tgt[2][bad], tgt[3][bad], np.zeros(len(bad), np.int32), qsr=qsr,
                 has_ref=has_ref, eps=eps, reg=reg, refine=refine, shards=shards)
             for o, M in zip(out, res[:5]):
@@ -170,12 +180,13 @@ _FALLBACK_LOCK = __import__("threading").Lock()
 
 
 def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, fallback,
-                margin=None, tol=None, max_iter=None, state=None, floor=0.0):
+                margin=None, tol=None, max_iter=None, state=None, floor=0.0, weighted=False):
     """The unbatched first-order projection (vmap for batches): ADMM at $\\tilde P$ =
     `P_ref`, or from $\\tilde P = I$ with `refine` re-linearisations, then one
-    `pure_callback` for the exact check (and the Clarabel fallback). `W` (the metric's
-    weights, all ones: `use_first_order` admits no metric) and `K_ref` (the linearisation
-    point of an indefinite $Q$, which `use_first_order` refuses) keep `project`'s signature;
+    `pure_callback` for the exact check (and the Clarabel fallback). `W`: the metric's
+    weights (`LTIController`), used when `weighted` (static; else the distance is
+    Frobenius and `W` only reaches the fallback). `K_ref` (the linearisation
+    point of an indefinite $Q$, which `use_first_order` refuses) keeps `project`'s signature;
     `fallback` is the Clarabel batch solve (`_projection._host_batch`, passed in so that
     this module does not import the one that dispatches to it). `state`: the ADMM state to
     start from (a previous projection's, e.g. the previous PGD step's), or None for a cold
@@ -191,14 +202,20 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, fallb
     has_ref = P_ref is not None
     P_ref = jnp.asarray(P_ref, dtype) if has_ref else jnp.eye(n, dtype=dtype)
     target = (K.A, K.B, K.C, K.D)
-    state = cold_state(n, qsr, dtype) if state is None else state
+    weights = None
+    if weighted:  # only ratios matter: the largest weight 1, as Clarabel's path
+        weights = tuple(jnp.asarray(M, dtype) for M in (W.A, W.B, W.C, W.D))
+        top = jnp.max(jnp.stack([jnp.max(M) for M in weights]))
+        weights = tuple(M / top for M in weights)
+    state = cold_state(n, qsr, dtype, target if weighted else None) if state is None else state
     # an inactive lane (a stopped PGD run) takes no ADMM iteration; its row is skipped
     max_iter = jnp.where(jnp.asarray(active, bool), max_iter, 0)
 
     def one_round(carry):
         _, state, P_tilde, iters = carry
         x, state, it = admm_round(target, P_tilde, qsr, state, eps=eps, margin=margin,
-                                  reg=reg, tol=tol, max_iter=max_iter, floor=floor)
+                                  reg=reg, tol=tol, max_iter=max_iter, floor=floor,
+                                  weights=weights)
         # the next round linearises at the new P (if it is usable; else keep P~)
         good = jnp.all(jnp.isfinite(x[4])) & (jnp.min(jnp.diag(x[4])) > 0)
         return x, state, jnp.where(good, x[4], P_tilde), iters + it
@@ -217,7 +234,8 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, fallb
                                  fallback=fallback)
     *mats, codes = jax.pure_callback(
         callback, (*shapes, jax.ShapeDtypeStruct((), jnp.int32)), *x, *target, P_ref,
-        jnp.asarray(active, bool), shard, iters, vmap_method="broadcast_all")
+        *(jnp.asarray(M, dtype) for M in (W.A, W.B, W.C, W.D)), jnp.asarray(active, bool),
+        shard, iters, vmap_method="broadcast_all")
     return LTIController(*mats[:4]), mats[4], codes, state
 
 
@@ -226,6 +244,8 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, fallb
 #: at n = 6, 3.7x at 12, 5.2x at 16, 13.6x at 24, all iterates certified; so the paper's
 #: sizes (n = 1, 6) keep Clarabel.
 AUTO_MIN_ORDER: int | None = 12
+#: The same with a `metric` (projected Adam's), whose consensus block costs ADMM iterations.
+AUTO_MIN_ORDER_METRIC: int | None = 12
 METHODS = ("clarabel", "first_order", "auto")
 
 
@@ -233,13 +253,10 @@ def use_first_order(method, K, metric, qsr: QSR) -> bool:
     """Whether `project(..., method=method)` takes the first-order path (checks `method`)."""
     if method not in METHODS:
         raise ValueError(f"`method` must be one of {METHODS}, got {method!r}.")
-    if method == "first_order" and metric is not None:
-        raise ValueError("`method='first_order'` projects in the Frobenius distance only; "
-                         "pass `method='clarabel'` (or 'auto') with a `metric`.")
     if method == "first_order" and is_indefinite(qsr):
         raise ValueError("`method='first_order'` needs `qsr.Q` negative semidefinite; for "
                          "an indefinite Q pass `method='clarabel'` (or 'auto').")
     if method == "auto":
-        return (metric is None and not is_indefinite(qsr) and AUTO_MIN_ORDER is not None
-                and K.n_state >= AUTO_MIN_ORDER)
+        lo = AUTO_MIN_ORDER if metric is None else AUTO_MIN_ORDER_METRIC
+        return not is_indefinite(qsr) and lo is not None and K.n_state >= lo
     return method == "first_order"

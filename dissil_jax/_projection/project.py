@@ -271,16 +271,17 @@ def _project_fo_cold(*args, **kwargs):
 
 
 def project_first_order_warm(K: LTIController, qsr: QSR, P_ref, state, *, active, eps: float,
-                             reg: float = 1e-6):
-    """`project(K, qsr, P_ref, method="first_order", throw=False, active=active, eps=eps)`
-    for a batch (one leading axis), started from the ADMM `state` of a previous projection
-    (batched like `K`; `first_order.cold_state` for none). PGD carries it across its steps.
+                             reg: float = 1e-6, metric: LTIController | None = None):
+    """`project(K, qsr, P_ref, method="first_order", throw=False, active=active, eps=eps,
+    metric=metric)` for a batch (one leading axis), started from the ADMM `state` of a
+    previous projection (batched like `K`; `first_order.cold_state` for none, with the
+    target when there is a `metric`). PGD carries it across its steps.
 
     **Returns:** `(Projection, state)`, the latter for the next call.
     """
     fn = partial(_projection_fo.project_one, qsr=qsr, eps=eps, reg=reg, refine=1,
-                 fallback=_host_batch, floor=P_FLOOR)
-    W = jax.tree.map(jnp.ones_like, K)
+                 fallback=_host_batch, floor=P_FLOOR, weighted=metric is not None)
+    W = jax.tree.map(jnp.ones_like, K) if metric is None else metric
     K_out, P, codes, state = jax.vmap(
         lambda K, P, W, a, s: fn(K, P, W, a, K, state=s))(K, P_ref, W, active, state)
     return Projection(K_out, P, _outcome.item(codes)), state
@@ -354,10 +355,10 @@ def project(
       `LTIController` shaped and batched like `K`, ideally certified with `P_ref`); ignored
       for $Q\\preceq0$. Default: the target itself.
     - `method`: `"clarabel"`, `"first_order"` (ADMM in JAX, the same float64 check,
-      Clarabel where it fails; Frobenius only, $Q\\preceq0$ only;
+      Clarabel where it fails; $Q\\preceq0$ only;
       [Scaling out](scaling.md#a-first-order-projection)) or `"auto"` (first-order from
-      `first_order.AUTO_MIN_ORDER` = 12 states on, without a `metric`, for $Q\\preceq0$;
-      Clarabel otherwise).
+      `first_order.AUTO_MIN_ORDER` = 12 states on, and with a `metric` from
+      `first_order.AUTO_MIN_ORDER_METRIC` = 12, for $Q\\preceq0$; Clarabel otherwise).
 
     **Returns:** a [`Projection`][dissil_jax.Projection] `(K_proj, P)` with `.result`.
 
@@ -372,7 +373,8 @@ def project(
     _check_k_ref(K, K_ref)
     in_ref, in_act = None if P_ref is None else 0, 0 if jnp.ndim(active) else None
     first_order = _projection_fo.use_first_order(method, K, metric, qsr)
-    fn = _project_fo_cold if first_order else _project_one
+    fn = (partial(_project_fo_cold, weighted=metric is not None) if first_order else
+          _project_one)
     fn = partial(fn, qsr=qsr, eps=eps, reg=reg, refine=refine)
     W = jax.tree.map(jnp.ones_like, K) if metric is None else metric
     for _ in K.batch_shape:

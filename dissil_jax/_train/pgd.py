@@ -54,6 +54,7 @@ class _PGD(Method):
     eps: float
     method: str
     warm: bool  # the first-order projection, warm-started from the previous step's ADMM state
+    weighted: bool  # the optimiser has a metric (`optimizer_metric`), so the projection too
 
     @property
     def keep_non_finite(self) -> bool:  # GD returns its diverged iterate
@@ -63,9 +64,10 @@ class _PGD(Method):
         pending = (self.K0, self.P0, jax.vmap(self.opt.init)(self.K0))
         if self.warm:  # one cold ADMM state per initialisation
             assert self.qsr is not None  # `warm` is the first-order projection's
-            cold = _first_order.cold_state(self.K0.n_state, self.qsr, self.K0.A.dtype)
-            pending += (jax.tree.map(lambda a: jnp.broadcast_to(a, self.code0.shape + a.shape),
-                                     cold),)
+            n, qsr, dtype = self.K0.n_state, self.qsr, self.K0.A.dtype
+            cold = jax.vmap(lambda K: _first_order.cold_state(
+                n, qsr, dtype, (K.A, K.B, K.C, K.D) if self.weighted else None))(self.K0)
+            pending += (cold,)
         return pending, self.code0
 
     def evaluate(self, pending):
@@ -82,13 +84,14 @@ class _PGD(Method):
         if self.qsr is not None:
             # An indefinite Q's positive part is linearised at the certified iterate (K_ref),
             # once per step (refine=1; the next step re-linearises). No effect for Q <= 0.
+            metric = optimizer_metric(opt_state, K_new)
             if self.warm:
                 proj, warm[0] = project_first_order_warm(K_new, self.qsr, P, warm[0],
-                                                         active=active, eps=self.eps)
+                                                         active=active, eps=self.eps,
+                                                         metric=metric)
             else:
                 proj = project(K_new, self.qsr, P, throw=False, active=active, eps=self.eps,
-                               metric=optimizer_metric(opt_state, K_new), K_ref=K, refine=1,
-                               method=self.method)
+                               metric=metric, K_ref=K, refine=1, method=self.method)
             codes = _outcome.codes(proj.result)
             code = jnp.where(_outcome.failed(codes), codes, code)
             K_new, P_new = proj
@@ -110,9 +113,10 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
         K0, P0 = proj = project(K0, qsr, throw=False, eps=eps, method=method)
         code0 = _outcome.codes(proj.result)
     opt = paper_rule(learning_rate, decay) if optimizer is None else optimizer
+    weighted = optimizer_metric(jax.vmap(opt.init)(cast(Any, K0)), K0) is not None
     warm = qsr is not None and _first_order.use_first_order(
-        method, K0, optimizer_metric(jax.vmap(opt.init)(cast(Any, K0)), K0), qsr)
-    pgd = _PGD(K0, P0, code0, scaled(windows, s2), opt, qsr, eps, method, warm)
+        method, K0, True if weighted else None, qsr)
+    pgd = _PGD(K0, P0, code0, scaled(windows, s2), opt, qsr, eps, method, warm, weighted)
     (K, P, *_), hist, loss, steps, reason, kept = iterate(
         pgd, max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
     hist, loss = hist * s2, loss * s2
@@ -146,15 +150,6 @@ def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, de
     `optimizer` is None for the paper's rule, whose (possibly traced) `learning_rate` and
     `decay` are then used, with the defaults filled in.
     """
-    if method == "first_order" and optimizer is not None and qsr is not None:
-        K = init_controllers(jax.random.PRNGKey(0), 1, windows, 1.0,
-                             n_state=check_n_state(windows, n_state))  # for the shapes only
-        if optimizer_metric(jax.vmap(optimizer.init)(K), K) is not None:
-            raise ValueError(
-                "`method='first_order'` projects in the Frobenius distance, but `optimizer` "
-                "(the default is projected Adam) keeps a second moment and is projected in "
-                "its own metric. Pass `method='clarabel'` (or 'auto'), or a step rule "
-                "without one: the paper's rule (`learning_rate=`, `decay=`) or `optax.sgd`.")
     if check_optimizer(optimizer, "the paper's decaying-step rule", learning_rate=learning_rate,
                        decay=decay):
         learning_rate = decay = 0.0  # unused
@@ -296,11 +291,10 @@ def fit_pgd(
       $\\mathcal C_{i+1}$ (the reproduction uses it). They differ when a step raised the
       loss; `kept_step` records the step of the returned iterate.
     - `method`: $\\Pi$'s solver, as `project`'s `method`. `"first_order"`: ADMM in JAX
-      (Frobenius projections only, so not with an adaptive optimiser's metric), every
-      result still checked in float64 on the host, Clarabel where the check fails;
-      `"clarabel"`; `"auto"` (default): the first-order path from $\\hat n = 12$ on when the
-      step rule has no metric (the paper's rule, SGD), where it was measured faster, with
-      each step's ADMM warm-started from the previous one's; Clarabel otherwise
+      (in the optimiser's metric for Adam and its kin), every result still checked in
+      float64 on the host, Clarabel where the check fails; `"clarabel"`; `"auto"`
+      (default): the first-order path from $\\hat n = 12$ on, where it was measured
+      faster, with each step's ADMM warm-started from the previous one's; Clarabel below
       ([Scaling out](scaling.md#a-first-order-projection)).
 
     **Initialisation.** The paper draws "each matrix element from a normal distribution"
