@@ -10,12 +10,15 @@ loss relative to Clarabel's, the share of iterates the exact float64 check certi
 the mean number of ADMM iterations per projection (the first-order run warm-starts each
 step's ADMM from the previous step's state).
 
+`--adam`: both methods with `pgd_run`'s default step, projected Adam, whose projections are
+in its metric (the first-order path carries it by a consensus block).
+
 `--against-default`: instead, `pgd_run` with all its defaults (Adam with its metric, so
 Clarabel projections) against the paper's rule (`learning_rate=1.0`, Frobenius, so
 `method="auto"` takes the first-order path from `AUTO_MIN_ORDER` on), on the chains of
 `--seeds`: seconds per step, its ratio, and the median and worst final/initial loss of each.
 
-Usage: python benchmarks/bench_fo_projection.py [--steps 10] [--orders 6,12,24]
+Usage: python benchmarks/bench_fo_projection.py [--steps 10] [--orders 6,12,24] [--adam]
        python benchmarks/bench_fo_projection.py --against-default [--steps 150] [--orders 12]
               [--seeds 0,1]
 """

@@ -16,7 +16,9 @@ ADMM splits $Z = -\\hat{\\mathcal M} - \\varepsilon T^2\\succeq0$. The distance 
 diagonally weighted one ($\\lVert A-\\tilde A\\rVert_F^2 = \\sum_{ij}\\frac{\\lambda_j}
 {\\lambda_i}(\\hat A-\\hat{\\tilde A})_{ij}^2$, and so on), so every block of the $x$-update
 is elementwise (for $\\hat C$: elementwise in the eigenbasis of $GG^\\top$, $G = [-S\\ L]$; for
-$D$: in the eigenbasis of its constant $mp\\times mp$ Hessian).
+$D$: in the eigenbasis of its constant $mp\\times mp$ Hessian). A per-entry metric in the
+original basis (projected Adam's) is not diagonal there; a consensus block carries it
+(`solve`'s `metric`), so that every update stays elementwise.
 
 The penalty $\\rho$ follows the residuals (doubled or halved every `ADAPT_EVERY` iterations
 when one exceeds the other ten-fold, with the scaled dual rescaled), the iterates are
