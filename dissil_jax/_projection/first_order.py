@@ -13,10 +13,10 @@ of Clarabel's problem. ADMM (`admm.py`) runs in the eigenbasis of $\\tilde P$ af
 congruence by $\\tilde P^{-1/2}$, where the LMI no longer carries $\\tilde P$'s scale and
 every block of the $x$-update is elementwise (a per-entry metric $W$ is not elementwise
 there; a consensus copy of the controller in the original basis carries it, `admm.solve`'s
-`metric`); $\\tilde P$'s eigen-decomposition is one
-host call per projection (numpy), outside the loop. The PSD projections use a scaled
-Newton-Schulz sign (matrix products only: a batched `eigh` inside a compiled loop can
-deadlock XLA's CPU thread pool, docs/scaling.md "Thread-pool deadlocks").
+`metric`). $\\tilde P$'s eigen-decomposition is done once per projection, outside the
+loop (on a CPU by the host, `_eigh`). The PSD projections use a scaled Newton-Schulz
+sign (matrix products only: a batched `eigh` inside a compiled loop can deadlock XLA's CPU
+thread pool, docs/scaling.md "Thread-pool deadlocks").
 
 ADMM aims at a slack `MARGIN_FO` beyond $\\varepsilon$ and stops at residuals `TOL_FO`
 relative to the scaled LMI; `admm.repair` then moves its answer towards a strictly
@@ -51,13 +51,25 @@ def _eigh_host(P):
     return w.astype(P.dtype), V.astype(P.dtype)
 
 
-def _eigh(P):
-    """$\\tilde P = V\\operatorname{diag}(\\lambda)V^\\top$ on the host: once per projection,
-    outside the ADMM loop, and not a batched LAPACK call inside XLA (see `_linalg.py`)."""
+def _eigh_callback(P):
     n, dtype = P.shape[-1], P.dtype
     return jax.pure_callback(
         _eigh_host, (jax.ShapeDtypeStruct((n,), dtype), jax.ShapeDtypeStruct((n, n), dtype)),
         P, vmap_method="broadcast_all")
+
+
+def _eigh(P):
+    """$\\tilde P = V\\operatorname{diag}(\\lambda)V^\\top$, once per projection, outside the
+    ADMM loop. On a CPU on the host (numpy): a batched LAPACK call inside XLA, here inside
+    PGD's training loop, can deadlock XLA's CPU thread pool (see `_linalg.py`). On other
+    platforms (GPU, TPU) on the device, chosen when the program is lowered, so that the
+    ADMM solve there has no host round trip before the final check."""
+    return jax.lax.platform_dependent(P, cpu=_eigh_callback, default=_eigh_device)
+
+
+def _eigh_device(P):
+    w, V = jnp.linalg.eigh(P)
+    return w, V
 
 
 def _frame(V, n, N):
