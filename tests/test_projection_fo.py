@@ -304,18 +304,16 @@ def test_eigh_of_the_reference_is_host_on_cpu_and_device_elsewhere(getkey):
     # On a CPU, P~'s eigen-decomposition is a host callback (a batched LAPACK call inside
     # PGD's loop can deadlock XLA's thread pool); lowered for a GPU or TPU it is device code
     # with no callback. Both branches return the same decomposition.
-    from dissil_jax._projection import first_order as fo_mod
-
     X = jr.normal(getkey(), (3, 5, 5))
     P = X @ jnp.swapaxes(X, 1, 2) + jnp.eye(5)
-    fn = jax.vmap(fo_mod._eigh)
+    fn = jax.vmap(fo._eigh)
     cpu = _custom_calls(fn, P, platform="cpu")
     assert any("callback" in c for c in cpu) and not any("lapack" in c for c in cpu)
     for platform in ("cuda", "tpu"):
         calls = _custom_calls(fn, P, platform=platform)
         assert not any("callback" in c for c in calls), (platform, calls)
     w_host, V_host = fn(P)
-    w_dev, V_dev = jax.vmap(fo_mod._eigh_device)(P)  # the device branch, run here
+    w_dev, V_dev = jax.vmap(fo._eigh_device)(P)  # the device branch, run here
     # float64; eigenvalues >= 1 and |P| ~ 30: both backward stable, agreement to ~1e-14
     np.testing.assert_allclose(w_dev, w_host, rtol=1e-12)
     for i in range(3):  # eigenvectors up to sign: the reconstructions agree
