@@ -50,7 +50,7 @@ from dissil_jax.internal import (  # noqa: E402
 )
 
 PATHS = ("project", "certify", "certify_sdp", "pgd", "pgd_default", "ico", "direct")
-ICO_MAX_N = 24  # ICO's documented range
+ICO_MAX_N = 24  # ICO's documented range (`--ico-max-n` measures beyond it)
 
 
 def _windows(n, m, N=100, seed=0):
@@ -182,7 +182,10 @@ def main():
     ap.add_argument("--sizes", type=int, nargs="*", default=[2, 4, 8, 16, 24, 32, 48, 64])
     ap.add_argument("--io", type=int, nargs="*", default=[1, 2, 4])
     ap.add_argument("--paths", nargs="*", default=list(PATHS), choices=PATHS)
+    ap.add_argument("--ico-max-n", type=int, default=ICO_MAX_N,
+                    help="largest order of the ICO cells (default: ICO's documented range)")
     args = ap.parse_args()
+    globals()["ICO_MAX_N"] = args.ico_max_n
     if args.quick:
         args.sizes, args.io, args.budget = [2, 4, 8, 16], [2], min(args.budget, 20.0)
     print(f"# sizes {args.sizes}, m = p in {args.io}, budget {args.budget:.0f} s per cell")
