@@ -13,12 +13,18 @@ step's ADMM from the previous step's state).
 `--adam`: both methods with `pgd_run`'s default step, projected Adam, whose projections are
 in its metric (the first-order path carries it by a consensus block).
 
+`--tol`: PGD's ADMM tolerance (`first_order.TOL_FO_PGD`) at 1e-4, 3e-4 and 1e-3, with
+projected Adam and with the paper's rule, on the chains of `--seeds` (first-order path only):
+seconds per step, ADMM iterations per projection, rows handed to Clarabel, and the median
+and worst final/initial loss.
+
 `--against-default`: instead, `pgd_run` with all its defaults (Adam with its metric, so
 Clarabel projections) against the paper's rule (`learning_rate=1.0`, Frobenius, so
 `method="auto"` takes the first-order path from `AUTO_MIN_ORDER` on), on the chains of
 `--seeds`: seconds per step, its ratio, and the median and worst final/initial loss of each.
 
 Usage: python benchmarks/bench_fo_projection.py [--steps 10] [--orders 6,12,24] [--adam]
+       python benchmarks/bench_fo_projection.py --tol [--steps 60] [--orders 12,16] [--seeds 0,1]
        python benchmarks/bench_fo_projection.py --against-default [--steps 150] [--orders 12]
               [--seeds 0,1]
 """
@@ -77,6 +83,22 @@ def main(steps, orders, learning_rate=1.0):
               flush=True)
 
 
+def tolerances(steps, orders, seeds):
+    print("| n̂ | seed | rule | tol | s/step | iterations / projection | rows to Clarabel "
+          "| median final/initial | worst |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for n, seed in itertools.product(orders, seeds):
+        w = chain_windows(seed, n // 2)
+        for rule, lr in (("Adam", None), ("paper", 1.0)):
+            for tol in (1e-4, 3e-4, 1e-3):
+                _projection_fo.TOL_FO_PGD = tol
+                r, t, fb = run(w, "first_order", steps, lr)
+                rel = np.asarray(r.final_loss) / np.asarray(r.loss_history)[:, 0]
+                its = fb["iterations"] / max(fb["projections"], 1)
+                print(f"| {n} | {seed} | {rule} | {tol:g} | {t:.3f} | {its:.0f} | {fb['rows']} "
+                      f"| {np.median(rel):.4g} | {np.max(rel):.4g} |", flush=True)
+
+
 def against_default(steps, orders, seeds):
     print("| n̂ | chain seed | default (s/step) | paper rule (s/step) | speed-up | default: median "
           "(worst) final/initial | paper rule: median (worst) | certified (default, paper) |")
@@ -97,12 +119,15 @@ if __name__ == "__main__":
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--orders", default="6,12,24")
     ap.add_argument("--against-default", action="store_true")
+    ap.add_argument("--tol", action="store_true", help="PGD's ADMM tolerance")
     ap.add_argument("--seeds", default="0,1")
     ap.add_argument("--adam", action="store_true",
                     help="PGD's default step (Adam, projected in its metric) for both methods")
     a = ap.parse_args()
     orders = [int(x) for x in a.orders.split(",")]
-    if a.against_default:
+    if a.tol:
+        tolerances(a.steps, orders, [int(x) for x in a.seeds.split(",")])
+    elif a.against_default:
         against_default(a.steps, orders, [int(x) for x in a.seeds.split(",")])
     else:
         main(a.steps, orders, None if a.adam else 1.0)

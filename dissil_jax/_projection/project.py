@@ -271,16 +271,20 @@ def _project_fo_cold(*args, **kwargs):
 
 
 def project_first_order_warm(K: LTIController, qsr: QSR, P_ref, state, *, active, eps: float,
-                             reg: float = 1e-6, metric: LTIController | None = None):
+                             reg: float = 1e-6, metric: LTIController | None = None,
+                             tol: float | None = None):
     """`project(K, qsr, P_ref, method="first_order", throw=False, active=active, eps=eps,
     metric=metric)` for a batch (one leading axis), started from the ADMM `state` of a
     previous projection (batched like `K`; `first_order.cold_state` for none, with the
-    target when there is a `metric`). PGD carries it across its steps.
+    target when there is a `metric`). PGD carries it across its steps. `tol`: ADMM's
+    residual tolerance, by default `first_order.TOL_FO_PGD` (PGD's; `project` uses
+    `TOL_FO`).
 
     **Returns:** `(Projection, state)`, the latter for the next call.
     """
+    tol = _projection_fo.TOL_FO_PGD if tol is None else tol
     fn = partial(_projection_fo.project_one, qsr=qsr, eps=eps, reg=reg, refine=1,
-                 fallback=_host_batch, floor=P_FLOOR, weighted=metric is not None)
+                 fallback=_host_batch, floor=P_FLOOR, weighted=metric is not None, tol=tol)
     W = jax.tree.map(jnp.ones_like, K) if metric is None else metric
     K_out, P, codes, state = jax.vmap(
         lambda K, P, W, a, s: fn(K, P, W, a, K, state=s))(K, P_ref, W, active, state)
