@@ -257,9 +257,10 @@ def solve(target, weights, c, qsr: QSR, *, tol, feas, max_iter, state, floor=0.0
     times $\\rho$ changed the iterations of PGD's own projections (mass-spring chains,
     $\\hat n = 12$) by under 5 %; on random weights spread over $e^{\\pm4}$, $10\\rho$ took
     2.5 times the iterations and $0.1\\rho$ 12 % fewer; a penalty adapted on the consensus
-    residuals alone took the same iterations. With weights that spread ADMM needs several
-    times the Frobenius path's iterations: one scalar penalty cannot match every entry's
-    curvature.
+    residuals alone took the same iterations. With weights spread that far ADMM needs
+    several times the Frobenius path's iterations (one scalar penalty cannot match every
+    entry's curvature); with Adam's own weights along a PGD run, 19 % more (159 against 134
+    per projection on the $\\hat n = 12$ chain).
 
     **Returns:** `(x, state, iterations, converged)`, `x` scaled as `target`.
     """
