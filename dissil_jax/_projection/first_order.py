@@ -269,7 +269,8 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, fallb
 #: sizes (n = 1, 6) keep Clarabel.
 AUTO_MIN_ORDER: int | None = 12
 #: The same with a `metric`. Measured (`bench_fo_projection.py --adam`, PGD's default
-#: projected Adam, per step, same run): 0.4x at n = 6, 1.8x at 12, 3.3x at 16, 7.3x at 24.
+#: projected Adam, per step, same run as Clarabel): 0.4x at n = 6, 1.8x at 12, 3.3x at 16,
+#: 7.3x at 24 (ADMM tolerance 1e-4); 4.9x, 9.1x and 19x at 12, 16, 24 with `TOL_FO_PGD`.
 AUTO_MIN_ORDER_METRIC: int | None = 12
 METHODS = ("clarabel", "first_order", "auto")
 
