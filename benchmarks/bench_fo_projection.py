@@ -64,10 +64,19 @@ def run(windows, method, steps, learning_rate=1.0):
     return res, per_step, diff
 
 
+def _header(*columns):
+    print("| " + " | ".join(columns) + " |")
+    print("|" + "---|" * len(columns))
+
+
+def _relative(res):
+    """Each run's final loss over its initial loss."""
+    return np.asarray(res.final_loss) / np.asarray(res.loss_history)[:, 0]
+
+
 def main(steps, orders, learning_rate=1.0):
-    print("| n̂ | Clarabel (s/step) | first-order (s/step) | speed-up | loss FO / Clarabel "
-          "| certified (FO, Clarabel) | rows to Clarabel | ADMM iterations / projection |")
-    print("|---|---|---|---|---|---|---|---|")
+    _header("n̂", "Clarabel (s/step)", "first-order (s/step)", "speed-up", "loss FO / Clarabel",
+            "certified (FO, Clarabel)", "rows to Clarabel", "ADMM iterations / projection")
     for n in orders:
         w = chain_windows(0, n // 2)
         rc, tc, _ = run(w, "clarabel", steps, learning_rate)
@@ -84,30 +93,29 @@ def main(steps, orders, learning_rate=1.0):
 
 
 def tolerances(steps, orders, seeds):
-    print("| n̂ | seed | rule | tol | s/step | iterations / projection | rows to Clarabel "
-          "| median final/initial | worst |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    _header("n̂", "seed", "rule", "tol", "s/step", "iterations / projection",
+            "rows to Clarabel", "median final/initial", "worst")
     for n, seed in itertools.product(orders, seeds):
         w = chain_windows(seed, n // 2)
         for rule, lr in (("Adam", None), ("paper", 1.0)):
             for tol in (1e-4, 3e-4, 1e-3):
                 _projection_fo.TOL_FO_PGD = tol
                 r, t, fb = run(w, "first_order", steps, lr)
-                rel = np.asarray(r.final_loss) / np.asarray(r.loss_history)[:, 0]
+                rel = _relative(r)
                 its = fb["iterations"] / max(fb["projections"], 1)
                 print(f"| {n} | {seed} | {rule} | {tol:g} | {t:.3f} | {its:.0f} | {fb['rows']} "
                       f"| {np.median(rel):.4g} | {np.max(rel):.4g} |", flush=True)
 
 
 def against_default(steps, orders, seeds):
-    print("| n̂ | chain seed | default (s/step) | paper rule (s/step) | speed-up | default: median "
-          "(worst) final/initial | paper rule: median (worst) | certified (default, paper) |")
-    print("|---|---|---|---|---|---|---|---|")
+    _header("n̂", "chain seed", "default (s/step)", "paper rule (s/step)", "speed-up",
+            "default: median (worst) final/initial", "paper rule: median (worst)",
+            "certified (default, paper)")
     for n, seed in itertools.product(orders, seeds):
         w = chain_windows(seed, n // 2)
         rd, td, _ = run(w, "auto", steps, learning_rate=None)
         rp, tp, _ = run(w, "auto", steps)
-        rel = [np.asarray(r.final_loss) / np.asarray(r.loss_history)[:, 0] for r in (rd, rp)]
+        rel = [_relative(r) for r in (rd, rp)]
         cells = [f"{np.median(r):.2g} ({np.max(r):.2g})" for r in rel]
         cert = [f"{np.mean(np.asarray(r.certified)):.0%}" for r in (rd, rp)]
         print(f"| {n} | {seed} | {td:.3f} | {tp:.3f} | {td / tp:.1f}x | {cells[0]} | {cells[1]} "
