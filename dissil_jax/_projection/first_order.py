@@ -275,14 +275,15 @@ AUTO_MIN_ORDER_METRIC: int | None = 12
 METHODS = ("clarabel", "first_order", "auto")
 
 
-def use_first_order(method, K, metric, qsr: QSR) -> bool:
-    """Whether `project(..., method=method)` takes the first-order path (checks `method`)."""
+def use_first_order(method, K, weighted: bool, qsr: QSR) -> bool:
+    """Whether `project(..., method=method)` takes the first-order path (checks `method`);
+    `weighted`: whether the projection has a `metric`."""
     if method not in METHODS:
         raise ValueError(f"`method` must be one of {METHODS}, got {method!r}.")
     if method == "first_order" and is_indefinite(qsr):
         raise ValueError("`method='first_order'` needs `qsr.Q` negative semidefinite; for "
                          "an indefinite Q pass `method='clarabel'` (or 'auto').")
     if method == "auto":
-        lo = AUTO_MIN_ORDER if metric is None else AUTO_MIN_ORDER_METRIC
+        lo = AUTO_MIN_ORDER_METRIC if weighted else AUTO_MIN_ORDER
         return not is_indefinite(qsr) and lo is not None and K.n_state >= lo
     return method == "first_order"

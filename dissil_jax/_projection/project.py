@@ -376,7 +376,7 @@ def project(
     _check_options(K, P_ref, active, eps, reg, refine, metric)
     _check_k_ref(K, K_ref)
     in_ref, in_act = None if P_ref is None else 0, 0 if jnp.ndim(active) else None
-    first_order = _projection_fo.use_first_order(method, K, metric, qsr)
+    first_order = _projection_fo.use_first_order(method, K, metric is not None, qsr)
     fn = (partial(_project_fo_cold, weighted=metric is not None) if first_order else
           _project_one)
     fn = partial(fn, qsr=qsr, eps=eps, reg=reg, refine=refine)
