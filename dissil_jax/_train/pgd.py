@@ -144,7 +144,7 @@ ADAM_INIT_SCALE = 0.3
 
 
 def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, decay, atol,
-             rtol, init_scale, n_state, method="clarabel"):
+             rtol, init_scale, n_state):
     """Check the arguments; returns `(optimizer, learning_rate, decay, n_state)`.
 
     `optimizer` is None for the paper's rule, whose (possibly traced) `learning_rate` and
@@ -186,7 +186,7 @@ def pgd_run(
         windows, qsr, num_inits, max_steps, optimizer=default_rule(
             optimizer, learning_rate, decay, windows if qsr is None else None, n_state),
         learning_rate=learning_rate, decay=decay, atol=atol, rtol=rtol, init_scale=init_scale,
-        n_state=n_state, method=method)
+        n_state=n_state)
     res = _run(key, windows, qsr, learning_rate, decay, init_scale, optimizer=optimizer,
                num_inits=num_inits, n_state=n_state, max_steps=max_steps, atol=atol,
                rtol=rtol, eps=eps, method=method, keep=check_keep(keep))
@@ -198,8 +198,7 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
     """`pgd_run`, compiled once per static configuration, timed and certified as a batch."""
     optimizer, learning_rate, decay, n_state = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
-        decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state,
-        method=method)
+        decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state)
 
     def certify(res):
         if qsr is None:
