@@ -138,6 +138,39 @@ def test_thread_map_gives_concurrent_callers_their_share(monkeypatch, items):
     assert peak["all"] <= 2 and all(peak[i] == 1 for i in range(4)), peak
 
 
+def test_thread_map_solves_on_its_own_thread_when_the_pool_refuses_work(monkeypatch):
+    """A shut-down pool (as at interpreter exit) raises on `submit`; the solves then run on
+    the caller's thread and give the pool's results."""
+    closed = ThreadPoolExecutor(2)
+    closed.shutdown()
+    monkeypatch.setattr(_sdp, "_POOL", closed)
+    for balance in (False, True):
+        assert _sdp.thread_map(lambda chunk: [2 * i for i in chunk], range(5),
+                               balance=balance) == (
+            [[0], [2], [4], [6], [8]] if balance else [[0, 2, 4], [6, 8]])
+
+
+_EXIT_EARLY = """
+import jax, jax.numpy as jnp
+import dissil_jax as dj
+key = jax.random.PRNGKey(0)
+y = jax.random.normal(key, (20, 3, 1))
+windows = dj.Windows(x0=y[:, 0], y=y, u=-0.5 * y)
+run = lambda lr: dj.pgd_run(key, windows, dj.QSR.passive(1), learning_rate=lr, num_inits=4,
+                            max_steps=30, throw=False)
+res = dj.sweep(run)(jnp.logspace(-2, 0.5, 4))  # the script ends before the sweep does
+"""
+
+
+def test_a_script_may_end_before_its_sweep():
+    """JAX returns before a sweep's results are ready; a script ending right after it
+    reaches the host callback during interpreter shutdown, when the solver pool refuses
+    work. The sweep must still finish cleanly (no `pure_callback failed`)."""
+    proc = subprocess.run([sys.executable, "-c", _EXIT_EARLY], capture_output=True, text=True,
+                          timeout=600, env=_env(devices=2))
+    assert proc.returncode == 0 and "callback" not in proc.stderr.lower(), proc.stderr[-4000:]
+
+
 @pytest.mark.slow
 def test_two_processes_each_solve_their_own_shard():
     """Two `jax.distributed` processes on this machine (one CPU device each), as on two

@@ -227,6 +227,21 @@ def thread_map(fn, items, *, balance: bool = False, shards: int = 1) -> list:
         if workers <= 1 and shards <= 1:  # the only caller: solve on its own thread
             return [fn(items)]
         if balance:
-            return list(pool().map(lambda it: fn([it]), items))
+            return _pool_map(lambda it: fn([it]), items)
         chunks = np.array_split(np.arange(len(items)), workers)
-        return list(pool().map(lambda idx: fn([items[i] for i in idx]), chunks))
+        return _pool_map(lambda idx: fn([items[i] for i in idx]), chunks)
+
+
+def _pool_map(fn, tasks) -> list:
+    """`[fn(t) for t in tasks]` on the pool, or on this thread when the pool refuses work.
+
+    The pool refuses new tasks once the interpreter has begun to shut down. A script that
+    ends while a dispatched computation is still running (JAX returns before its results
+    are ready) reaches its host callback only then; the solves then run here, so the
+    computation finishes instead of failing inside the callback.
+    """
+    try:
+        futures = [pool().submit(fn, t) for t in tasks]
+    except RuntimeError:  # "cannot schedule new futures after (interpreter) shutdown"
+        return [fn(t) for t in tasks]
+    return [f.result() for f in futures]
