@@ -12,9 +12,13 @@ steps for both). Printed:
   smaller than a projection onto a convexified REN LMI would be) against the time of one
   whole training step of the direct map for all initialisations;
 - **closed loop** (`--loop`): the protocol's record (`run_config`) for REN, direct, ICO
-  and the MLP baseline on the same data: certified, % stable, median test MSE.
+  and the MLP baseline on the same data: certified, % stable, median test MSE;
+- **across seeds** (`--seeds 0,3,4`): the same closed-loop record for each seed (each seed
+  draws its own demonstrations and test states), one median test MSE per method and seed,
+  to tell a method's advantage from one draw's luck. With `--seeds` the speed part is
+  skipped.
 
-Usage: python benchmarks/bench_ren.py [--quick] [--inits 100] [--loop]
+Usage: python benchmarks/bench_ren.py [--quick] [--inits 100] [--loop] [--seeds 0,3,4]
 """
 
 import argparse
@@ -34,7 +38,31 @@ import dissil_jax as dj  # noqa: E402
 from dissil_jax.experiments.protocol import example_spec, fit, run_config, training_data  # noqa: E402,E501
 
 
-def main(quick=False, inits=100, loop=False):
+METHODS = ("ren", "direct", "ico", "mlp")
+
+
+def across_seeds(seeds, inits, quick):
+    """Median test MSE (and % stable when below 100) per method and seed."""
+    print(f"nonlinear example, 25 initial segments, {inits} initialisations per seed: "
+          "median test MSE (% stable when below 100)")
+    print("| method | " + " | ".join(f"seed {s}" for s in seeds) + " | certified |")
+    print("|---|" + "---:|" * len(seeds) + "---|")
+    for method in METHODS:
+        cells, certified = [], []
+        for seed in seeds:
+            rec = run_config("nonlinear", "initial", method, 25, inits=inits, seed=seed,
+                             quick=quick)
+            stable = rec["percent_stable"]
+            cells.append(f"{rec['mse_median']:.4g}" + ("" if stable == 100 else
+                                                      f" ({stable:.0f} %)"))
+            certified.append(rec["certified"])
+        cert = "–" if certified[0] is None else str(all(certified))
+        print(f"| {method} | " + " | ".join(cells) + f" | {cert} |", flush=True)
+
+
+def main(quick=False, inits=100, loop=False, seeds=None):
+    if seeds:
+        return across_seeds(seeds, inits, quick)
     spec = example_spec("nonlinear", quick)
     inits = min(inits, 8) if quick else inits
     _, _, windows, (k_fit, _, _) = training_data(spec, 0, 0, "initial", 25)
@@ -62,7 +90,7 @@ def main(quick=False, inits=100, loop=False):
     if loop:
         print("\n| method | certified | % stable | median test MSE | train s / controller |")
         print("|---|---|---:|---:|---:|")
-        for method in ("ren", "direct", "ico", "mlp"):
+        for method in METHODS:
             rec = run_config("nonlinear", "initial", method, 25, inits=inits, quick=quick)
             print(f"| {method} | {rec['certified']} | {rec['percent_stable']:.0f} "
                   f"| {rec['mse_median']:.4g} | {rec['train_time_s']:.2f} |", flush=True)
@@ -73,5 +101,7 @@ if __name__ == "__main__":
     parser.add_argument("--quick", action="store_true", help="small sizes")
     parser.add_argument("--inits", type=int, default=100)
     parser.add_argument("--loop", action="store_true", help="closed-loop comparison too")
+    parser.add_argument("--seeds", type=lambda s: [int(x) for x in s.split(",")],
+                        help="closed-loop comparison per seed, e.g. 0,3,4,5,6 (no timing)")
     args = parser.parse_args()
-    main(args.quick, args.inits, args.loop)
+    main(args.quick, args.inits, args.loop, args.seeds)
