@@ -37,7 +37,6 @@ from bench_direct import timed  # noqa: E402  (compile once, then time a second 
 import dissil_jax as dj  # noqa: E402
 from dissil_jax.experiments.protocol import example_spec, fit, run_config, training_data  # noqa: E402,E501
 
-
 METHODS = ("ren", "direct", "ico", "mlp")
 
 

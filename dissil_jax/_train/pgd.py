@@ -279,8 +279,8 @@ def fit_pgd(
       stops within about 1 % of the full budget's loss, `benchmarks/bench_defaults.py`;
       `fit_gd` uses 1e-7, `fit_mlp` 1e-9). The paper's
       $|\\Delta J| <$ tol is `atol` = tol, `rtol` = 0: 1e-3 linear, 1e-5 nonlinear; both
-      `0.0` run every step), `init_scale` $\\sigma$ (default 1: the paper's N(0, 1) draw, see
-      below), `eps` (LMI strictness margin).
+      `0.0` run every step), `init_scale` $\\sigma$ (default 0.3, `ADAM_INIT_SCALE`; the
+      paper's N(0, 1) draw is `init_scale=1`, see below), `eps` (LMI strictness margin).
     - `throw`: raise a `ValueError` when a run ends in failure (`result` other than
       `converged` or `max_steps`: a failed projection, or a non-finite loss). With
       `throw=False` the result is returned and `result` says what happened; a failed
@@ -333,10 +333,11 @@ def fit_gd(
     """Plain gradient descent on the imitation loss: [`fit_pgd`][dissil_jax.fit_pgd] without $\\Pi$.
 
     The paper's unconstrained baseline; no stability guarantee (`P` and `certified` are
-    None). Same arguments and defaults as `fit_pgd`, except the stopping rule's `rtol`
-    (1e-7) and Adam's step for wide controllers; from N(0, 1) draws the GD runs of the zoo
-    ended up to 80x higher than from the default N(0, 0.3²), since nothing projects a wild
-    first draw back. The default step is Adam at $\\eta = 0.1\\min(1, 9/w)$ in the
+    None). Same arguments and defaults as `fit_pgd`, without the ones about the
+    constraint (`qsr`, `eps`, `method`) and without `keep` (each run returns its iterate of
+    lowest loss), and except the stopping rule's `rtol` (1e-7) and Adam's step for wide
+    controllers; from N(0, 1) draws the GD runs of the zoo ended up to 80x higher than
+    from the default N(0, 0.3²), since nothing projects a wild first draw back. The default step is Adam at $\\eta = 0.1\\min(1, 9/w)$ in the
     normalised units, $w = \\hat n + p$ (`gd_learning_rate`): `fit_pgd`'s $\\eta = 0.1$ up
     to $w = 9$ (the paper's sizes and every problem of the zoo), smaller for wider
     controllers, where a step of 0.1 changes $A$ enough to leave the stable controllers

@@ -116,9 +116,10 @@ def fit_ren(
     gradient descent on the imitation loss
     ([`ren_imitation_loss`][dissil_jax.ren_imitation_loss]) in one compiled
     `lax.while_loop`, vmapped over `num_inits` initialisations; it stops after `max_steps`
-    or when $|J_k - J_{k-1}| <$ `atol` $+$ `rtol`$\\,|J_0|$ (defaults as in
-    [`fit_direct`][dissil_jax.fit_direct]); the driver loop of every
-    gradient trainer, with the REN map in place of the LTI one.
+    or when $|J_k - J_{k-1}| <$ `atol` $+$ `rtol`$\\,|J_0|$ (defaults 150, 0 and 1e-6,
+    the certified trainers' rule; [`fit_direct`][dissil_jax.fit_direct] runs up to 600
+    steps at 1e-8); the driver loop of every gradient trainer, with the REN map in place
+    of the LTI one.
 
     **Certified at the end:** each returned `(K, P, multiplier)` is checked in float64 by
     eigenvalues ([`certify_ren`][dissil_jax.certify_ren] with the pair given); a pair that
