@@ -320,6 +320,29 @@ def test_failed_initial_projection(getkey, monkeypatch):
     assert not bool(jnp.any(res.certified)) and bool(jnp.all(res.steps == 0))
 
 
+def test_best_picks_among_certified_runs_only(getkey):
+    """`best()` is the lowest final loss among the certified runs (a run whose first
+    projection failed keeps its uncertified draw, possibly of lower loss); among finite
+    runs for the baselines; and it refuses when nothing qualifies or for a sweep."""
+    Ks = init_controllers(getkey(), 4, random_windows(getkey(), N=3), 1.0)
+    loss = jnp.array([2.0, 1.0, 3.0, jnp.nan])
+    res = dj.FitResult(Ks, None, jnp.array([True, False, True, False]), loss[:, None], loss,
+                       jnp.zeros(4, bool), jnp.zeros(4, int), jnp.asarray(0.0))
+    pick = lambda r: [i for i in range(4)
+                      if bool(jnp.all(index(Ks, i).A == r.best().A))]
+    assert pick(res) == [0]
+    assert pick(eqx.tree_at(lambda r: r.certified, res, None,
+                            is_leaf=lambda x: x is None)) == [1]  # unconstrained: lowest
+    with pytest.raises(ValueError, match="none of the 4 runs is certified"):
+        eqx.tree_at(lambda r: r.certified, res, jnp.zeros(4, bool)).best()
+    with pytest.raises(ValueError, match="non-finite"):
+        eqx.tree_at(lambda r: (r.certified, r.final_loss), res,
+                    (None, jnp.full(4, jnp.nan)), is_leaf=lambda x: x is None).best()
+    sweep = jax.tree.map(lambda a: jnp.stack([a, a]), res)
+    with pytest.raises(ValueError, match="one initialisation axis"):
+        sweep.best()
+
+
 def test_non_finite_loss_under_a_constraint_keeps_the_last_finite_iterate(getkey, monkeypatch):
     """The loss is made NaN once it falls below a threshold between steps 2 and 3 of a
     reference run: the constrained run must keep its step-2 iterate, certified."""

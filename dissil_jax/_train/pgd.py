@@ -334,8 +334,8 @@ def fit_gd(
 
     The paper's unconstrained baseline; no stability guarantee (`P` and `certified` are
     None). Same arguments and defaults as `fit_pgd`, without the ones about the
-    constraint (`qsr`, `eps`, `method`) and without `keep` (each run returns its iterate of
-    lowest loss), and except the stopping rule's `rtol` (1e-7) and Adam's step for wide
+    constraint (`qsr`, `eps`, `method`) and without `keep` (each run returns its last
+    iterate, as the paper's baseline does), and except the stopping rule's `rtol` (1e-7) and Adam's step for wide
     controllers; from N(0, 1) draws the GD runs of the zoo ended up to 80x higher than
     from the default N(0, 0.3²), since nothing projects a wild first draw back. The default step is Adam at $\\eta = 0.1\\min(1, 9/w)$ in the
     normalised units, $w = \\hat n + p$ (`gd_learning_rate`): `fit_pgd`'s $\\eta = 0.1$ up

@@ -82,10 +82,31 @@ class FitResult(eqx.Module):
         return self.final_loss.shape[-1]
 
     def best(self) -> Any:
-        """The controller with the lowest final loss."""
-        import jax
+        """The controller of lowest final loss among the runs that may be used.
 
-        i = int(jnp.nanargmin(self.final_loss))
+        For the certified trainers (`certified` is not None) only certified runs count: a
+        run whose every projection failed keeps its uncertified initial draw, flagged by
+        `certified` and `result`, and is never returned here, however low its loss. For
+        the unconstrained baselines every run with a finite loss counts.
+
+        **Raises** a `ValueError` when no run qualifies (none certified, or every loss
+        non-finite), and when the result has more than one batch axis (a sweep: index it
+        first, e.g. `jax.tree.map(lambda a: a[k], res).best()`).
+        """
+        loss = np.asarray(self.final_loss, np.float64)
+        if loss.ndim != 1:
+            raise ValueError(f"`best()` needs one initialisation axis; this result has batch "
+                             f"shape {loss.shape} (a sweep?): index it first.")
+        ok = np.isfinite(loss)
+        if self.certified is not None:
+            ok &= np.asarray(self.certified, bool)
+            if not ok.any():
+                raise ValueError(f"`best()`: none of the {loss.size} runs is certified (and "
+                                 f"finite); see `certified` and `result_names()`.")
+        elif not ok.any():
+            raise ValueError(f"`best()`: every one of the {loss.size} runs ended with a "
+                             "non-finite loss; see `result_names()`.")
+        i = int(np.argmin(np.where(ok, loss, np.inf)))
         return jax.tree.map(lambda x: x[i], self.controllers)
 
     def result_names(self) -> list:
