@@ -21,6 +21,7 @@ from ._projection import (
 from ._projection.project import solver_stats
 from ._ren import certify as ren_certify, controller as ren_controller, map as ren_map
 from ._sdp import lmi, sdp
+from ._sdp.indefinite import static_point
 from ._sdp.lmi import ConvexifiedLMI, certified, kyp_certified, kyp_margin, kyp_scale, smat
 from ._sdp.sdp import single_threaded_blas
 from ._train import direct, mlp, pgd, ren as ren_train
@@ -54,5 +55,5 @@ __all__ = [
     "ren_certify",
     "ren_controller",
     "ren_map", "ren_train", "rollout", "scaled", "sdp", "single_threaded_blas", "smat",
-    "solver_stats", "stacked_factor", "svec_len",
+    "solver_stats", "stacked_factor", "static_point", "svec_len",
 ]

@@ -8,7 +8,7 @@ import pytest
 from helpers import dissipation_matrix, dissipation_ok, index, random_windows
 
 import dissil_jax as dj
-from dissil_jax.internal import ConvexifiedLMI
+from dissil_jax.internal import ConvexifiedLMI, static_point
 
 pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 
@@ -115,6 +115,34 @@ def test_far_target_falls_back_and_is_certified():
     K2 = jax.tree.map(lambda M: M + 0.05, K_ref)
     K2_proj, P2 = dj.project(K2, qsr, P_ref, K_ref=K_ref)
     _assert_certified(K2_proj, qsr, P2)
+
+
+@pytest.mark.parametrize("D", [0.0, 0.1, -0.1])
+def test_targets_inside_the_forbidden_gain_gap_are_projected(D):
+    """$w = \\hat y^2 - 0.1\\hat u^2$: the dissipative static gains are $|D|\\ge0.32$,
+    two components, and the depth of a static point grows with $|D|$ without bound. A
+    target with $|D|$ in the gap gets a certified projection in the component nearest
+    it, from a static fallback point of moderate size (the deepest one, $|D|\\approx10^8$,
+    left no projection certifiable)."""
+    qsr = dj.QSR(1.0, 0.0, -0.1)
+    for A in (0.5, 1.2):
+        K = dj.LTIController(np.array([[A]]), np.ones((1, 1)), np.ones((1, 1)),
+                             np.array([[D]]))
+        K_proj, P = dj.project(K, qsr)
+        _assert_certified(K_proj, qsr, P)
+        if D:
+            assert np.sign(float(K_proj.D[0, 0])) == np.sign(D)
+
+
+def test_static_fallback_point_is_deep_and_near_its_target():
+    qsr = dj.QSR(1.0, 0.0, -0.1)
+    for near, sign in ((None, None), (np.array([[0.2]]), 1.0), (np.array([[-0.2]]), -1.0)):
+        D0 = static_point(qsr, near=near)
+        d = float(D0[0, 0])
+        assert (d**2 - 0.1) / (1 + d**2) > 0.45  # at least half the supremum 1, ...
+        assert abs(d) < 10.0  # ... and no farther out than needed
+        if sign is not None:
+            assert np.sign(float(D0[0, 0])) == sign
 
 
 def test_batched_projection_matches_a_python_loop():

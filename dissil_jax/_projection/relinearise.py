@@ -5,7 +5,8 @@ $(H_0, \\tilde P)$ (`_sdp/indefinite.py`): a certified point that is its own lin
 stays in the next set, so each round can only move closer to the target. The first round
 linearises at the caller's point (the target, or a feasible reference); a row whose first
 set is empty (the target far from the dissipative set) starts again at a static controller
-that is strictly dissipative for every $P$ (`static_point`), where the set is never empty.
+that is strictly dissipative for every $P$ (`static_point`, the one nearest the target's
+$D$ among the deep ones), where the set is never empty.
 """
 
 from __future__ import annotations
@@ -62,7 +63,9 @@ def project_rows_indefinite(solve, layout, qsr, targets, P_tilde, H0, weights, r
             budget[rows_retry] += 1
             P_t[rows_retry] = np.eye(n)
             C0[rows_retry] = 0.0
-            D0[rows_retry] = static_point(qsr)
+            # in the component of dissipative static gains nearest each row's target
+            D_target = layout.mats(targets[rows_retry])[3]
+            D0[rows_retry] = [static_point(qsr, near=D) for D in D_target]
         P_t[rows_on] = best[4][rows_on]
         C0[rows_on], D0[rows_on] = best[2][rows_on], best[3][rows_on]
         live = np.concatenate([rows_retry, rows_on])

@@ -63,32 +63,51 @@ def check_feasible(qsr: QSR) -> None:
         )
 
 
-def static_point(qsr: QSR) -> np.ndarray:
+def static_point(qsr: QSR, near=None) -> np.ndarray:
     """A real $D$ ($m\\times p$) with $D^\\top QD + D^\\top S + S^\\top D + R \\succ 0$.
 
     The static controller $(0, 0, 0, D)$ is strictly dissipative for every $P \\succ 0$, so
     it is a feasible linearisation point. Built from the $p$ leading eigenvectors
     $V = [V_y; V_u]$ of $\\Phi$ (then $D = V_yV_u^{-1}$), tilted by a fixed perturbation when
     $V_u$ is singular (the positive cone is open). Call `check_feasible` first.
+
+    Depth is measured by $\\lambda_{\\min}(\\Phi(D))/(1 + \\lVert D\\rVert_{\\max}^2)$, which
+    for some rates only grows with $\\lVert D\\rVert$ (for $w = \\hat y^2 - 0.1\\hat u^2$ it
+    tends to 1 as $|D|\\to\\infty$, and the deepest tilt gave $|D|\\approx10^8$, a point
+    too far out for any projection linearised there to pass the float64 check). So the
+    candidates, their rescalings $sD$ and their negatives are ranked by depth, and of those
+    with at least half the largest depth the one nearest `near` (default: 0, the smallest)
+    is returned. The dissipative static gains of such a rate can form several components
+    ($D\\ge0.32$ and $D\\le-0.32$ there): the projection passes its target's $D$, so that
+    it is linearised in the component nearest that target.
     """
     m, p = qsr.S.shape
     Phi = _supply_matrix(qsr)
     w, V = np.linalg.eigh(Phi)
     V = V[:, ::-1][:, :p]
     G = np.random.default_rng(0).standard_normal(V.shape)
-    best, best_margin = None, -np.inf
+
+    def depth(D):
+        F = D.T @ qsr.Q @ D + D.T @ qsr.S + qsr.S.T @ D + qsr.R
+        return np.linalg.eigvalsh((F + F.T) / 2)[0] / (1 + np.abs(D).max() ** 2)
+
+    cands = []
     for t in (0.0, *(0.5**k for k in range(40))):
         Vt = V + t * G
         Vy, Vu = Vt[:m], Vt[m:]
         if np.linalg.cond(Vu) > 1e8:
             continue
-        D = np.linalg.solve(Vu.T, Vy.T).T
-        F = D.T @ qsr.Q @ D + D.T @ qsr.S + qsr.S.T @ D + qsr.R
-        margin = np.linalg.eigvalsh((F + F.T) / 2)[0] / (1 + np.abs(D).max() ** 2)
-        if margin > best_margin:
-            best, best_margin = D, margin
-        if margin > 0 and t == 0.0:
+        cands.append(np.linalg.solve(Vu.T, Vy.T).T)
+        if t == 0.0 and depth(cands[-1]) > 0:
             break
-    if best is None or best_margin <= 0:  # pragma: no cover - excluded by check_feasible
+    if not cands:  # pragma: no cover - a tilt of 1 is regular for the fixed seed
         raise ValueError("`qsr` admits no strictly dissipative static controller.")
-    return best
+    deepest = max(cands, key=depth)
+    cands += [s * deepest for s in 2.0 ** np.arange(-30.0, 1.0)]
+    cands += [-D for D in cands]
+    depths = np.array([depth(D) for D in cands])
+    if depths.max() <= 0:  # pragma: no cover - excluded by check_feasible
+        raise ValueError("`qsr` admits no strictly dissipative static controller.")
+    near = np.zeros((m, p)) if near is None else np.asarray(near, np.float64)
+    deep = [D for D, d in zip(cands, depths) if d >= 0.5 * depths.max()]
+    return min(deep, key=lambda D: np.abs(D - near).max())
