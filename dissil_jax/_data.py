@@ -3,10 +3,36 @@
 from __future__ import annotations
 
 import equinox as eqx
+import jax.core
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._validate import has_non_finite
+
+
+def _as_real_array(name: str, a) -> Array:
+    """`a` as a real floating array: floats as they are, integers converted exactly to the
+    default float dtype; a `ValueError` naming `name` for anything else (see `Windows`)."""
+    try:
+        arr = jnp.asarray(a)
+    except (TypeError, ValueError):
+        raise ValueError(f"`{name}` must be a real floating-point array, got {a!r}.") from None
+    if jnp.issubdtype(arr.dtype, jnp.floating):
+        return arr
+    if jnp.issubdtype(arr.dtype, jnp.integer) and arr.dtype != jnp.bool_:
+        out = arr.astype(jnp.result_type(float))
+        # Every integer of magnitude <= 2**(nmant + 1) is a float of that dtype.
+        exact = 2 ** (jnp.finfo(out.dtype).nmant + 1)
+        if not isinstance(arr, jax.core.Tracer) and arr.size and max(
+                int(np.max(arr)), -int(np.min(arr))) > exact:
+            raise ValueError(
+                f"`{name}` is an integer array with entries too large to convert exactly to "
+                f"{out.dtype}; convert it to floats yourself (and rescale the data).")
+        return out
+    kind = "a complex array" if jnp.issubdtype(arr.dtype, jnp.complexfloating) else "an array"
+    raise ValueError(f"`{name}` must be a real floating-point array, got {kind} of dtype "
+                     f"{arr.dtype}; the controller's signals are real.")
 
 
 class Windows(eqx.Module):
@@ -57,6 +83,16 @@ class Windows(eqx.Module):
     - `y`: `[N, h, p]` plant outputs (controller inputs).
     - `u`: `[N, h, m]` expert plant inputs.
 
+    **Dtypes.** Floating arrays keep their dtype. Integer arrays (e.g. logs of a quantised
+    sensor, or `[[[1]], [[2]]]` typed by hand) are converted to JAX's default float
+    (float64 with `jax_enable_x64`, else float32), as `jnp.mean` or `jax.grad` would
+    promote them anyway: the controllers, the loss and its gradient are real-valued, and
+    the trainers draw their initialisations in the data's floating dtype. The conversion
+    is exact (integers of magnitude up to $2^{53}$, or $2^{24}$ in float32); a concrete
+    array it would round raises a ValueError. Complex arrays are refused: the loss
+    $\\lVert\\hat y + u\\rVert^2$ of a real controller has no meaning for complex signals,
+    and dropping the imaginary part would be lossy. So are boolean and non-numeric ones.
+
     ```python
     W = dj.Windows(x0, y, u)      # controller starts at the recorded plant state
     W = dj.Windows(None, y, u)    # input-output logs only: controller starts at rest
@@ -68,8 +104,8 @@ class Windows(eqx.Module):
     u: Float[Array, "N h m"]
 
     def __init__(self, x0, y, u):
-        self.x0 = None if x0 is None else jnp.asarray(x0)
-        self.y, self.u = jnp.asarray(y), jnp.asarray(u)
+        self.x0 = None if x0 is None else _as_real_array("x0", x0)
+        self.y, self.u = _as_real_array("y", y), _as_real_array("u", u)
 
     def __check_init__(self):
         if self.x0 is not None and self.x0.ndim != 2:

@@ -35,21 +35,27 @@ class Outcome(eqx.Enumeration):
     )
     solver_failed = (
         "Clarabel failed to solve the SDP (max iterations or numerical trouble), usually for "
-        "a target far outside the dissipative set; pass a smaller `init_scale` or step, or a "
-        "larger `eps`"
+        "a target far outside the dissipative set; to a projection or a trainer pass a "
+        "smaller `init_scale` or step, or a larger `eps` (`certify`: see `Certificate.message`)"
     )
     loss_increased = "ICO's float64 re-evaluation found the loss increased; the step was refused"
     not_certified = (
-        "the solver's point failed the exact float64 KYP check even with an enlarged margin "
-        "(no controller is returned without a certificate); pass a larger `eps`"
+        "the exact float64 KYP check failed. In a projection or a certified trainer the "
+        "solver's point failed it even with an enlarged margin (no controller is returned "
+        "without a certificate): pass a larger `eps`. In `certify` (which has no `eps`) the "
+        "storage P does not prove the certificate beyond round-off: see `Certificate.message`"
     )
     solved = "solved and verified by the exact float64 check"
     unchanged = "the target was already certified by P_ref and is returned as is"
     skipped = "inactive (e.g. a converged trainer lane); returned as is"
     infeasible = (
-        "the SDP is infeasible: `qsr` admits no strictly dissipative controller of these "
-        "sizes near the reference P. Check the supply rate (e.g. R and S signs), or pass a "
-        "different `P_ref`."
+        "the SDP is infeasible: in a projection or a trainer, `qsr` admits no strictly "
+        "dissipative controller of these sizes near the reference P with the LMI margin "
+        "`eps`. Check the supply rate (e.g. R and S signs), pass a different `P_ref`, or a "
+        "smaller `eps` when the rate's terms are small (a gain bound of 1e-4 has R = 1e-8, "
+        "below the default eps = 1e-6), or express the signals in units where Q, S and R "
+        "are of similar size. In `certify`: no storage exists, the controller is not "
+        "strictly dissipative for `qsr`."
     )
     no_multiplier = (
         "no multiplier alpha > 0 makes the matrix of the QSR stability theorem (paper "
@@ -125,6 +131,38 @@ def worst(codes_, bad) -> Outcome:
     return item(jnp.max(jnp.where(bad, codes_, -1)))
 
 
-def message(name: str) -> str:
-    """The sentence of the item called `name`."""
+#: What an outcome of [`certify`][dissil_jax.certify] means, for the items it returns. An
+#: `Outcome` item has one sentence whoever returns it; these replace the advice of the
+#: projection and the trainers (`eps`, `init_scale`, `P_ref`), arguments `certify` lacks.
+_CERTIFY_MESSAGES = {
+    "solved": "certified: P is positive definite and the KYP matrix at P negative definite "
+              "beyond float64 round-off",
+    "not_certified": (
+        "the exact float64 KYP check failed at the storage P: min(-lambda_max(KYP(P)), "
+        "lambda_min(P)) is not above the round-off allowance `rtol` times the size of the KYP "
+        "terms. With `P` given, that P does not prove the certificate (omit it to search); "
+        "otherwise the best storage found (the maximum-margin SDP's) does not, so the "
+        "controller is at best marginally dissipative for `qsr` (its margin is of the order "
+        "of round-off): loosen the supply rate slightly, or move the controller inside the "
+        "dissipative set with `dj.project`"),
+    "infeasible": (
+        "no storage exists: the controller is not strictly dissipative for `qsr` (the SDP is "
+        "infeasible, or a necessary condition fails: `source` says which); `dj.project` "
+        "finds the nearest controller that is"),
+    "solver_failed": (
+        "Clarabel failed to solve the certificate's SDP (max iterations or numerical "
+        "trouble; `source` holds its status): the certificate is undecided. A better "
+        "conditioned realisation of the controller (a change of state coordinates, which "
+        "preserves dissipativity, e.g. a balanced one) may help"),
+}
+
+
+def message(name: str, caller: str | None = None) -> str:
+    """The sentence of the item called `name`: the item's own, or with `caller="certify"`
+    what it means for [`certify`][dissil_jax.certify] (whose arguments differ from those
+    the projection's and trainers' advice names)."""
+    if caller == "certify" and name in _CERTIFY_MESSAGES:
+        return _CERTIFY_MESSAGES[name]
+    if caller not in (None, "certify"):
+        raise ValueError(f"`caller` must be None or 'certify', got {caller!r}.")
     return Outcome[getattr(Outcome, name)]

@@ -68,6 +68,7 @@ def rollout(
     None) and the inputs `u_in` (`[h, p]`).
 
     **Returns:** the outputs $\\hat y_0..\\hat y_{h-1}$ (`[h, m]`). Unbatched; vmap for batches.
+    Raises a ValueError when `x0` or `u_in` do not have the controller's sizes.
     """
     return scan_outputs(K, x0, u_in)
 
@@ -83,11 +84,30 @@ def scan_outputs(K, x0, u_in):
     if x0.shape != (K.n_state,):
         raise ValueError(f"`x0` must have shape ({K.n_state},) (the controller's state size), "
                          f"got {x0.shape}.")
+    # Static shapes: these checks also hold under jit and vmap (per member).
+    if u_in.ndim != 2 or u_in.shape[1] != K.n_in:
+        raise ValueError(f"`u_in` must have shape [h, {K.n_in}] (h steps of the controller's "
+                         f"{K.n_in} inputs, `K.n_in`), got {u_in.shape}.")
     _, y = jax.lax.scan(lambda x, u: K(x, u), x0, u_in)
     return y
 
 
-def _check_state_size(K: LTIController, windows: Windows) -> None:
+def check_window_sizes(K, windows: Windows) -> None:
+    """A `ValueError` unless the sizes of one controller `K` (any module with `n_state`,
+    `n_in`, `n_out`) match the `windows`: `windows.y` has `K.n_in` columns, `windows.u`
+    has `K.n_out` and `windows.x0` (when given) has `K.n_state`.
+
+    Shapes are static, so this also holds under jit and vmap (where `K` is one member);
+    without it a wrong output width broadcasts silently against the target.
+    """
+    if not isinstance(windows, Windows):
+        raise ValueError(f"`windows` must be a `dj.Windows`, got {type(windows).__name__}.")
+    if windows.n_in != K.n_in:
+        raise ValueError(f"`windows.y` has {windows.n_in} columns (plant outputs) but the "
+                         f"controller has {K.n_in} inputs (`K.n_in`).")
+    if windows.n_out != K.n_out:
+        raise ValueError(f"`windows.u` has {windows.n_out} outputs but the controller has "
+                         f"{K.n_out} (`K.n_out`).")
     if windows.x0 is not None and windows.n_state != K.n_state:
         raise ValueError(
             f"`windows.x0` has width {windows.n_state} but `K` has {K.n_state} states; the "
@@ -106,12 +126,12 @@ def predict(K: LTIController, windows: Windows) -> Float[Array, "N h m"]:
 
     **Arguments:** one controller `K` (unbatched; vmap for batches) and the `windows`.
 
-    **Returns:** `[N, h, m]`. Raises a ValueError when `windows.x0` does not have `K.n_state`
-    columns.
+    **Returns:** `[N, h, m]`. Raises a ValueError when `windows.y`, `windows.u` or
+    `windows.x0` do not have `K.n_in`, `K.n_out` or `K.n_state` columns.
     """
     if K.batch_shape:
         raise ValueError("`K` must be a single controller; vmap `predict` for batches.")
-    _check_state_size(K, windows)
+    check_window_sizes(K, windows)
     h, N = windows.horizon, windows.num_windows
     if h <= _TOEPLITZ_MAX_HORIZON:
         O, T = observability_toeplitz(K, h)

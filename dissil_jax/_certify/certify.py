@@ -26,14 +26,16 @@ class Certificate(eqx.Module):
     - `margin`: $\\min(-\\lambda_{\\max}(\\mathrm{KYP}(P)), \\lambda_{\\min}(P))$; negative when
       no certificate was found.
     - `source`: where `P` came from: `"given"` (supplied), `"hint"`, `"cached"` (a recent
-      projection's), `"riccati"`, or the SDP solver's status (`"optimal"`, ...); or, with
+      projection's), `"riccati"`, `"static"` (a controller without state, $\\hat n = 0$:
+      `P` is 0x0), or the SDP solver's status (`"optimal"`, ...); or, with
       `result` `infeasible` and no `P`, the cheap disproof that skipped the SDP
       (`"disproved: ..."`); see
       [`certify`][dissil_jax.certify]. (Called `status` before; that name remains a
       read-only alias.)
 
     For one controller `P` is an $\\hat n\\times\\hat n$ array, `margin` a `float` and
-    `source` a `str`. For a controller with leading batch axes `batch` every field has
+    `source` a `str`; `message` (a property) says what `result` means and what to do.
+    For a controller with leading batch axes `batch` every field has
     those axes in front: `result` (shape `batch`), `P` (`[*batch, n, n]`), `margin`
     (float64) and `source` (a numpy string array); member `i` is the certificate `certify`
     returns for the `i`-th controller.
@@ -54,6 +56,17 @@ class Certificate(eqx.Module):
         """The former name of `source`."""
         return self.source
 
+    @property
+    def message(self) -> str | list:
+        """What `result` means for `certify` (and what to do about it), as a sentence; a
+        nested list of them when batched. The `Outcome` item's own sentence also serves the
+        projection and the trainers, whose arguments (`eps`, `P_ref`) `certify` lacks."""
+        codes = np.asarray(_outcome.codes(self.result))
+        text = lambda c: _outcome.message(_outcome.NAMES[int(c)], caller="certify")
+        if codes.ndim == 0:
+            return text(codes)
+        return np.vectorize(text, otypes=[object])(codes).tolist()
+
 
 def _outcome_of_sdp(status: str) -> Outcome:
     """The SDP's status string as an `Outcome` (no storage was found)."""
@@ -69,6 +82,11 @@ def _controller_arrays(K: LTIController, qsr: QSR):
     return tuple(np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
 
 
+# Asymmetry of a given storage tolerated as round-off, relative to its largest entry:
+# a P computed in float32 (eps ~ 1.2e-7) and not symmetrised passes.
+_SYMMETRY_RTOL = 1e-5
+
+
 def _storage_arg(name, P, batch, n):
     P = np.asarray(P, np.float64)
     if P.shape not in ((n, n), batch + (n, n)):
@@ -76,6 +94,14 @@ def _storage_arg(name, P, batch, n):
         raise ValueError(f"`{name}` must be {expected}, got {P.shape}.")
     if not np.all(np.isfinite(P)):
         raise ValueError(f"`{name}` contains NaN or inf.")
+    if n:
+        asym = np.max(np.abs(P - np.swapaxes(P, -1, -2)), axis=(-2, -1))
+        size = np.max(np.abs(P), axis=(-2, -1))
+        if np.any(asym > _SYMMETRY_RTOL * size):
+            raise ValueError(
+                f"`{name}` must be symmetric (the storage is V(x) = x'Px): max |P - P'| = "
+                f"{np.max(asym):.3g} exceeds the round-off allowance {_SYMMETRY_RTOL:g} "
+                "max |P|; pass (P + P.T) / 2 if the asymmetry is meant to be dropped.")
     return np.broadcast_to(P, batch + (n, n)) if batch else P
 
 
@@ -120,12 +146,19 @@ def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hi
     A controller with leading batch axes is certified member by member; with `P` given the
     eigenvalue check is vectorised over the batch.
 
+    **Static controllers** ($\\hat n = 0$, $\\hat y = D\\hat u$) have no storage: `P` is
+    0x0 and the KYP matrix is its input block alone, $-\\Phi(D)$ with
+    $\\Phi(D) = R + S^\\top D + D^\\top S + D^\\top QD$, so the certificate holds iff
+    $\\Phi(D)\\succ0$ beyond round-off (`source` `"static"`); otherwise `result` is
+    `infeasible` (no storage can help). No SDP is solved.
+
     **Arguments:**
 
     - `K`: an `LTIController`, possibly with leading batch axes.
     - `qsr`: the supply rate; `qsr.S` must be `K.n_out x K.n_in`.
     - `P`: optional storage matrix to check instead of searching: `[n, n]` (the
-      same for every member) or `[*K.batch_shape, n, n]`; `source` is `"given"`.
+      same for every member) or `[*K.batch_shape, n, n]`, symmetric up to round-off
+      (a relative asymmetry above 1e-5 raises a ValueError); `source` is `"given"`.
     - `rtol`: relative round-off allowance of the final eigenvalue check (called `tol`
       before).
     - `hint`: optional storage to try first, shaped like `P`.
@@ -172,6 +205,8 @@ def _candidates(A, B, C, D, qsr, hint):
 def _search(A, B, C, D, qsr: QSR, tol, hint, max_margin) -> Certificate:
     """One (unbatched) controller: the first candidate that proves it, else the SDP."""
     n = A.shape[0]
+    if n == 0:
+        return _static(A, B, C, D, qsr, tol)
     reason = _certify_fast.unstable(A, qsr)
     if not max_margin and reason is None:
         for P, status in _candidates(A, B, C, D, qsr, hint):
@@ -197,9 +232,30 @@ def _solve(A, B, C, D, qsr: QSR, tol) -> Certificate:
     return _verdict(A, B, C, D, qsr, P, tol, status)
 
 
+def _static(A, B, C, D, qsr: QSR, tol) -> Certificate:
+    """A static controller ($\\hat n = 0$): no storage to search, so the check at the 0x0
+    $P$ decides. The KYP matrix is then its input block alone, $-\\Phi(D)$ with
+    $\\Phi(D) = R + S^\\top D + D^\\top S + D^\\top QD$ (see `kyp_matrix`): certified iff
+    $\\Phi(D)\\succ0$ beyond round-off, and otherwise no storage exists (`infeasible`)."""
+    cert = _verdict(A, B, C, D, qsr, np.zeros((0, 0)), tol, "static")
+    if cert.holds:
+        return cert
+    return Certificate(Outcome.infeasible, cert.P, cert.margin,
+                       "static: the controller has no state and Phi(D) = R + S'D + D'S + "
+                       "D'QD is not positive definite beyond round-off")
+
+
+def _margin(A, B, C, D, qsr, P):
+    """`kyp_margin`, also for $\\hat n = 0$: the empty $P\\succ0$ holds vacuously, so the
+    margin is $-\\lambda_{\\max}$ of the KYP matrix alone."""
+    if np.shape(P)[-1] == 0:
+        return -np.linalg.eigvalsh(kyp_matrix(A, B, C, D, qsr, P))[..., -1]
+    return kyp_margin(A, B, C, D, qsr, P)
+
+
 def _verdict(A, B, C, D, qsr, P, tol, status) -> Certificate:
     """The eigenvalue check, vectorised over leading batch axes (scalars when unbatched)."""
-    margin = kyp_margin(A, B, C, D, qsr, P)
+    margin = _margin(A, B, C, D, qsr, P)
     holds = margin > tol * kyp_scale(A, B, C, D, qsr, P)
     codes = np.where(holds, _outcome.code("solved"), _outcome.code("not_certified"))
     if np.ndim(margin) == 0:

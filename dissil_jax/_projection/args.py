@@ -18,6 +18,13 @@ def check_qsr(K: LTIController, qsr: QSR) -> None:
         raise ValueError(f"`K` must be a `dj.LTIController`, got {type(K).__name__}.")
     if not isinstance(qsr, QSR):
         raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
+    if K.n_state == 0:
+        raise ValueError(
+            "`K` has no state (`K.n_state` = 0, a static controller y = D u): `dj.project` "
+            "needs an order of at least 1 (its convexified KYP LMI linearises around a storage "
+            "P, which a static controller lacks). Certify a static gain with `dj.certify` (the "
+            "test is then Phi(D) = R + S'D + D'S + D'QD > 0), or project an order-1 "
+            "controller.")
     qsr.check_sizes(K.n_in, K.n_out)
     if is_indefinite(qsr):  # a Q <= 0 that admits no controller is reported by the solver
         check_feasible(qsr)

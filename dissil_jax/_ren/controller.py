@@ -14,7 +14,7 @@ from jaxtyping import Array, Float
 
 from .._controller import LTIController
 from .._data import Windows
-from .._rollout import scan_outputs
+from .._rollout import check_window_sizes, scan_outputs
 from .._validate import has_non_finite
 
 #: The activations known to be slope-restricted in $[0, 1]$ with $\sigma(0) = 0$.
@@ -254,13 +254,14 @@ def ren_rollout(K: RENController, x0: Float[Array, " n"] | None, u_in: Float[Arr
 
 
 def ren_predict(K: RENController, windows: Windows) -> Float[Array, "N h m"]:
-    """REN outputs on every window (vmapped over windows), from `windows.x0` or at rest."""
+    """REN outputs on every window (vmapped over windows), from `windows.x0` or at rest.
+
+    The twin of [`predict`][dissil_jax.predict]: **returns** `[N, h, m]` and raises a
+    ValueError when `windows.y`, `windows.u` or `windows.x0` do not have `K.n_in`,
+    `K.n_out` or `K.n_state` columns."""
     if K.batch_shape:
         raise ValueError("`K` must be a single controller; vmap `ren_predict` for batches.")
-    if windows.x0 is not None and windows.n_state != K.n_state:
-        raise ValueError(f"`windows.x0` has width {windows.n_state} but `K` has {K.n_state} "
-                         "states; build the windows with `dj.Windows(None, y, u)` to start "
-                         "at rest.")
+    check_window_sizes(K, windows)
     if windows.x0 is None:
         return jax.vmap(ren_rollout, in_axes=(None, None, 0))(K, None, windows.y)
     return jax.vmap(ren_rollout, in_axes=(None, 0, 0))(K, windows.x0, windows.y)

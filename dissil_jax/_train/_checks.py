@@ -66,7 +66,9 @@ def check_n_state(windows: Windows, n_state) -> int:
     only) the controller starts at rest, $\\hat x_0 = 0$, and any order $\\hat n\\ge1$ fits the
     data, so `n_state` is required.
 
-    **Arguments:** the `windows` and the requested `n_state` (a positive int or None).
+    **Arguments:** the `windows` and the requested `n_state`: None, or a positive integer
+    checked like `num_inits` and `max_steps` (`check_int`: an integral float such as `2.0`
+    is taken as `2`; `2.5`, `True` and arrays are refused, never truncated).
 
     **Returns:** $\\hat n$ (an int). Raises a ValueError naming `n_state` when it is missing
     for windows that start at rest, is not a positive integer, or disagrees with

@@ -199,8 +199,8 @@ def direct_run(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, margin=margin)
     res = _run(key, windows, qsr, learning_rate, init_scale, optimizer=optimizer,
-               num_inits=num_inits, n_state=n_state, max_steps=max_steps, atol=atol,
-               rtol=rtol, margin=margin, keep=check_keep(keep))
+               num_inits=int(num_inits), n_state=n_state, max_steps=int(max_steps),
+               atol=atol, rtol=rtol, margin=margin, keep=check_keep(keep))
     return raise_if_failed(res) if throw else res
 
 

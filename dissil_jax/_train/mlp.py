@@ -10,16 +10,36 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
+import numpy as np
 import optax
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from .. import _outcome
 from .._data import Windows
+from .._validate import check_int
 from ._checks import check_fit_args
 from ._iterate import RTOL_MLP, Method, iterate
 from .result import FitResult, fit_timed
 
 _CONVERGED, _MAX_STEPS = _outcome.code("converged"), _outcome.code("max_steps")
+
+
+def check_hidden(hidden) -> tuple[int, ...]:
+    """`hidden` as a tuple of `int` widths, or a `ValueError` naming it.
+
+    A sequence (tuple, list or 1-D array) of equal positive integers (integral floats such
+    as `8.0` too, as for every integer argument; `2.5` is refused, never truncated). The
+    empty sequence `()` is allowed: no hidden layer, the affine map $\\hat y = W\\hat u + b$.
+    """
+    if isinstance(hidden, (str, bytes)) or not (
+            isinstance(hidden, Sequence) or (isinstance(hidden, np.ndarray) and hidden.ndim == 1)):
+        raise ValueError(f"`hidden` must be a sequence of hidden-layer widths such as "
+                         f"(150, 150), got {hidden!r}.")
+    hidden = tuple(check_int(f"hidden[{i}]", h) for i, h in enumerate(hidden))
+    if len(set(hidden)) > 1:
+        raise ValueError(
+            f"`hidden` must list equal widths (eqx.nn.MLP has one width), got {hidden}.")
+    return hidden
 
 
 class MLPController(eqx.Module):
@@ -35,7 +55,9 @@ class MLPController(eqx.Module):
     paper's baseline is "a three layer network" whose weights are
     "$(\\mathbf W_1, \\mathbf W_2, \\mathbf W_3)$" (paper §5.2), i.e. three weight matrices
     and so two hidden layers: `hidden=(150, 150)` for the linear example and `(25, 25)`
-    for the nonlinear one.
+    for the nonlinear one. `hidden=()` (no hidden layer, one weight matrix) is the static
+    affine controller $\\hat y = W\\hat u + b$, a linear baseline. Widths must be positive
+    integers (a `ValueError` names `hidden` otherwise; nothing is truncated).
     """
 
     params: eqx.nn.MLP  # the array leaves of the MLP (weights and biases)
@@ -43,12 +65,7 @@ class MLPController(eqx.Module):
 
     def __init__(self, key: PRNGKeyArray, n_in: int, n_out: int, hidden: Sequence[int], *,
                  dtype=None):
-        hidden = tuple(int(h) for h in hidden)
-        if len(set(hidden)) > 1:
-            raise ValueError(
-                f"`hidden` must list equal widths (eqx.nn.MLP has one width), got {hidden}.")
-        if any(h < 1 for h in hidden):
-            raise ValueError(f"`hidden` widths must be positive, got {hidden}.")
+        hidden = check_hidden(hidden)
         width = hidden[0] if hidden else 1
         mlp = eqx.nn.MLP(n_in, n_out, width, len(hidden), activation=jax.nn.relu,
                          dtype=dtype, key=key)
@@ -169,8 +186,9 @@ def fit_mlp(
 
     - `key`: PRNG key (split into `num_inits` initialisation keys).
     - `windows`: demonstration windows (any horizon).
-    - `hidden`: hidden-layer widths, all equal; `len(hidden) + 1` weight matrices (paper:
-      three, `(150, 150)` linear and `(25, 25)` nonlinear).
+    - `hidden`: hidden-layer widths, equal positive integers; `len(hidden) + 1` weight
+      matrices (paper: three, `(150, 150)` linear and `(25, 25)` nonlinear; `()` is the
+      static affine map $\\hat y = W\\hat u + b$).
     - `num_inits`, `max_steps`, `atol`, `rtol`: as for the other trainers (default
       `atol` = 0, `rtol` = 1e-9, the relative rule of [`fit_pgd`][dissil_jax.fit_pgd]
       with the MLP's own value: on the zoo's tuning half, the largest that stops within
@@ -187,7 +205,7 @@ def fit_mlp(
     """
     check_fit_args(windows, None, num_inits, max_steps, learning_rate=learning_rate, atol=atol,
                    rtol=rtol)
-    hidden = tuple(int(h) for h in hidden)
+    hidden = check_hidden(hidden)
     X, T = demonstration_pairs(windows)
     keys = jr.split(key, num_inits)
 

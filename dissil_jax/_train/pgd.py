@@ -188,8 +188,8 @@ def pgd_run(
         learning_rate=learning_rate, decay=decay, atol=atol, rtol=rtol, init_scale=init_scale,
         n_state=n_state)
     res = _run(key, windows, qsr, learning_rate, decay, init_scale, optimizer=optimizer,
-               num_inits=num_inits, n_state=n_state, max_steps=max_steps, atol=atol,
-               rtol=rtol, eps=eps, method=method, keep=check_keep(keep))
+               num_inits=int(num_inits), n_state=n_state, max_steps=int(max_steps),
+               atol=atol, rtol=rtol, eps=eps, method=method, keep=check_keep(keep))
     return raise_if_failed(res) if throw else res
 
 

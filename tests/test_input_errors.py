@@ -1,0 +1,254 @@
+"""Bad inputs raise a `ValueError` that names the argument (never a silent broadcast, cast or
+truncation, nor an error from deep inside JAX or scipy); and `certify` of a static
+controller, which has no storage to search."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dissil_jax as dj
+import dissil_jax.internal as dji
+
+
+def _lti(A, B, C, D):
+    f = lambda M: jnp.atleast_2d(jnp.asarray(M, jnp.float64))
+    return dj.LTIController(f(A), f(B), f(C), f(D))
+
+
+def _static(D):
+    D = jnp.atleast_2d(jnp.asarray(D, jnp.float64))
+    m, p = D.shape[-2:]
+    batch = D.shape[:-2]
+    return dj.LTIController(jnp.zeros(batch + (0, 0)), jnp.zeros(batch + (0, p)),
+                            jnp.zeros(batch + (m, 0)), D)
+
+
+# --- 1. output/input widths of the controller against the windows ------------------------
+
+
+@pytest.fixture
+def K11():
+    return _lti(0.5, 1.0, 1.0, 1.0)  # one input, one output, one state
+
+
+@pytest.mark.parametrize("fn", [dj.imitation_loss, dj.predict])
+def test_output_width_mismatch_is_refused(K11, fn):
+    W = dj.Windows(None, jnp.ones((3, 2, 1)), jnp.ones((3, 2, 2)))  # u has m = 2 columns
+    with pytest.raises(ValueError, match=r"`windows.u` has 2 outputs .* 1 \(`K.n_out`\)"):
+        fn(K11, W)
+
+
+@pytest.mark.parametrize("fn", [dj.imitation_loss, dj.predict])
+def test_input_width_mismatch_is_refused(K11, fn):
+    W = dj.Windows(None, jnp.ones((3, 2, 2)), jnp.ones((3, 2, 1)))  # y has p = 2 columns
+    with pytest.raises(ValueError, match=r"`windows.y` has 2 columns .* 1 inputs \(`K.n_in`\)"):
+        fn(K11, W)
+
+
+def test_state_width_mismatch_is_refused(K11):
+    W = dj.Windows(jnp.ones((3, 2)), jnp.ones((3, 2, 1)), jnp.ones((3, 2, 1)))
+    with pytest.raises(ValueError, match="`windows.x0` has width 2"):
+        dj.imitation_loss(K11, W)
+
+
+def test_width_checks_hold_under_jit_and_vmap(K11):
+    """Shapes are static: the checks fire while tracing, also for a vmapped batch."""
+    W = dj.Windows(None, jnp.ones((3, 2, 1)), jnp.ones((3, 2, 2)))
+    with pytest.raises(ValueError, match="`windows.u`"):
+        jax.jit(dj.imitation_loss)(K11, W)
+    Ks = jax.tree.map(lambda M: jnp.stack([M, 2 * M]), K11)  # batch of 2, as the trainers
+    with pytest.raises(ValueError, match="`windows.u`"):
+        jax.vmap(dj.imitation_loss, in_axes=(0, None))(Ks, W)
+    good = dj.Windows(None, jnp.ones((3, 2, 1)), jnp.ones((3, 2, 1)))
+    losses = jax.jit(jax.vmap(dj.imitation_loss, in_axes=(0, None)))(Ks, good)
+    assert losses.shape == (2,)
+    np.testing.assert_allclose(losses[0], dj.imitation_loss(K11, good))
+
+
+def test_rollout_input_width_is_checked(K11):
+    with pytest.raises(ValueError, match=r"`u_in` must have shape \[h, 1\]"):
+        dj.rollout(K11, jnp.zeros(1), jnp.zeros((4, 2)))
+    with pytest.raises(ValueError, match="`u_in`"):
+        dj.rollout(K11, None, jnp.zeros(4))
+    with pytest.raises(ValueError, match="`u_in`"):
+        jax.vmap(dj.rollout, in_axes=(None, None, 0))(K11, None, jnp.zeros((3, 4, 2)))
+    assert dj.rollout(K11, None, jnp.ones((4, 1))).shape == (4, 1)
+
+
+def test_ren_twins_check_widths(K11):
+    R = dj.RENController.from_lti(K11, width=2)
+    W_m = dj.Windows(None, jnp.ones((3, 2, 1)), jnp.ones((3, 2, 2)))
+    W_p = dj.Windows(None, jnp.ones((3, 2, 2)), jnp.ones((3, 2, 1)))
+    W_n = dj.Windows(jnp.ones((3, 2)), jnp.ones((3, 2, 1)), jnp.ones((3, 2, 1)))
+    for fn in (dj.ren_predict, dj.ren_imitation_loss):
+        with pytest.raises(ValueError, match="`windows.u` has 2 outputs"):
+            fn(R, W_m)
+        with pytest.raises(ValueError, match="`windows.y` has 2 columns"):
+            fn(R, W_p)
+        with pytest.raises(ValueError, match="`windows.x0` has width 2"):
+            fn(R, W_n)
+    with pytest.raises(ValueError, match="`u_in`"):
+        dj.ren_rollout(R, None, jnp.zeros((4, 2)))
+    good = dj.Windows(None, jnp.ones((3, 2, 1)), jnp.ones((3, 2, 1)))
+    np.testing.assert_allclose(dj.ren_imitation_loss(R, good), dj.imitation_loss(K11, good))
+
+
+# --- 2. certify a static controller (n = 0) ------------------------------------------------
+
+
+def _phi(D, qsr):
+    """$\\Phi(D) = R + S^\\top D + D^\\top S + D^\\top QD$, from the definition."""
+    D = np.asarray(D, np.float64)
+    Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
+    return R + S.T @ D + D.T @ S + D.T @ Q @ D
+
+
+def test_certify_static_controller_matches_an_eigenvalue_computation():
+    rng = np.random.default_rng(0)
+    supplies = [dj.QSR.passive(2), dj.QSR.bounded_gain(1.5, n_in=2, n_out=2),
+                dj.QSR.bounded_gain(0.7, n_in=2, n_out=2)]
+    seen = set()
+    for qsr in supplies:
+        for _ in range(6):
+            D = rng.normal(size=(2, 2)) * rng.choice([0.3, 1.0])
+            if qsr is supplies[0]:
+                D = D @ D.T + rng.choice([-1.0, 0.5]) * np.eye(2)  # passive iff D + D' > 0
+            lam = np.linalg.eigvalsh(_phi(D, qsr))[0]
+            cert = dj.certify(_static(D), qsr)
+            assert cert.P.shape == (0, 0)
+            assert cert.source.startswith("static")
+            np.testing.assert_allclose(cert.margin, lam, rtol=1e-10, atol=1e-12)
+            assert cert.holds == (lam > 1e-9), (D, lam)
+            assert cert.result == (dj.Outcome.solved if lam > 0 else dj.Outcome.infeasible)
+            seen.add(bool(cert.holds))
+    assert seen == {True, False}
+
+
+def test_certify_static_batched_and_given_P():
+    qsr = dj.QSR.passive(1)
+    Ks = _static(jnp.array([1.0, -1.0, 0.0]).reshape(3, 1, 1))
+    cert = dj.certify(Ks, qsr)
+    assert cert.P.shape == (3, 0, 0)
+    np.testing.assert_array_equal(cert.holds, [True, False, False])
+    assert dj.certify(_static(2.0), qsr, P=np.zeros((0, 0))).holds
+    assert not dj.certify(_static(-2.0), qsr, P=np.zeros((0, 0))).holds
+
+
+# --- 3. Windows dtypes --------------------------------------------------------------------
+
+
+def test_windows_convert_integers_exactly_to_the_default_float():
+    W = dj.Windows(np.arange(6).reshape(3, 2), np.arange(6).reshape(3, 2, 1),
+                   -np.ones((3, 2, 1), int))
+    for M in (W.x0, W.y, W.u):
+        assert M.dtype == jnp.result_type(float)
+    np.testing.assert_array_equal(W.y[:, :, 0], np.arange(6).reshape(3, 2))
+    with pytest.raises(ValueError, match="`u` is an integer array with entries too large"):
+        dj.Windows(None, np.ones((2, 1, 1)), np.full((2, 1, 1), 2**60))
+    # the trainers then work (they failed inside `jax.random.normal` on integer data)
+    res = dj.fit_gd(jr_key(), W, num_inits=2, max_steps=2)
+    assert res.controllers.A.dtype == jnp.result_type(float)
+
+
+def jr_key():
+    return jax.random.PRNGKey(0)
+
+
+@pytest.mark.parametrize("field", ["x0", "y", "u"])
+@pytest.mark.parametrize("bad", ["complex", "bool"])
+def test_windows_refuse_complex_and_bool(field, bad):
+    arrays = dict(x0=np.ones((3, 2)), y=np.ones((3, 2, 1)), u=np.ones((3, 2, 1)))
+    arrays[field] = arrays[field] + 1j if bad == "complex" else arrays[field] > 0
+    with pytest.raises(ValueError, match=f"`{field}` must be a real floating-point array"):
+        dj.Windows(arrays["x0"], arrays["y"], arrays["u"])
+
+
+# --- 4. fit_mlp's hidden widths ------------------------------------------------------------
+
+
+@pytest.fixture
+def W11():
+    y = jnp.linspace(-1.0, 1.0, 6).reshape(3, 2, 1)
+    return dj.Windows(None, y, -0.5 * y)
+
+
+@pytest.mark.parametrize("hidden", [(2.5,), ("a",), 10, "10", (0,), (-3,), (4, 2.5)])
+def test_fit_mlp_refuses_bad_hidden(W11, hidden):
+    with pytest.raises(ValueError, match="`hidden"):
+        dj.fit_mlp(jr_key(), W11, hidden=hidden, num_inits=1, max_steps=2)
+    with pytest.raises(ValueError, match="`hidden"):
+        dj.MLPController(jr_key(), 1, 1, hidden)
+
+
+def test_fit_mlp_empty_hidden_is_an_affine_map(W11):
+    res = dj.fit_mlp(jr_key(), W11, hidden=(), num_inits=2, max_steps=2)
+    layers = res.controllers.params.layers
+    assert len(layers) == 1 and layers[0].weight.shape == (2, 1, 1)
+    res = dj.fit_mlp(jr_key(), W11, hidden=(3.0, 3), num_inits=1, max_steps=2)
+    assert res.controllers.params.layers[0].weight.shape == (1, 3, 1)
+
+
+# --- 5. certify with a non-symmetric P -----------------------------------------------------
+
+
+def test_certify_refuses_a_nonsymmetric_P():
+    K = _lti(0.5 * np.eye(2), [[1.0], [0.0]], [[1.0, 0.0]], 2.0)  # passive: Re G >= 4/3
+    qsr = dj.QSR.passive(1)
+    with pytest.raises(ValueError, match="`P` must be symmetric"):
+        dj.certify(K, qsr, P=np.array([[1.0, 0.5], [0.0, 1.0]]))
+    with pytest.raises(ValueError, match="`hint` must be symmetric"):
+        dj.certify(K, qsr, hint=np.array([[1.0, 0.5], [0.0, 1.0]]))
+    P = dj.certify(K, qsr).P
+    bumped = P + np.array([[0.0, 1e-12], [0.0, 0.0]]) * np.abs(P).max()  # round-off
+    assert dj.certify(K, qsr, P=bumped).holds
+    Ks = jax.tree.map(lambda M: jnp.stack([M, M]), K)
+    with pytest.raises(ValueError, match="`P` must be symmetric"):
+        dj.certify(Ks, qsr, P=np.stack([P, P + np.array([[0.0, 1.0], [0.0, 0.0]])]))
+
+
+# --- 6. certify's not_certified message ----------------------------------------------------
+
+
+def test_certify_message_does_not_advise_eps():
+    K = _lti(0.5, 1.0, 1.0, 1.0)
+    cert = dj.certify(K, dj.QSR.passive(1), P=np.array([[1e3]]))  # a P that proves nothing
+    assert cert.result == dj.Outcome.not_certified
+    assert "`eps`" not in cert.message and "`P`" in cert.message
+    # the item's own sentence says where `eps` applies, and the trainers keep their advice
+    assert "`certify` (which has no `eps`)" in dj.Outcome[dj.Outcome.not_certified]
+    assert "pass a larger `eps`" in dji.outcome.message("not_certified")
+    for name in ("infeasible", "solver_failed"):
+        text = dji.outcome.message(name, caller="certify")
+        assert "`eps`" not in text and "`P_ref`" not in text and "`init_scale`" not in text
+    batched = dj.certify(jax.tree.map(lambda M: jnp.stack([M, M]), K), dj.QSR.passive(1),
+                         P=np.array([[1e3]]))
+    assert batched.message == [cert.message] * 2
+
+
+# --- 7. n_state: integers, as num_inits ----------------------------------------------------
+
+
+def test_n_state_takes_integers_like_num_inits(W11):
+    assert dji.check_n_state(W11, 2.0) == 2 and type(dji.check_n_state(W11, 2.0)) is int
+    for bad in (2.5, True, "2", 0):
+        with pytest.raises(ValueError, match="`n_state`"):
+            dji.check_n_state(W11, bad)
+    with pytest.raises(ValueError, match="`n_state`"):
+        dj.fit_gd(jr_key(), W11, n_state=2.5, num_inits=2, max_steps=2)
+    with pytest.raises(ValueError, match="`num_inits`"):
+        dj.fit_gd(jr_key(), W11, n_state=2, num_inits=2.5, max_steps=2)
+    res = dj.fit_gd(jr_key(), W11, n_state=2.0, num_inits=2.0, max_steps=2)
+    assert res.controllers.A.shape == (2, 2, 2)
+
+
+def test_project_refuses_a_static_controller():
+    with pytest.raises(ValueError, match=r"`K` has no state"):
+        dj.project(_static([[2.0]]), dj.QSR.passive(1))
+
+
+def test_traceable_runs_take_integral_floats_like_the_trainers(W11):
+    for run in (lambda **kw: dj.pgd_run(jr_key(), W11, dj.QSR.passive(1), **kw),
+                lambda **kw: dj.direct_run(jr_key(), W11, dj.QSR.passive(1), **kw)):
+        res = run(num_inits=2.0, max_steps=2.0, n_state=1, throw=False)
+        assert res.final_loss.shape == (2,) and res.loss_history.shape == (2, 3)
