@@ -37,6 +37,7 @@ def test_p_scale_is_the_square_root_of_p():
 
 @pytest.mark.parametrize("fail_every_time", [False, True])
 def test_failed_solve_recentres_on_the_certificate_once(monkeypatch, fail_every_time):
+    """When the updated solver and a new one both fail, the run re-centres once."""
     windows = expert_windows(0, 1, 1, 1, N=10)
     qsr = dj.QSR.passive(1)
     calls = {"solve": 0, "certify": 0}
@@ -44,7 +45,7 @@ def test_failed_solve_recentres_on_the_certificate_once(monkeypatch, fail_every_
 
     def flaky(self, *args, **kwargs):
         calls["solve"] += 1
-        if fail_every_time or calls["solve"] == 1:
+        if fail_every_time or calls["solve"] <= 2:  # the updated solver, then a new one
             return None, None, None, _outcome.code("solver_failed"), 0.0
         return solve(self, *args, **kwargs)
 

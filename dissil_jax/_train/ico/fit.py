@@ -36,6 +36,8 @@ ICO_INIT_SCALE = 0.1
 # The SDP's KYP margin per unit of tr P, relative to the float64 check's round-off allowance
 # (`_margins`): 100 times it, so solver round-off cannot take a step's margin below it.
 _REL_MARGIN = 100 * _lmi.VERIFY_RTOL
+# Halvings of a step that fails the float64 check before the run stops (`_shortened`).
+_BACKTRACK = 8
 
 
 def _check_args(windows, qsr, num_inits, max_steps, atol, rtol, init_scale):
@@ -94,6 +96,58 @@ def _step(pb: ICOProblem, solver: ICOSolver, theta, P, w_tilde):
     return dtheta, P_new, w_new, status
 
 
+def _step_with_fallbacks(pb: ICOProblem, solver: ICOSolver, theta, P, w_tilde):
+    """`_step`, and when its SDP fails, two more tries: `(dtheta, P_new, w_new, outcome, P)`
+    with `P` the linearisation point of the step returned (the given one or its
+    re-centred replacement, certified either way)."""
+    dtheta, P_new, w_new, status = _step(pb, solver, theta, P, w_tilde)
+    if dtheta is not None or pb.qsr is None:
+        return dtheta, P_new, w_new, status, P
+    # The updated solver keeps the equilibration of the iterate it was built at, which can
+    # go stale over a run (`ICOSolver.reset`): solve the same SDP with a new solver.
+    solver.reset()
+    dtheta, P_new, w_new, status = _step(pb, solver, theta, P, w_tilde)
+    if dtheta is not None:
+        return dtheta, P_new, w_new, status, P
+    # A certificate P on the edge of the feasible set (e.g. the projection of a large
+    # random draw, which lands on the boundary) leaves the SDP almost no interior.
+    # Re-centre the linearisation point on the maximum-margin P of the exact
+    # certificate and try once more, if that P has more of the SDP's margin (near the
+    # optimum it can have orders of magnitude less, and the step is then refused).
+    cert = certify(LTIController(*pb.mats(theta)), pb.qsr, max_margin=True)
+    if cert.holds:
+        P_c = np.asarray(cert.P, np.float64)
+        if pb.kyp_margin(theta, P_c) > pb.kyp_margin(theta, P):
+            dtheta, P_new, w_new, status = _step(pb, solver, theta, P_c, w_tilde)
+            return dtheta, P_new, w_new, status, P_c
+    return dtheta, P_new, w_new, status, P
+
+
+def _shortened(pb: ICOProblem, theta, P, J, dtheta, P_new, dtype):
+    """The longest step $\\alpha\\,\\delta\\theta$, $\\alpha = 2^{-k}$, $k = 1, \\dots,$
+    `_BACKTRACK`, whose point passes the loss and float64 KYP checks with
+    $P_\\alpha = (1 - \\alpha)\\tilde P + \\alpha P$: `(theta, P, J)`, or None.
+
+    The SDP's feasible set is convex in $(\\delta\\theta, P)$ and holds $(0, \\tilde P)$
+    (with its margin), so $(\\alpha\\delta\\theta, P_\\alpha)$ is feasible for it too, hence
+    dissipative with the margin $\\varepsilon + \\rho\\operatorname{tr}P_\\alpha$; and the
+    overbound is convex and exact at 0, so the loss is at most
+    $(1 - \\alpha)J(\\theta) + \\alpha\\bar J(\\delta\\theta) \\le J(\\theta)$. A shorter step
+    has a smaller round-off allowance in the float64 check (it grows with $P$, $A$, $B$).
+    """
+    qsr = pb.qsr
+    assert qsr is not None  # ICO-NC has no check to fail
+    for k in range(1, _BACKTRACK + 1):
+        a = 2.0 ** -k
+        theta_a = _lmi.cast(theta + a * dtheta, dtype)
+        P_a = (1 - a) * P + a * P_new
+        P_a = _lmi.cast((P_a + P_a.T) / 2, dtype)
+        J_a = pb.loss(theta_a)
+        if J_a <= J and _lmi.certified(*pb.mats(theta_a), qsr, P_a):
+            return theta_a, P_a, J_a
+    return None
+
+
 def _run_one(pb: ICOProblem, theta, P, *, max_steps, atol, rtol, dtype, index, callback):
     """Algorithm 1 for one initialisation (host, float64). Returns a dict of results."""
     qsr = pb.qsr
@@ -107,16 +161,7 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, atol, rtol, dtype, index, c
     if callback is not None:
         callback(index, 0, theta, P, J)
     for step in range(1, max_steps + 1):
-        dtheta, P_new, w_new, status = _step(pb, solver, theta, P, w_tilde)
-        if dtheta is None and qsr is not None:
-            # A certificate P on the edge of the feasible set (e.g. the projection of a large
-            # random draw, which lands on the boundary) leaves the SDP almost no interior.
-            # Re-centre the linearisation point on the maximum-margin P of the exact
-            # certificate and try once more.
-            cert = certify(LTIController(*pb.mats(theta)), qsr, max_margin=True)
-            if cert.holds:
-                P = np.asarray(cert.P, np.float64)
-                dtheta, P_new, w_new, status = _step(pb, solver, theta, P, w_tilde)
+        dtheta, P_new, w_new, status, P = _step_with_fallbacks(pb, solver, theta, P, w_tilde)
         if dtheta is None:
             reason = status
             break
@@ -131,9 +176,14 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, atol, rtol, dtype, index, c
             reason = _LOSS_INCREASED
             break
         if qsr is not None and not _lmi.certified(*pb.mats(theta_new), qsr, P_new):
-            reason = _NOT_CERTIFIED
-            break
-        dJ = J - J_new
+            # Near the edge, after the iterates' P, A and B have grown, the check's
+            # round-off allowance can pass the step's margin: take a shorter step.
+            short = _shortened(pb, theta, P, J, dtheta, P_new, dtype)
+            if short is None:
+                reason = _NOT_CERTIFIED
+                break
+            theta_new, P_new, J_new = short
+        dJ = J - J_new  # of the step taken, as in every trainer's stopping rule
         theta, P, J = theta_new, P_new, J_new
         steps = step
         hist[step] = J
@@ -304,8 +354,17 @@ def fit_ico(
     lower the objective at the optimum below $J(\\theta_i)$, so monotonicity is kept. After
     every solve the new iterate is re-evaluated in float64 (after rounding to the data's
     dtype): the step is accepted only if the true loss did not increase and the exact KYP
-    check (paper Lemma 2) holds with the returned $P$; otherwise the previous, certified
-    iterate is kept and that run stops (`result` names the reason). Without early stop
+    check (paper Lemma 2) holds with the returned $P$. A step that lowers the loss but fails
+    the check (near the edge, once $P$, $A$ and $B$ have grown, the check's round-off
+    allowance can pass the step's margin) is halved, up to 8 times, towards the current
+    iterate, with $P$ interpolated likewise: the SDP's feasible set is convex and holds
+    $(\\delta\\theta, P) = (0, \\tilde P)$, so the shorter step keeps both guarantees in exact
+    arithmetic, and it is accepted only if it passes both float64 checks. A failed SDP is
+    solved again by a new Clarabel solver (an updated one keeps the equilibration of the
+    iterate it was built at, which goes stale as the data drift), then once more around the
+    maximum-margin certificate of the iterate if that has more of the SDP's margin.
+    Otherwise the previous, certified iterate is kept and that run stops (`result` names
+    the reason). A shortened step counts as a step in the stopping rule. Without early stop
     (`rtol` = `atol` = 0) a run that has reached the loss's floor can still end
     `loss_increased`: the SDP's step then changes the loss by round-off only.
 

@@ -18,6 +18,16 @@ class ICOSolver:
         self.settings: _sdp.SolverSettings = {**_sdp.ICO_SETTINGS, "max_iter": max_iter}
         self.obj_val = np.nan
 
+    def reset(self):
+        """Drop the Clarabel solver: the next `solve` builds a new one from its data.
+
+        An updated solver keeps the equilibration of the iterate it was built at. Over a
+        run the SDP's data drift (the Young weight by decades, $A$ and $B$ by several times)
+        and that scaling can go stale: on a realisable passive problem the updated solver
+        stopped on `InsufficientProgress` where a new one solved the same SDP.
+        """
+        self.solver = None
+
     def solve(self, theta0, P_tilde, w_tilde, eps=None, rel=0.0):
         """One ICO step with the KYP margin `eps` $+$ `rel` $\\operatorname{tr}P$ (`KYPBlock`):
         `(dtheta, P, w, outcome, solve_time)`; None fields on failure.
