@@ -252,3 +252,20 @@ def test_traceable_runs_take_integral_floats_like_the_trainers(W11):
                 lambda **kw: dj.direct_run(jr_key(), W11, dj.QSR.passive(1), **kw)):
         res = run(num_inits=2.0, max_steps=2.0, n_state=1, throw=False)
         assert res.final_loss.shape == (2,) and res.loss_history.shape == (2, 3)
+
+
+def test_an_eps_beyond_the_rates_room_is_refused_naming_eps():
+    """A gain bound of 1e-4 leaves every feedthrough a room of at most 1e-8 in the KYP
+    LMI's input block, below the default margin eps = 1e-6: refused before any solve,
+    naming `eps`; with eps below the room the projection is certified."""
+    qsr = dj.QSR.bounded_gain(1e-4, n_in=1, n_out=1)
+    K = _lti(0.5, 1.0, 1.0, 0.1)
+    y = jnp.linspace(-1.0, 1.0, 6).reshape(3, 2, 1)
+    W = dj.Windows(y[:, 0], y, -1e-5 * y)
+    for call in (lambda: dj.project(K, qsr),
+                 lambda: dj.fit_pgd(jr_key(), W, qsr, num_inits=1, max_steps=1),
+                 lambda: dj.fit_ico(jr_key(), W, qsr, num_inits=1, max_steps=1)):
+        with pytest.raises(ValueError, match=r"`eps` = 1e-06 is not below the supply rate's room"):
+            call()
+    K_proj, P = dj.project(K, qsr, eps=1e-12)
+    assert dj.certify(K_proj, qsr, P=P).holds

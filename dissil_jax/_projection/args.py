@@ -30,6 +30,33 @@ def check_qsr(K: LTIController, qsr: QSR) -> None:
         check_feasible(qsr)
 
 
+def check_eps_room(qsr: QSR, eps) -> None:
+    """Refuse an LMI margin `eps` that no controller can meet, naming `eps`.
+
+    The KYP LMI with margin $\\varepsilon$ asks $\\Phi(D) - B^\\top PB\\succeq\\varepsilon I$ in
+    its input block, $\\Phi(D) = R + S^\\top D + D^\\top S + D^\\top QD$. For $Q\\prec0$,
+    $\\Phi(D) = R - S^\\top Q^{-1}S + (D + Q^{-1}S)^\\top Q(D + Q^{-1}S)\\preceq
+    R - S^\\top Q^{-1}S$, so when $\\lambda_{\\min}(R - S^\\top Q^{-1}S)\\le\\varepsilon$ the
+    set is empty whatever the solver does (e.g. a gain bound $\\gamma = 10^{-4}$ has room
+    $\\gamma^2 = 10^{-8}$, below the default $\\varepsilon = 10^{-6}$). Other rates are left to
+    the solver (their room can be unbounded).
+    """
+    if isinstance(eps, jax.core.Tracer) or isinstance(qsr.Q, jax.core.Tracer):
+        return
+    Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
+    w = np.linalg.eigvalsh((Q + Q.T) / 2)
+    if w.size == 0 or w[-1] >= -1e-12 * max(1.0, float(np.abs(w).max())):
+        return  # Q not negative definite
+    room = float(np.linalg.eigvalsh(R - S.T @ np.linalg.solve(Q, S))[0])
+    if 0 < room <= float(eps):
+        raise ValueError(
+            f"`eps` = {float(eps):.3g} is not below the supply rate's room: every feedthrough "
+            f"has R + S'D + D'S + D'QD <= R - S'Q^-1 S, whose smallest eigenvalue is "
+            f"{room:.3g}, so no controller meets the KYP LMI with this margin. Pass a much "
+            f"smaller `eps` (e.g. {room * 1e-4:.1g}), or express the signals in units where "
+            "Q, S and R are of similar size.")
+
+
 def check_k_ref(K: LTIController, K_ref) -> None:
     if K_ref is None:
         return

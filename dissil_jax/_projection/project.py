@@ -26,6 +26,7 @@ from .._sdp.lmi import ConvexifiedLMI, cast, certified
 from .._supply import QSR
 from . import first_order as _projection_fo
 from .args import (
+    check_eps_room as _check_eps_room,
     check_k_ref as _check_k_ref,
     check_options as _check_options,
     check_qsr as _check_qsr,
@@ -349,7 +350,11 @@ def project(
       which must not be used.
     - `active`: bool, scalar or batched like `K`; inactive entries are returned as they
       are (`Outcome.skipped`) without a solve.
-    - `eps`: strictness margin of the LMI, guarding the certificate against rounding.
+    - `eps`: strictness margin of the LMI, guarding the certificate against rounding. It
+      is absolute, so it must be small against the supply rate's own size: for $Q\\prec0$
+      a margin at or above $\\lambda_{\\min}(R - S^\\top Q^{-1}S)$, the most any feedthrough
+      leaves in the LMI's input block (e.g. $10^{-8}$ for a gain bound of $10^{-4}$), is
+      refused with a `ValueError` naming `eps` (as in `fit_pgd` and `fit_ico`).
     - `reg`: proximal weight $\\mu$ on $P$.
     - `refine`: re-linearisation rounds when `P_ref` is None.
     - `metric`: positive weights $W$ as an `LTIController` shaped (and batched) like `K`;
@@ -374,6 +379,7 @@ def project(
     """
     _check_qsr(K, qsr)
     _check_options(K, P_ref, active, eps, reg, refine, metric)
+    _check_eps_room(qsr, eps)
     _check_k_ref(K, K_ref)
     in_ref, in_act = None if P_ref is None else 0, 0 if jnp.ndim(active) else None
     first_order = _projection_fo.use_first_order(method, K, metric is not None, qsr)

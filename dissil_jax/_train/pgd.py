@@ -14,6 +14,7 @@ from .. import _outcome
 from .._controller import LTIController
 from .._data import Windows
 from .._projection import first_order as _first_order
+from .._projection.args import check_eps_room
 from .._projection.project import project, project_first_order_warm
 from .._rollout import imitation_loss
 from .._sdp import lmi as _lmi
@@ -144,7 +145,7 @@ ADAM_INIT_SCALE = 0.3
 
 
 def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, decay, atol,
-             rtol, init_scale, n_state):
+             rtol, init_scale, n_state, eps=None):
     """Check the arguments; returns `(optimizer, learning_rate, decay, n_state)`.
 
     `optimizer` is None for the paper's rule, whose (possibly traced) `learning_rate` and
@@ -157,6 +158,8 @@ def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, de
     decay = DECAY if decay is None else decay
     check_fit_args(windows, qsr, num_inits, max_steps, learning_rate=learning_rate, decay=decay,
                    atol=atol, rtol=rtol, init_scale=init_scale)
+    if qsr is not None and eps is not None:
+        check_eps_room(qsr, eps)
     return optimizer, learning_rate, decay, check_n_state(windows, n_state)
 
 
@@ -186,7 +189,7 @@ def pgd_run(
         windows, qsr, num_inits, max_steps, optimizer=default_rule(
             optimizer, learning_rate, decay, windows if qsr is None else None, n_state),
         learning_rate=learning_rate, decay=decay, atol=atol, rtol=rtol, init_scale=init_scale,
-        n_state=n_state)
+        n_state=n_state, eps=eps)
     res = _run(key, windows, qsr, learning_rate, decay, init_scale, optimizer=optimizer,
                num_inits=int(num_inits), n_state=n_state, max_steps=int(max_steps),
                atol=atol, rtol=rtol, eps=eps, method=method, keep=check_keep(keep))
@@ -198,7 +201,7 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
     """`pgd_run`, compiled once per static configuration, timed and certified as a batch."""
     optimizer, learning_rate, decay, n_state = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
-        decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state)
+        decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, eps=eps)
 
     def certify(res):
         if qsr is None:

@@ -12,6 +12,7 @@ from ... import _outcome
 from ..._certify.certify import certify
 from ..._controller import LTIController
 from ..._data import Windows
+from ..._projection.args import check_eps_room
 from ..._projection.project import project
 from ..._sdp import lmi as _lmi, sdp as _sdp
 from ..._supply import QSR
@@ -207,6 +208,8 @@ def _not_started(pb: ICOProblem, theta, P, outcome, max_steps):
 def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps, prox,
          window_cone, callback, throw):
     _check_args(windows, qsr, num_inits, max_steps, atol, rtol, init_scale)
+    if qsr is not None:
+        check_eps_room(qsr, eps)
     dtype = windows.y.dtype
     start = time.perf_counter()
     K0 = init_controllers(key, num_inits, windows, init_scale, dtype)
