@@ -43,7 +43,8 @@ def _random_ren(rng, n=2, q=3, p=2, m=2, scale=0.4, activation="tanh"):
 def _np_step(K, x, u):
     """One REN step with the layer solved row by row: v_i sees w_j for j < i only."""
     A, B1, B2, C1, D11, D12, C2, D21, D22 = (np.asarray(M, np.float64) for M in K.matrices)
-    sigma = ACT[K.activation]
+    sigma = (ACT[K.activation] if isinstance(K.activation, str)
+             else lambda v: float(K.activation(v)))
     w = np.zeros(D11.shape[0])
     v = np.zeros_like(w)
     for i in range(len(w)):
@@ -292,11 +293,20 @@ def test_width_zero_reproduces_the_lti_direct_map():
 SISO = {"strict": dj.QSR(-29.867, 3.556, 0.601), "passive": dj.QSR.passive(1)}
 
 
-@pytest.mark.parametrize("name", list(SISO))
-def test_fit_ren_is_certified_independently(name):
+def _softsign(v):
+    return v / (1 + jnp.abs(v))  # slope in (0, 1], sigma(0) = 0: a user's callable
+
+
+@pytest.mark.parametrize("name, activation", [(name, "tanh") for name in SISO]
+                         + [("passive", _softsign)])
+def test_fit_ren_is_certified_independently(name, activation):
+    """Trained RENs (with a named activation, and with a user's callable, which the
+    trainer screens once eagerly and then builds inside its compiled loop) hold the
+    certificate of a fresh SDP and decrease their storage on the nonlinear system."""
     qsr = SISO[name]
     w = expert_windows(1, 2, 1, 1, N=10)
-    res = dj.fit_ren(jr.PRNGKey(4), w, qsr, width=3, num_inits=3, max_steps=25)
+    res = dj.fit_ren(jr.PRNGKey(4), w, qsr, width=3, num_inits=3, max_steps=25,
+                     activation=activation)
     assert res.certified.all()
     assert (res.final_loss < res.initial_loss).all()
     # independent: the SDP's own certificate, and the storage decrease on the system

@@ -3,6 +3,7 @@ slope-restricted static nonlinearity, with an explicit (strictly lower-triangula
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable
 
 import equinox as eqx
@@ -44,11 +45,23 @@ def check_activation(activation) -> str | Callable:
         return activation
     if not callable(activation):
         raise ValueError(f"`activation` must be a name or a callable, got {activation!r}.")
-    out = jax.vmap(activation)(jnp.asarray(_GRID))
-    vals = np.asarray(out, np.float64)
+    if _passed(activation):
+        return activation
+    # Trainers build controllers inside their compiled, differentiated loops, where the
+    # screen cannot run: `fit_ren` screens first, eagerly, and this remembers the result.
+    try:
+        with jax.ensure_compile_time_eval():
+            out = jax.vmap(activation)(jnp.asarray(_GRID))
+            dtype = jnp.result_type(out)
+            vals = np.asarray(out, np.float64)
+    except jax.errors.TracerArrayConversionError:
+        raise ValueError(
+            "`activation` (a callable) must be screened once outside any JAX transformation "
+            "before a RENController is built inside one: build one RENController with it "
+            "eagerly first (`dj.fit_ren` does this for you).") from None
     # Round-off allowance of the quotients: the evaluation's precision (float32 without x64).
-    tol = _SLOPE_TOL * float(jnp.finfo(jnp.result_type(out)).eps) if jnp.issubdtype(
-        jnp.result_type(out), jnp.floating) else 0.0
+    tol = (_SLOPE_TOL * float(jnp.finfo(dtype).eps) if jnp.issubdtype(dtype, jnp.floating)
+           else 0.0)
     if vals.shape != _GRID.shape or not np.all(np.isfinite(vals)):
         raise ValueError("`activation` must map scalars to finite scalars elementwise.")
     slopes = np.diff(vals) / np.diff(_GRID)
@@ -59,7 +72,27 @@ def check_activation(activation) -> str | Callable:
             f"= {zero:.3g}, difference quotients in [{slopes.min():.3g}, {slopes.max():.3g}] "
             "on a grid in [-1e3, 1e3]); the certificate's sector condition w (v - w) >= 0 "
             "needs it. Rescale it (e.g. sigma(v)/L for slopes in [0, L]) or use 'relu'/'tanh'.")
+    _remember(activation)
     return activation
+
+
+# Callables that passed the screen (weakly held; by id for those that take no weak ref).
+_SCREENED: weakref.WeakSet = weakref.WeakSet()
+_SCREENED_IDS: dict[int, Callable] = {}
+
+
+def _passed(fn) -> bool:
+    try:
+        return fn in _SCREENED
+    except TypeError:
+        return _SCREENED_IDS.get(id(fn)) is fn
+
+
+def _remember(fn) -> None:
+    try:
+        _SCREENED.add(fn)
+    except TypeError:
+        _SCREENED_IDS[id(fn)] = fn
 
 
 def _as_array(name, M):
