@@ -56,6 +56,19 @@ def test_cli_rejects_bad_arguments():
     assert cli.main(["linear", "--segments", "0", "--out", "/nonexistent"]) == 2
 
 
+@pytest.mark.parametrize("argv", [["--inits", "0"], ["--inits", "-3"], ["--lr-sweep", "-1"],
+                                  ["--lr-sweep", "nan"], ["--out", "/proc/forbidden/x"]])
+def test_cli_rejects_bad_values_before_any_training(argv, tmp_path, capsys, monkeypatch):
+    """Refused up front with exit code 2 and a message naming the option; nothing is
+    trained (a bad `--inits` used to start the full default run, a bad `--out` to fail
+    after all the training)."""
+    monkeypatch.setattr("dissil_jax.experiments.protocol.run_config",
+                        lambda *a, **k: pytest.fail("trained despite a bad argument"))
+    out = [] if "--out" in argv else ["--out", str(tmp_path)]
+    assert cli.main(["linear", *argv, *out]) == 2
+    assert argv[0] in capsys.readouterr().err
+
+
 def test_protocol_rejects_bad_arguments():
     with pytest.raises(ValueError, match="`example`"):
         example_spec("quadratic")

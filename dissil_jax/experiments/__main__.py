@@ -36,7 +36,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/latest", help="output directory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true",
-                   help="small sizes (2 plants, 50 test states, 30 training steps)")
+                   help="small sizes (at most 2 plants, 50 test states, 30 training steps)")
     p.add_argument("--jobs", type=int, default=1,
                    help="worker processes sharing the configurations (each gets cores/jobs "
                         "solver threads); the records do not depend on it")
@@ -87,9 +87,37 @@ def _sweep(args) -> int:
     return 0
 
 
+def _argument_error(args) -> str | None:
+    """What is wrong with the arguments argparse accepted, before any training starts."""
+    import math
+    import pathlib
+
+    if args.segments is not None and any(s < 1 for s in args.segments):
+        return "--segments must be positive integers"
+    if args.inits is not None and args.inits < 1:
+        return f"--inits must be a positive integer, got {args.inits}"
+    if args.jobs < 1:
+        return "--jobs must be a positive integer"
+    if args.lr_sweep is not None and not all(math.isfinite(v) and v > 0
+                                             for v in args.lr_sweep):
+        return f"--lr-sweep takes positive learning rates, got {args.lr_sweep}"
+    out = pathlib.Path(args.out)
+    try:  # now, not after hours of training
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        return f"--out {args.out!r} cannot be created: {err.strerror or err}"
+    if not os.access(out, os.W_OK):
+        return f"--out {args.out!r} is not writable"
+    return None
+
+
 def _run(args) -> int:
     from tqdm import tqdm
 
+    error = _argument_error(args)
+    if error is not None:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
     if args.lr_sweep:
         return _sweep(args)
 
@@ -98,14 +126,8 @@ def _run(args) -> int:
     from .report import load_records, merge_records, write_report
 
     segments = args.segments or list(SEGMENTS[args.example])
-    if any(s < 1 for s in segments):
-        print("error: --segments must be positive integers", file=sys.stderr)
-        return 2
     inits = args.inits or (10 if args.example == "linear" else 100)
     configs = [(d, m, s) for d in args.data for m in args.methods for s in segments]
-    if args.jobs < 1:
-        print("error: --jobs must be a positive integer", file=sys.stderr)
-        return 2
     start = time.perf_counter()
     run = functools.partial(run_config, args.example, inits=inits, seed=args.seed,
                             quick=args.quick)
@@ -125,10 +147,11 @@ def _run(args) -> int:
     tables, figures = write_report(all_records, args.out)
     print(f"\n{args.example}: {len(configs)} configurations in "
           f"{time.perf_counter() - start:.0f} s\n")
-    print(f"{'data':8s} {'method':7s} {'N':>4s} {'% stable':>9s} {'% dJ':>8s} {'time/ctrl':>10s}"
-          f" {'MSE median':>11s} {'MSE max':>10s}")
+    width = max(7, *(len(METHOD_LABELS[r["method"]]) for r in records))
+    print(f"{'data':8s} {'method':{width}s} {'N':>4s} {'% stable':>9s} {'% dJ':>8s} "
+          f"{'time/ctrl':>10s} {'MSE median':>11s} {'MSE max':>10s}")
     for r in records:
-        print(f"{r['data']:8s} {METHOD_LABELS[r['method']]:7s} {r['segments']:4d} "
+        print(f"{r['data']:8s} {METHOD_LABELS[r['method']]:{width}s} {r['segments']:4d} "
               f"{r['percent_stable']:9.0f} {r['percent_change_cost']:8.2f} "
               f"{r['train_time_s']:10.3g} {r['mse_median']:11.4g} {r['mse_max']:10.4g}")
     print(f"\ntables: {tables}")
