@@ -68,8 +68,12 @@ def rollout(
     None) and the inputs `u_in` (`[h, p]`).
 
     **Returns:** the outputs $\\hat y_0..\\hat y_{h-1}$ (`[h, m]`). Unbatched; vmap for batches.
-    Raises a ValueError when `x0` or `u_in` do not have the controller's sizes.
+    Raises a ValueError when `K` is not an `LTIController` (a REN has `ren_rollout`) or
+    when `x0` or `u_in` do not have the controller's sizes.
     """
+    if not isinstance(K, LTIController):
+        raise ValueError(f"`K` must be a `dj.LTIController`, got {type(K).__name__} (for a "
+                         "REN use `dj.ren_rollout`).")
     return scan_outputs(K, x0, u_in)
 
 

@@ -269,3 +269,9 @@ def test_an_eps_beyond_the_rates_room_is_refused_naming_eps():
             call()
     K_proj, P = dj.project(K, qsr, eps=1e-12)
     assert dj.certify(K_proj, qsr, P=P).holds
+
+
+def test_rollout_refuses_a_ren_like_the_other_lti_tools(K11):
+    R = dj.RENController.from_lti(K11, width=2)
+    with pytest.raises(ValueError, match=r"`K` must be a `dj.LTIController`.*ren_rollout"):
+        dj.rollout(R, None, jnp.zeros((3, 1)))

@@ -372,3 +372,16 @@ def test_experiments_protocol_records_ren_as_certified():
     rec = run_config("nonlinear", "initial", "ren", 3, inits=2, spec=spec)
     assert rec["certified"] is True and rec["controllers"] == 2
     assert METHOD_LABELS["ren"] == "REN (ours)"
+
+
+def test_certify_ren_checks_the_given_pair():
+    """A wrong `P` shape is reported as `P`'s, a wrong multiplier as the multiplier's, and
+    a non-symmetric `P` is refused as by `dj.certify`."""
+    K = _random_ren(np.random.default_rng(0), n=2, q=4)
+    qsr = SUPPLY_RATES["strict"]
+    with pytest.raises(ValueError, match=r"`P` must be 2x2"):
+        dj.certify_ren(K, qsr, P=np.eye(3), multiplier=np.ones(4))
+    with pytest.raises(ValueError, match=r"`multiplier` must be \(4,\)"):
+        dj.certify_ren(K, qsr, P=np.eye(2), multiplier=np.ones(3))
+    with pytest.raises(ValueError, match=r"`P` must be symmetric"):
+        dj.certify_ren(K, qsr, P=np.array([[1.0, 0.5], [0.0, 1.0]]), multiplier=np.ones(4))

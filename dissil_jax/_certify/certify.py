@@ -87,7 +87,8 @@ def _controller_arrays(K: LTIController, qsr: QSR):
 _SYMMETRY_RTOL = 1e-5
 
 
-def _storage_arg(name, P, batch, n):
+def storage_arg(name, P, batch, n):
+    """`P` checked (shape, finite, symmetric) and broadcast to the batch."""
     P = np.asarray(P, np.float64)
     if P.shape not in ((n, n), batch + (n, n)):
         expected = f"{n}x{n}" + (f" or {batch + (n, n)}" if batch else "")
@@ -177,9 +178,9 @@ def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hi
         raise ValueError(f"`rtol` must be a finite non-negative number, got {rtol!r}.")
     tol = rtol
     if P is not None:
-        return _verdict(A, B, C, D, qsr, _storage_arg("P", P, batch, n), tol, "given")
+        return _verdict(A, B, C, D, qsr, storage_arg("P", P, batch, n), tol, "given")
     if hint is not None:
-        hint = _storage_arg("hint", hint, batch, n)
+        hint = storage_arg("hint", hint, batch, n)
     if not batch:
         return _search(A, B, C, D, qsr, tol, hint, max_margin)
     certs = [_search(A[i], B[i], C[i], D[i], qsr, tol, None if hint is None else hint[i],

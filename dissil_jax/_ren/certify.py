@@ -6,6 +6,7 @@ from __future__ import annotations
 import equinox as eqx
 import numpy as np
 
+from .._certify.certify import storage_arg
 from .._controller import LTIController
 from .._sdp import sdp as _sdp
 from .._sdp.lmi import VERIFY_RTOL, kyp_margin, kyp_matrix, kyp_scale
@@ -168,12 +169,12 @@ def certify_ren(K: RENController, qsr: QSR, *, P=None, multiplier=None,
     batch, n, q = K.batch_shape, K.n_state, K.width
     G = augmented_lti(K)
     if P is not None:
-        P = np.broadcast_to(np.asarray(P, np.float64), batch + (n, n)) if np.shape(P) in (
-            (n, n), batch + (n, n)) else None
+        # shape, finiteness and symmetry as in `dj.certify`
+        P = np.broadcast_to(storage_arg("P", P, batch, n), batch + (n, n))
         lam = np.asarray(multiplier, np.float64)
-        if P is None or lam.shape not in ((q,), batch + (q,)):
-            raise ValueError(f"`P` must be {batch + (n, n)} and `multiplier` {batch + (q,)} "
-                             f"(the diagonal of Lambda), got {np.shape(lam)} for `multiplier`.")
+        if lam.shape not in ((q,), batch + (q,)):
+            raise ValueError(f"`multiplier` must be {batch + (q,)} (the diagonal of Lambda), "
+                             f"got {lam.shape}.")
         lam = np.broadcast_to(lam, batch + (q,))
     holds = np.zeros(batch, bool)
     margin = np.full(batch, -np.inf)
