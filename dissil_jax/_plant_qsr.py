@@ -56,8 +56,10 @@ def _solve(prob, what: str) -> None:
     with single_threaded_blas():
         try:
             prob.solve(solver=cp.CLARABEL, **_SOLVER_OPTS)
-        except cp.SolverError as err:  # pragma: no cover - solver internals
-            raise ValueError(f"the {what} SDP failed in Clarabel: {err}") from err
+        except cp.SolverError as err:  # an unbounded or infeasible problem can end so
+            raise ValueError(f"the {what} SDP failed in Clarabel ({err}); often the plant "
+                             f"admits no such supply rate. {_FIXES.get(what, _FIXES[None])}"
+                             ) from err
     if prob.status not in ("optimal", "optimal_inaccurate"):
         raise ValueError(f"the {what} SDP is {prob.status} (Clarabel); the plant admits no "
                          f"such supply rate. {_FIXES.get(what, _FIXES[None])}")
