@@ -1,6 +1,7 @@
 """REN controllers: the model, its certificate (against the definition), the direct map and
 `dj.fit_ren`."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
@@ -385,3 +386,30 @@ def test_certify_ren_checks_the_given_pair():
         dj.certify_ren(K, qsr, P=np.eye(2), multiplier=np.ones(3))
     with pytest.raises(ValueError, match=r"`P` must be symmetric"):
         dj.certify_ren(K, qsr, P=np.array([[1.0, 0.5], [0.0, 1.0]]), multiplier=np.ones(4))
+
+
+def test_fit_ren_on_large_data_is_certified_and_dissipative():
+    """Data in large units: the returned REN's neurons stay in the normalised units, so its
+    multiplier is about s^2 (here ~1e6) times the storage's size. The float64 check accepts
+    the congruent form with a unit multiplier, where the round-off allowance of the
+    original form (it grows with the largest term) would swamp the margin; the storage
+    still decreases along the nonlinear system's own trajectories."""
+    qsr = dj.QSR(-np.eye(1), np.zeros((1, 1)), 0.9 * np.eye(1))  # a gain bound
+    w = expert_windows(1, 2, 1, 1, N=10)
+    big = dj.Windows(1e3 * w.x0, 1e3 * w.y, 1e3 * w.u)
+    res = dj.fit_ren(jr.PRNGKey(5), big, qsr, width=3, num_inits=3, max_steps=25)
+    assert res.certified.all()
+    lam, P = np.asarray(res.multiplier), np.asarray(res.P)
+    assert lam.min() > 1e3 * np.abs(P).max()  # the premise: very different units
+    for i in range(3):
+        K = jax.tree.map(lambda a: a[i], res.controllers)
+        rng = np.random.default_rng(i)
+        for _ in range(200):
+            x, u = 3e3 * rng.standard_normal(2), 3e3 * rng.standard_normal(1)
+            xn, y, _, _ = _np_step(K, x, u)
+            s = supply_from_definition(qsr.Q, qsr.S, qsr.R, u[None], y[None])[0]
+            assert xn @ P[i] @ xn - x @ P[i] @ x - s <= 1e-9 * (1 + x @ P[i] @ x + u @ u)
+    # and a REN that is not dissipative stays refused in either form
+    K = jax.tree.map(lambda a: a[0], res.controllers)
+    K_bad = eqx.tree_at(lambda k: k.D22, K, K.D22 + 2.0)  # feedthrough beyond the gain bound
+    assert not dj.certify_ren(K_bad, qsr, P=P[0], multiplier=lam[0]).holds

@@ -85,13 +85,44 @@ def _check_args(K, qsr):
     qsr.check_sizes(K.n_in, K.n_out)
 
 
+def _unit_multiplier(G: LTIController, lam) -> LTIController:
+    """The augmented system in neuron units where $\\Lambda = I$: $w = \\Lambda^{-1/2}\\tilde w$,
+    $\\tilde v = \\Lambda^{1/2}v$. Its KYP matrix under `augmented_qsr(qsr, 1)` is
+    $T^\\top M(P,\\Lambda)T$ with $T = \\operatorname{diag}(I, \\Lambda^{-1/2}, I)$, a congruence,
+    so it is negative definite exactly when $M$ is."""
+    q = lam.shape[-1]
+    r = np.sqrt(lam)
+    B, C, D = (np.array(M, np.float64) for M in (G.B, G.C, G.D))
+    B[:, :q] /= r
+    C[:q] *= r[:, None]
+    D[:q] *= r[:, None]
+    D[:, :q] /= r
+    return LTIController(G.A, B, C, D)
+
+
 def _margin_and_holds(G: LTIController, qsr: QSR, P, lam, tol):
-    """Margin and verdict of the eigenvalue check for one (augmented system, P, Λ)."""
+    """Margin and verdict of the eigenvalue check for one (augmented system, P, Λ).
+
+    The verdict accepts the check of $M(P,\\Lambda)$ itself or of its congruent form with a
+    unit multiplier (`_unit_multiplier`): each is a float64 eigenvalue test with its own
+    round-off allowance. The second matters when $\\Lambda$ is far from the size of $P$
+    (neurons in other units than the state, e.g. a REN trained on large data and returned
+    in the user's units, with $\\Lambda\\sim10^7$ and $P\\sim10$): the allowance, which grows
+    with the largest term, then swamps the first test's margin.
+    """
     aug = augmented_qsr(qsr, lam)
     mats = (G.A, G.B, G.C, G.D)
     margin = float(min(kyp_margin(*mats, aug, P), lam.min(initial=np.inf)))
     finite = all(np.all(np.isfinite(M)) for M in (*mats, P, lam))
-    return margin, bool(finite and margin > tol * kyp_scale(*mats, aug, P))
+    if not finite:
+        return margin, False
+    if margin > tol * kyp_scale(*mats, aug, P):
+        return margin, True
+    if not (lam.size and lam.min() > 0):
+        return margin, False
+    unit = _unit_multiplier(G, lam)
+    umats, uaug = (unit.A, unit.B, unit.C, unit.D), augmented_qsr(qsr, np.ones_like(lam))
+    return margin, bool(kyp_margin(*umats, uaug, P) > tol * kyp_scale(*umats, uaug, P))
 
 
 def _solve(G: LTIController, qsr: QSR, q: int):
