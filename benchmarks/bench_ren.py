@@ -22,8 +22,13 @@ steps for both). Printed:
   distribution, and tested on seed 0's test loops: how far the 25 small-state windows,
   not the model class, limit the test MSE.
 
+- **the step budget** (`--zoo tuning|held_out`): `fit_ren` (width 4, 8 initialisations) on
+  the problem zoo with 150 steps at `rtol` 1e-6 against `fit_direct`'s 600 steps at 1e-8
+  (median final loss, median steps, wall time of a compiled call), problems with an
+  indefinite Q skipped (the REN map needs Q <= 0).
+
 Usage: python benchmarks/bench_ren.py [--quick] [--inits 100] [--loop] [--seeds 0,3,4]
-       [--wide]
+       [--wide] [--zoo tuning]
 """
 
 import argparse
@@ -95,7 +100,36 @@ def wide(inits, quick):
               f"| {float(np.median(res.final_loss)):.4g} | {bool(np.all(res.certified))} |")
 
 
-def main(quick=False, inits=100, loop=False, seeds=None, wide_data=False):
+def zoo_budget(split):
+    """`fit_ren`'s two step budgets on one half of the zoo (compiled second calls)."""
+    from dissil_jax._sdp.indefinite import is_indefinite
+    from dissil_jax.experiments import zoo
+
+    print(f"fit_ren, width 4, 8 initialisations, zoo {split}: median final loss (median steps, "
+          "s)")
+    print("| problem | initial | 150 steps, rtol 1e-6 | 600 steps, rtol 1e-8 | certified |")
+    print("|---|---:|---:|---:|---|")
+    for name in zoo.TUNING if split == "tuning" else zoo.HELD_OUT:
+        t = zoo.task(zoo.problem(name))
+        if is_indefinite(t.qsr):
+            print(f"| {name} | indefinite Q: skipped | | | |")
+            continue
+        kw = dict(width=4, num_inits=8, throw=False,
+                  **({} if t.windows.x0 is not None else {"n_state": t.n_state}))
+        cells, cert = [], True
+        for steps, rtol in ((150, 1e-6), (600, 1e-8)):
+            fit = lambda: dj.fit_ren(t.key, t.windows, t.qsr, max_steps=steps, rtol=rtol, **kw)
+            res, sec = timed(fit)
+            cells.append(f"{float(np.median(res.final_loss)):.3g} "
+                         f"({int(np.median(res.steps))}, {sec:.1f})")
+            cert &= bool(np.all(res.certified))
+        print(f"| {name} | {float(np.median(res.initial_loss)):.3g} | {cells[0]} | {cells[1]} "
+              f"| {'all' if cert else 'NOT all'} |", flush=True)
+
+
+def main(quick=False, inits=100, loop=False, seeds=None, wide_data=False, zoo=None):
+    if zoo:
+        return zoo_budget(zoo)
     if wide_data:
         return wide(inits, quick)
     if seeds:
@@ -142,5 +176,7 @@ if __name__ == "__main__":
                         help="closed-loop comparison per seed, e.g. 0,3,4,5,6 (no timing)")
     parser.add_argument("--wide", action="store_true",
                         help="train on windows drawn like the test states (no timing)")
+    parser.add_argument("--zoo", choices=("tuning", "held_out"),
+                        help="fit_ren's step budget on one half of the problem zoo")
     args = parser.parse_args()
-    main(args.quick, args.inits, args.loop, args.seeds, args.wide)
+    main(args.quick, args.inits, args.loop, args.seeds, args.wide, args.zoo)

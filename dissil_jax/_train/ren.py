@@ -24,9 +24,9 @@ from .._ren.map import init_ren_params, ren_map
 from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
 from ._checks import check_fit_args, check_keep, check_n_state
-from ._iterate import RTOL, iterate
+from ._iterate import iterate
 from ._scale import loss_scale, scaled
-from .direct import MapDescent, default_hyperparameters, map_loss
+from .direct import MAX_STEPS, RTOL_DIRECT, MapDescent, default_hyperparameters, map_loss
 from .result import FitResult, raise_if_failed
 
 _CONVERGED, _NOT_CERTIFIED = (_outcome.code(r) for r in ("converged", "not_certified"))
@@ -103,9 +103,9 @@ def _certify_all(res: RENFitResult, qsr: QSR) -> RENFitResult:
 def fit_ren(
     key, windows: Windows, qsr: QSR, *, width: int = 16, activation="tanh",
     optimizer=None, learning_rate: float | None = None, init_scale: float | None = None,
-    num_inits: int = 8, n_state: int | None = None, max_steps: int = 150, atol: float = 0.0,
-    rtol: float = RTOL, margin: float = MARGIN, input_share: float = 0.0, throw: bool = True,
-    keep: str = "best",
+    num_inits: int = 8, n_state: int | None = None, max_steps: int = MAX_STEPS,
+    atol: float = 0.0, rtol: float = RTOL_DIRECT, margin: float = MARGIN,
+    input_share: float = 0.0, throw: bool = True, keep: str = "best",
 ) -> RENFitResult:
     """Learn $(Q,S,R)$-dissipative REN controllers (nonlinear, dynamic) from demonstrations.
 
@@ -116,10 +116,11 @@ def fit_ren(
     gradient descent on the imitation loss
     ([`ren_imitation_loss`][dissil_jax.ren_imitation_loss]) in one compiled
     `lax.while_loop`, vmapped over `num_inits` initialisations; it stops after `max_steps`
-    or when $|J_k - J_{k-1}| <$ `atol` $+$ `rtol`$\\,|J_0|$ (defaults 150, 0 and 1e-6,
-    the certified trainers' rule; [`fit_direct`][dissil_jax.fit_direct] runs up to 600
-    steps at 1e-8); the driver loop of every gradient trainer, with the REN map in place
-    of the LTI one.
+    or when $|J_k - J_{k-1}| <$ `atol` $+$ `rtol`$\\,|J_0|$ (defaults 600, 0 and 1e-8,
+    [`fit_direct`][dissil_jax.fit_direct]'s: on the problem zoo's tuning half 150 steps at
+    1e-6 left the median loss up to 10x higher, and on its held-out half up to 2.1x, for
+    at most 2.5 s of training at width 4, `benchmarks/bench_ren.py --zoo`); the driver
+    loop of every gradient trainer, with the REN map in place of the LTI one.
 
     **Certified at the end:** each returned `(K, P, multiplier)` is checked in float64 by
     eigenvalues ([`certify_ren`][dissil_jax.certify_ren] with the pair given); a pair that
