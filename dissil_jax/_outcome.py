@@ -41,8 +41,9 @@ class Outcome(eqx.Enumeration):
     loss_increased = "ICO's float64 re-evaluation found the loss increased; the step was refused"
     not_certified = (
         "the exact float64 KYP check failed. In a projection or a certified trainer the "
-        "solver's point failed it even with an enlarged margin (no controller is returned "
-        "without a certificate): pass a larger `eps`. In `certify` (which has no `eps`) the "
+        "solver's point failed it even after the safeguards (an enlarged margin in a "
+        "projection, shorter steps in ICO; no controller is returned without a "
+        "certificate): pass a larger `eps`. In `certify` (which has no `eps`) the "
         "storage P does not prove the certificate beyond round-off: see `Certificate.message`"
     )
     solved = "solved and verified by the exact float64 check"
