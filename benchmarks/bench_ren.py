@@ -102,8 +102,8 @@ def wide(inits, quick):
 
 def zoo_budget(split):
     """`fit_ren`'s two step budgets on one half of the zoo (compiled second calls)."""
-    from dissil_jax._sdp.indefinite import is_indefinite
     from dissil_jax.experiments import zoo
+    from dissil_jax.internal import is_indefinite
 
     print(f"fit_ren, width 4, 8 initialisations, zoo {split}: median final loss (median steps, "
           "s)")

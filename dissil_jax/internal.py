@@ -21,7 +21,7 @@ from ._projection import (
 from ._projection.project import solver_stats
 from ._ren import certify as ren_certify, controller as ren_controller, map as ren_map
 from ._sdp import lmi, sdp
-from ._sdp.indefinite import static_point
+from ._sdp.indefinite import is_indefinite, static_point
 from ._sdp.lmi import ConvexifiedLMI, certified, kyp_certified, kyp_margin, kyp_scale, smat
 from ._sdp.sdp import single_threaded_blas
 from ._train import direct, mlp, pgd, ren as ren_train
@@ -49,7 +49,8 @@ __all__ = [
     "ConvexifiedLMI", "FIGURES", "ICOProblem", "ICOSolver", "INIT_SCALE", "Iterate",
     "METRIC_FLOOR", "MapDescent", "Method", "TABLES", "certified", "certify_fast", "certify_sdp",
     "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct", "gd_learning_rate",
-    "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "init_controllers", "iterate",
+    "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "init_controllers", "is_indefinite",
+    "iterate",
     "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",
     "optimizer_metric", "outcome", "pgd", "projection", "projection_admm", "projection_fo",
     "ren_certify",
