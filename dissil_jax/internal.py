@@ -35,7 +35,7 @@ from ._train.direct import (
     default_hyperparameters,
     map_loss,
 )
-from ._train.ico import fit as ico, sdp as ico_sdp
+from ._train.ico import fit as ico, sdp as ico_sdp, step as ico_step
 from ._train.ico.blocks import Iterate
 from ._train.ico.layout import svec_len
 from ._train.ico.sdp import ICOProblem
@@ -49,7 +49,7 @@ __all__ = [
     "ConvexifiedLMI", "FIGURES", "ICOProblem", "ICOSolver", "INIT_SCALE", "Iterate",
     "METRIC_FLOOR", "MapDescent", "Method", "TABLES", "certified", "certify_fast", "certify_sdp",
     "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct", "gd_learning_rate",
-    "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "init_controllers", "is_indefinite",
+    "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "ico_step", "init_controllers", "is_indefinite",
     "iterate",
     "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",
     "optimizer_metric", "outcome", "pgd", "projection", "projection_admm", "projection_fo",

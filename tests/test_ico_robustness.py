@@ -13,7 +13,7 @@ from helpers import dissipation_ok, expert_windows, index
 
 import dissil_jax as dj
 from dissil_jax.experiments.protocol import example_spec, training_data
-from dissil_jax.internal import ICOProblem, ICOSolver, ico, outcome as _outcome
+from dissil_jax.internal import ICOProblem, ICOSolver, ico, ico_step, outcome as _outcome
 
 
 def test_large_initial_draws_do_not_stop_ico_early():
@@ -44,7 +44,7 @@ def test_failed_solve_recentres_on_the_certificate_once(monkeypatch, fail_every_
     windows = expert_windows(0, 1, 1, 1, N=10)
     qsr = dj.QSR.passive(1)
     calls = {"solve": 0, "certify": 0}
-    solve, certify = ICOSolver.solve, ico.certify
+    solve, certify = ICOSolver.solve, ico_step.certify
 
     def flaky(self, *args, **kwargs):
         calls["solve"] += 1
@@ -57,7 +57,7 @@ def test_failed_solve_recentres_on_the_certificate_once(monkeypatch, fail_every_
         return certify(*args, **kwargs)
 
     monkeypatch.setattr(ICOSolver, "solve", flaky)
-    monkeypatch.setattr(ico, "certify", counted)
+    monkeypatch.setattr(ico_step, "certify", counted)
     res = dj.fit_ico(jr.PRNGKey(3), windows, qsr, num_inits=1, max_steps=5, atol=0.0, rtol=0.0,
                      throw=False)
     assert calls["certify"] == 1  # one re-centring, at the first failure only
@@ -125,7 +125,7 @@ def test_failed_solve_is_retried_with_a_new_solver(monkeypatch):
     solved by a new solver before the linearisation point is re-centred."""
     windows, qsr = _realisable_windows(seed=3, n=2, p=1, m=1), dj.QSR.passive(1)
     calls = {"fail": 0, "certify": 0}
-    solve, certify = ICOSolver.solve, ico.certify
+    solve, certify = ICOSolver.solve, ico_step.certify
 
     def fails_once_updated(self, *args, **kwargs):
         if self.solver is not None and calls["fail"] == 0:  # an updated solver, once
@@ -138,7 +138,7 @@ def test_failed_solve_is_retried_with_a_new_solver(monkeypatch):
         return certify(*args, **kwargs)
 
     monkeypatch.setattr(ICOSolver, "solve", fails_once_updated)
-    monkeypatch.setattr(ico, "certify", counted)
+    monkeypatch.setattr(ico_step, "certify", counted)
     res = dj.fit_ico(jr.PRNGKey(2), windows, qsr, num_inits=1, max_steps=4, atol=0.0,
                      rtol=0.0)
     assert calls == {"fail": 1, "certify": 0}

@@ -9,7 +9,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from ... import _outcome
-from ..._certify.certify import certify
 from ..._controller import LTIController
 from ..._data import Windows
 from ..._projection.args import check_eps_room
@@ -23,6 +22,7 @@ from .._scale import loss_scale, scaled
 from ..result import FitResult, raise_if_failed
 from .sdp import ICOProblem
 from .solver import ICOSolver
+from .step import shortened, step_with_fallbacks
 
 _CONVERGED, _MAX_STEPS, _LOSS_INCREASED, _NOT_CERTIFIED = (
     _outcome.code(n) for n in ("converged", "max_steps", "loss_increased", "not_certified"))
@@ -34,11 +34,6 @@ _W_RANGE = 1e4
 # worst 464x; from N(0, 0.1^2) every problem's median was within 0.1 % of the best of
 # {1, 0.3, 0.1} (benchmarks/README.md, "Defaults on the problem zoo").
 ICO_INIT_SCALE = 0.1
-# The SDP's KYP margin per unit of tr P, relative to the float64 check's round-off allowance
-# (`_margins`): 100 times it, so solver round-off cannot take a step's margin below it.
-_REL_MARGIN = 100 * _lmi.VERIFY_RTOL
-# Halvings of a step that fails the float64 check before the run stops (`_shortened`).
-_BACKTRACK = 8
 
 
 def _check_args(windows, qsr, num_inits, max_steps, atol, rtol, init_scale):
@@ -72,83 +67,6 @@ def _young_scale(pb: ICOProblem, theta) -> float:
     return float(np.clip(w if np.isfinite(w) and w > 0 else 1.0, 1e-6, 1e6))
 
 
-def _margins(pb: ICOProblem, theta, P) -> tuple[float, float]:
-    """The KYP margin `(eps, rel)` of the next SDP: `eps` $+$ `rel` $\\operatorname{tr}P$.
-
-    The margin is imposed on the un-congruenced LMI, so the new iterate has it again at the
-    next linearisation point; only solver round-off can eat into it, and then delta = 0 must
-    stay feasible: never ask for more margin than the current iterate has. Within that
-    budget, first `rel` $= \\rho\\,(1 + (\\lVert A\\rVert_F + \\lVert B\\rVert_F)^2)$,
-    `_REL_MARGIN` times the part of the float64 check's round-off allowance that grows with
-    $P$ (`kyp_scale`), then the absolute `pb.eps`.
-    """
-    budget = (1 - 1e-3) * pb.kyp_margin(theta, P)
-    A, B = pb.mats(theta)[:2]
-    tr = float(np.trace(P))
-    rel = min(_REL_MARGIN * (1 + (np.linalg.norm(A) + np.linalg.norm(B)) ** 2),
-              max(budget, 0.0) / tr)
-    return min(pb.eps, budget - rel * tr), rel
-
-
-def _step(pb: ICOProblem, solver: ICOSolver, theta, P, w_tilde):
-    """One ICO SDP around (theta, P): `(dtheta, P_new, w_new, outcome)`, None on failure."""
-    eps, rel = (None, 0.0) if pb.qsr is None else _margins(pb, theta, P)
-    dtheta, P_new, w_new, status, _ = solver.solve(theta, P, w_tilde, eps, rel)
-    return dtheta, P_new, w_new, status
-
-
-def _step_with_fallbacks(pb: ICOProblem, solver: ICOSolver, theta, P, w_tilde):
-    """`_step`, and when its SDP fails, two more tries: `(dtheta, P_new, w_new, outcome, P)`
-    with `P` the linearisation point of the step returned (the given one or its
-    re-centred replacement, certified either way)."""
-    dtheta, P_new, w_new, status = _step(pb, solver, theta, P, w_tilde)
-    if dtheta is not None or pb.qsr is None:
-        return dtheta, P_new, w_new, status, P
-    # The updated solver keeps the equilibration of the iterate it was built at, which can
-    # go stale over a run (`ICOSolver.reset`): solve the same SDP with a new solver.
-    solver.reset()
-    dtheta, P_new, w_new, status = _step(pb, solver, theta, P, w_tilde)
-    if dtheta is not None:
-        return dtheta, P_new, w_new, status, P
-    # A certificate P on the edge of the feasible set (e.g. the projection of a large
-    # random draw, which lands on the boundary) leaves the SDP almost no interior.
-    # Re-centre the linearisation point on the maximum-margin P of the exact
-    # certificate and try once more, if that P has more of the SDP's margin (near the
-    # optimum it can have orders of magnitude less, and the step is then refused).
-    cert = certify(LTIController(*pb.mats(theta)), pb.qsr, max_margin=True)
-    if cert.holds:
-        P_c = np.asarray(cert.P, np.float64)
-        if pb.kyp_margin(theta, P_c) > pb.kyp_margin(theta, P):
-            dtheta, P_new, w_new, status = _step(pb, solver, theta, P_c, w_tilde)
-            return dtheta, P_new, w_new, status, P_c
-    return dtheta, P_new, w_new, status, P
-
-
-def _shortened(pb: ICOProblem, theta, P, J, dtheta, P_new, dtype):
-    """The longest step $\\alpha\\,\\delta\\theta$, $\\alpha = 2^{-k}$, $k = 1, \\dots,$
-    `_BACKTRACK`, whose point passes the loss and float64 KYP checks with
-    $P_\\alpha = (1 - \\alpha)\\tilde P + \\alpha P$: `(theta, P, J)`, or None.
-
-    The SDP's feasible set is convex in $(\\delta\\theta, P)$ and holds $(0, \\tilde P)$
-    (with its margin), so $(\\alpha\\delta\\theta, P_\\alpha)$ is feasible for it too, hence
-    dissipative with the margin $\\varepsilon + \\rho\\operatorname{tr}P_\\alpha$; and the
-    overbound is convex and exact at 0, so the loss is at most
-    $(1 - \\alpha)J(\\theta) + \\alpha\\bar J(\\delta\\theta) \\le J(\\theta)$. A shorter step
-    has a smaller round-off allowance in the float64 check (it grows with $P$, $A$, $B$).
-    """
-    qsr = pb.qsr
-    assert qsr is not None  # ICO-NC has no check to fail
-    for k in range(1, _BACKTRACK + 1):
-        a = 2.0 ** -k
-        theta_a = _lmi.cast(theta + a * dtheta, dtype)
-        P_a = (1 - a) * P + a * P_new
-        P_a = _lmi.cast((P_a + P_a.T) / 2, dtype)
-        J_a = pb.loss(theta_a)
-        if J_a <= J and _lmi.certified(*pb.mats(theta_a), qsr, P_a):
-            return theta_a, P_a, J_a
-    return None
-
-
 def _run_one(pb: ICOProblem, theta, P, *, max_steps, atol, rtol, dtype, index, callback):
     """Algorithm 1 for one initialisation (host, float64). Returns a dict of results."""
     qsr = pb.qsr
@@ -162,7 +80,7 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, atol, rtol, dtype, index, c
     if callback is not None:
         callback(index, 0, theta, P, J)
     for step in range(1, max_steps + 1):
-        dtheta, P_new, w_new, status, P = _step_with_fallbacks(pb, solver, theta, P, w_tilde)
+        dtheta, P_new, w_new, status, P = step_with_fallbacks(pb, solver, theta, P, w_tilde)
         if dtheta is None:
             reason = status
             break
@@ -179,7 +97,7 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, atol, rtol, dtype, index, c
         if qsr is not None and not _lmi.certified(*pb.mats(theta_new), qsr, P_new):
             # Near the edge, after the iterates' P, A and B have grown, the check's
             # round-off allowance can pass the step's margin: take a shorter step.
-            short = _shortened(pb, theta, P, J, dtheta, P_new, dtype)
+            short = shortened(pb, theta, P, J, dtheta, P_new, dtype)
             if short is None:
                 reason = _NOT_CERTIFIED
                 break
