@@ -26,6 +26,10 @@ def _collect_systems(sys) -> tuple[tuple[int, ...], list]:
 
 def _statespace_matrices(sys) -> tuple[np.ndarray, ...]:
     """`(A, B, C, D)` (float64) of one discrete-time StateSpace; refuses continuous ones."""
+    if not all(hasattr(sys, k) for k in "ABCD"):
+        raise ValueError(f"`sys` must be a `control.StateSpace` (with matrices A, B, C, D), "
+                         f"got {type(sys).__name__}; convert a transfer function with "
+                         "`control.ss(sys)`.")
     if not getattr(sys, "dt", None):
         raise ValueError(
             "`sys` must be a discrete-time StateSpace (dt=True or dt>0); discretise it "
@@ -149,7 +153,7 @@ class LTIController(eqx.Module):
         shapes = ((n, n), (n, n_in), (n_out, n), (n_out, n_in))
         return cls(*(scale * jr.normal(k, s, dtype) for k, s in zip((kA, kB, kC, kD), shapes)))
 
-    def to_statespace(self, dt=True):
+    def to_statespace(self, dt: bool | float = True):
         """Convert to discrete-time `control.StateSpace` systems (float64).
 
         **Arguments:** `dt`, the sampling time (`True`: discrete with unspecified period).
@@ -162,6 +166,10 @@ class LTIController(eqx.Module):
         """
         import control
 
+        if not (dt is True or (isinstance(dt, (int, float)) and not isinstance(dt, bool)
+                               and np.isfinite(dt) and dt > 0)):
+            raise ValueError(f"`dt` must be True or a positive finite sampling time (the "
+                             f"controller is discrete-time), got {dt!r}.")
         to_ss = lambda A, B, C, D: control.ss(A, B, C, D, dt=dt)
         if self.batch_shape:
             return _map_batch(to_ss, self)

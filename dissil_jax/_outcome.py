@@ -56,7 +56,8 @@ class Outcome(eqx.Enumeration):
         "smaller `eps` when the rate's terms are small (a gain bound of 1e-4 has R = 1e-8, "
         "below the default eps = 1e-6), or express the signals in units where Q, S and R "
         "are of similar size. In `certify`: no storage exists, the controller is not "
-        "strictly dissipative for `qsr`."
+        "strictly dissipative for `qsr` (`source` says whether the SDP or a cheap necessary "
+        "condition, 'disproved: ...', decided)."
     )
     no_multiplier = (
         "no multiplier alpha > 0 makes the matrix of the QSR stability theorem (paper "

@@ -5,7 +5,8 @@ $y\\in\\mathbb R^p$): $w(u, y) = y^\\top Qy + 2y^\\top Su + u^\\top Ru$ with $Q$
 $S$ $p\\times m$, $R$ $m\\times m$, ready for
 [`stabilising_qsr`][dissil_jax.stabilising_qsr] and
 [`closed_loop_certificate`][dissil_jax.closed_loop_certificate] (paper Theorem 1).
-The SDPs are solved in float64 by cvxpy + Clarabel with single-threaded BLAS.
+The SDPs are solved in float64 by cvxpy + Clarabel with single-threaded BLAS. Static
+LTI plants ($n = 0$, $y = Du$) are accepted: their rates follow from $D$ alone.
 """
 
 from __future__ import annotations
@@ -50,19 +51,33 @@ def _abcd(plant, what: str = "plant"):
     return A, B, C, D
 
 
-def _solve(prob, what: str) -> None:
+def _with_state(A, B, C, D):
+    """A static plant ($n = 0$, $y = Du$) with one decoupled, unobservable state
+    $x^+ = 0$ added: the same operator $u\\mapsto y$, but cvxpy cannot build the SDPs with
+    a 0x0 storage."""
+    if A.shape[0]:
+        return A, B, C, D
+    return np.zeros((1, 1)), np.zeros((1, B.shape[1])), np.zeros((C.shape[0], 1)), D
+
+
+def _solve(prob, what: str, A) -> None:
+    """Solve `prob` (the `what` SDP of a plant with matrix `A`); a `ValueError` otherwise."""
+    import warnings
+
     import cvxpy as cp
 
-    with single_threaded_blas():
+    with single_threaded_blas(), warnings.catch_warnings():
+        # An inaccurate solution is checked by `certify` afterwards (`_backed_off`).
+        warnings.filterwarnings("ignore", message="Solution may be inaccurate",
+                                category=UserWarning)
         try:
             prob.solve(solver=cp.CLARABEL, **_SOLVER_OPTS)
+            status = prob.status
         except cp.SolverError as err:  # an unbounded or infeasible problem can end so
-            raise ValueError(f"the {what} SDP failed in Clarabel ({err}); often the plant "
-                             f"admits no such supply rate. {_FIXES.get(what, _FIXES[None])}"
-                             ) from err
-    if prob.status not in ("optimal", "optimal_inaccurate"):
-        raise ValueError(f"the {what} SDP is {prob.status} (Clarabel); the plant admits no "
-                         f"such supply rate. {_FIXES.get(what, _FIXES[None])}")
+            status = f"failed ({err})"
+    if status not in ("optimal", "optimal_inaccurate"):
+        ended = "failed" if status.startswith("failed") else f"is {status}"
+        raise ValueError(f"the {what} SDP {ended} in Clarabel. {_hint(what, A)}")
 
 
 def _value(x) -> np.ndarray:
@@ -73,13 +88,30 @@ def _value(x) -> np.ndarray:
     return np.asarray(value)
 
 
-_FIXES = {
-    "Lemma 8": ("Lemma 8 needs a storage with 2(A'PA + alpha^2 tau I) < P, so the linear part "
-                "must contract strongly (||A||^2 + alpha^2 < 1/2 suffices): check `A` and "
-                "`alpha`, or describe the plant by another supply rate."),
-    None: ("Check that the plant `A` is stable (spectral radius < 1) and discrete-time; for "
-           "an unstable plant no storage exists, stabilise it first."),
-}
+def _radius(A) -> float:
+    """The spectral radius of `A` (0 without state)."""
+    return float(np.max(np.abs(np.linalg.eigvals(A)))) if A.size else 0.0
+
+
+def _hint(what: str, A) -> str:
+    """Why the `what` SDP or its certificate may fail for a plant with matrix `A`."""
+    if what == "Lemma 8":
+        return ("The plant may admit no such supply rate: Lemma 8 needs a storage with "
+                "2(A'PA + alpha^2 tau I) < P, so the linear part must contract strongly "
+                "(||A||^2 + alpha^2 < 1/2 suffices): check `A` and `alpha`, or describe the "
+                "plant by another supply rate.")
+    radius = _radius(A)
+    if radius >= 1:
+        return (f"The plant `A` is not stable (spectral radius {radius:.4g} >= 1): no "
+                "storage exists, so the plant admits no such supply rate; stabilise it "
+                "first (and check that it is discrete-time).")
+    if what == "cone":
+        return (f"The plant `A` is stable (spectral radius {radius:.4g} < 1), so a cone "
+                "exists and the solver failed on the numbers: rescale the plant's signals.")
+    return (f"The plant `A` is stable (spectral radius {radius:.4g} < 1), so the plant "
+            f"itself has no such {what}: it is not passive enough (e.g. a strictly proper "
+            "plant that is not passive has no output passivity index); `dj.lti_cone_qsr` "
+            "describes any stable plant.")
 
 
 def _sym(M):
@@ -169,7 +201,7 @@ def sector_plant_qsr(A, B, C, D, alpha, *, return_storage: bool = False
                  [CD, np.zeros((p, n)), np.eye(p)]])
     cons: list[cp.Constraint] = [_sym(M) >> 0, P >> 0, tau * np.eye(n) - P >> 0]
     prob = cp.Problem(cp.Minimize(t), cons)
-    _solve(prob, "Lemma 8")
+    _solve(prob, "Lemma 8", A)
     Pv, Sv, tv = _sym(_value(P)), _value(S), float(_value(t))
     qsr = QSR(-np.eye(p), Sv, tv * np.eye(m) - Sv.T @ Sv)
     lam = np.linalg.eigvalsh(sector_lemma_matrix(A, B, C, D, alpha, qsr, Pv))[0]
@@ -199,6 +231,11 @@ def _index_sdp(A, B, C, D, kind: str, nu_fixed: float | None = None,
     """Maximise passivity indices under the KYP LMI; returns (rho, nu)."""
     import cvxpy as cp
 
+    kind_names = {"nu": "input passivity index", "rho": "output passivity index",
+                  "rho_at_nu": "output passivity index at the given `nu`",
+                  "nu_at_rho": "input passivity index at the given rho",
+                  "ray": "pair of joint passivity indices"}
+
     n, m, p = A.shape[0], B.shape[1], C.shape[0]
     P = cp.Variable((n, n), symmetric=True)
     rho, nu = cp.Variable(), cp.Variable()
@@ -222,7 +259,7 @@ def _index_sdp(A, B, C, D, kind: str, nu_fixed: float | None = None,
     S = 0.5 * np.eye(p, m)
     cons.append(_kyp_expr(A, B, C, D, P, Q, S, R) << 0)
     prob = cp.Problem(cp.Maximize(objective), cons)
-    _solve(prob, "passivity-index")
+    _solve(prob, kind_names[kind], A)
     val = lambda e: float(_value(e)) if isinstance(e, cp.Expression) else float(e)
     return val(rho_e), val(nu_e)
 
@@ -243,8 +280,11 @@ def _backed_off(A, B, C, D, make, value: float, backoff: float, what: str):
         if _certified(A, B, C, D, qsr):
             return qsr
         step *= 10
-    raise ValueError(f"could not certify the {what} strictly near its optimum {value:.6g}; "
-                     "the plant may be unstable or nearly lossless.")
+    hint = _hint(what, A) if _radius(A) >= 1 else (
+        f"The plant `A` is stable (spectral radius {_radius(A):.4g} < 1), so it may be "
+        "nearly lossless.")
+    raise ValueError(f"could not certify the {what} strictly near its optimum {value:.6g}. "
+                     f"{hint}")
 
 
 def _check_backoff(backoff) -> None:
@@ -270,7 +310,7 @@ def input_passivity_qsr(plant, *, backoff: float = 1e-3) -> QSR:
     `control.StateSpace` or a tuple `(A, B, C, D)`), `backoff`.
     """
     _check_backoff(backoff)
-    A, B, C, D = _abcd(plant)
+    A, B, C, D = _with_state(*_abcd(plant))
     _square(A, B, C, D, "an input passivity index")
     _, nu = _index_sdp(A, B, C, D, "nu")
     p = C.shape[0]
@@ -285,7 +325,7 @@ def output_passivity_qsr(plant, *, backoff: float = 1e-3) -> QSR:
     [`input_passivity_qsr`][dissil_jax.input_passivity_qsr].
     """
     _check_backoff(backoff)
-    A, B, C, D = _abcd(plant)
+    A, B, C, D = _with_state(*_abcd(plant))
     _square(A, B, C, D, "an output passivity index")
     rho, _ = _index_sdp(A, B, C, D, "rho")
     p = C.shape[0]
@@ -308,7 +348,7 @@ def passivity_indices(plant, *, nu: float | None = None, backoff: float = 1e-3) 
     is backed off by `backoff` (relative) and certified strictly.
     """
     _check_backoff(backoff)
-    A, B, C, D = _abcd(plant)
+    A, B, C, D = _with_state(*_abcd(plant))
     _square(A, B, C, D, "joint passivity indices")
     p = C.shape[0]
     if nu is None:
@@ -339,7 +379,7 @@ def lti_cone_qsr(plant, *, backoff: float = 1e-3) -> QSR:
     import cvxpy as cp
 
     _check_backoff(backoff)
-    A, B, C, D = _abcd(plant)
+    A, B, C, D = _with_state(*_abcd(plant))
     n, m, p = A.shape[0], B.shape[1], C.shape[0]
     P = cp.Variable((n, n), symmetric=True)
     S = cp.Variable((p, m))
@@ -351,7 +391,7 @@ def lti_cone_qsr(plant, *, backoff: float = 1e-3) -> QSR:
                  [P @ AB, P, np.zeros((n, p))],
                  [CD, np.zeros((p, n)), np.eye(p)]])
     prob = cp.Problem(cp.Minimize(t), [_sym(M) >> 0, P >> 0])
-    _solve(prob, "cone")
+    _solve(prob, "cone", A)
     Sv, tv = _value(S), float(_value(t))
     make = lambda neg_t: QSR(-np.eye(p), Sv, -neg_t * np.eye(m) - Sv.T @ Sv)
     return _backed_off(A, B, C, D, make, -tv, backoff, "cone radius")

@@ -7,11 +7,17 @@ layout can change behind this one list (as lineax's `internal`).
 Modules, for monkeypatching in tests and for benchmarks that time one layer alone:
 `certify_fast`, `certify_sdp`, `direct`, `direct_map`, `ico`, `ico_sdp`, `linalg`, `lmi`, `mlp`, `outcome`,
 `pgd`, `projection`, `projection_admm`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `rollout`,
-`sdp`; and the functions and constants in
+`sdp`, `supply`; and the functions and constants in
 `__all__`.
 """
 
-from . import _direct_map as direct_map, _linalg as linalg, _outcome as outcome, _rollout as rollout
+from . import (
+    _direct_map as direct_map,
+    _linalg as linalg,
+    _outcome as outcome,
+    _rollout as rollout,
+    _supply as supply,
+)
 from ._certify import fast as certify_fast, sdp as certify_sdp
 from ._projection import (
     admm as projection_admm,
@@ -29,6 +35,7 @@ from ._train._checks import check_n_state
 from ._train._init import INIT_SCALE, init_controllers
 from ._train._iterate import Method, iterate
 from ._train._scale import loss_scale, scaled
+from ._train._units import BAND as OUTPUT_BAND, output_factor, output_ratio
 from ._train.direct import (
     MapDescent,
     _run as direct_run_unchecked,
@@ -47,14 +54,14 @@ from .experiments._paper import FIGURES, TABLES
 
 __all__ = [
     "ConvexifiedLMI", "FIGURES", "ICOProblem", "ICOSolver", "INIT_SCALE", "Iterate",
-    "METRIC_FLOOR", "MapDescent", "Method", "TABLES", "certified", "certify_fast", "certify_sdp",
+    "METRIC_FLOOR", "MapDescent", "Method", "OUTPUT_BAND", "TABLES", "certified", "certify_fast", "certify_sdp",
     "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct", "gd_learning_rate",
     "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "ico_step", "init_controllers", "is_indefinite",
     "iterate",
     "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",
-    "optimizer_metric", "outcome", "pgd", "projection", "projection_admm", "projection_fo",
+    "optimizer_metric", "outcome", "output_factor", "output_ratio", "pgd", "projection", "projection_admm", "projection_fo",
     "ren_certify",
     "ren_controller",
-    "ren_map", "ren_train", "rollout", "scaled", "sdp", "single_threaded_blas", "smat",
+    "ren_map", "ren_train", "rollout", "scaled", "sdp", "supply", "single_threaded_blas", "smat",
     "solver_stats", "stacked_factor", "static_point", "svec_len",
 ]

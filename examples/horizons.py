@@ -48,7 +48,8 @@ def fit_and_test(k_fit, k_noise, windows, spec, inits, plant, expert, x0, steps,
     def fit():
         return dj.fit_pgd(k_fit, windows, spec.qsr, num_inits=inits, max_steps=spec.max_steps,
                           atol=spec.tol, learning_rate=spec.pgd_learning_rate,
-                          decay=spec.pgd_decay, init_scale=spec.init_scale, throw=False)
+                          decay=spec.pgd_decay, init_scale=spec.init_scale, throw=False,
+                          balance=False)
 
     if windows.y.shape not in compiled:  # compile outside the timed run (one per shape)
         jax.block_until_ready(fit().final_loss)

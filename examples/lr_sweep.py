@@ -22,7 +22,9 @@ def main(quick: bool = False):
     jax.config.update("jax_enable_x64", True)
     windows = demonstrations(jax.random.PRNGKey(0), num=25)
     qsr = dj.QSR(-29.867, 3.556, 0.601)
-    lrs = jnp.logspace(-2, 0.5, 4 if quick else 8)  # normalised units: the default is 1
+    # eta_0 of the paper's decaying-step rule, selected by `learning_rate` (normalised
+    # units; the rule's default is 1, while the trainers' default step is Adam at 0.1)
+    lrs = jnp.logspace(-2, 0.5, 4 if quick else 8)
     steps = 30 if quick else 150
 
     def run(lr):
@@ -42,6 +44,6 @@ def main(quick: bool = False):
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small sizes (CI)")
     main(parser.parse_args().quick)

@@ -393,4 +393,8 @@ def test_disproof_skips_the_sdp_at_order_48(monkeypatch):
     active = dj.LTIController(A, 0.1 * B, 0.1 * C, -np.eye(2))  # He D < 0: not passive
     cert = dj.certify(active, qsr, max_margin=True)
     assert cert.result == dj.Outcome.infeasible and "feedthrough" in str(cert.source)
+    # the message says so (it was the projection's "pass a different P_ref"); P is NaN
+    assert np.isnan(cert.P).all() and "SDP was skipped" in cert.message, cert.message
+    pair = dj.certify(jax.tree.map(lambda M: jnp.stack([M, M]), active), qsr)
+    assert "P_ref" not in cert.message and pair.message == [cert.message] * 2
     assert min_hermitian_part(A, 0.1 * B, 0.1 * C, -np.eye(2)) < 0  # independent: He G < 0

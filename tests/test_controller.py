@@ -36,6 +36,22 @@ def test_statespace_round_trip(getkey):
         dj.LTIController.from_statespace(control.ss([[-1.0]], [[1.0]], [[1.0]], [[0.0]]))
 
 
+def test_statespace_conversions_refuse_other_inputs(getkey):
+    """A transfer function used to fail with "'TransferFunction' object has no attribute
+    'A'"; `dt` of a continuous or unspecified timebase gave no discrete-time system."""
+    tf = control.tf([1.0, 0.5], [1.0, -0.5], 0.1)
+    for sys in (tf, [tf], 3.0):
+        with pytest.raises(ValueError, match=r"`sys` must be a `control.StateSpace`.*"
+                                             r"control.ss\(sys\)"):
+            dj.LTIController.from_statespace(sys)
+    assert dj.LTIController.from_statespace(control.ss(tf)).n_state == 1  # the suggestion
+    K = dj.LTIController.random(getkey(), 2, 1, 1)
+    for dt in (0, 0.0, -0.1, None, False, np.nan, "0.1"):
+        with pytest.raises(ValueError, match="`dt`"):
+            K.to_statespace(dt)
+    assert K.to_statespace(True).dt is True and K.to_statespace(1).dt == 1
+
+
 def test_shape_errors_name_the_argument():
     with pytest.raises(ValueError, match="`B`"):
         dj.LTIController(np.eye(2), np.ones((3, 1)), np.ones((1, 2)), np.ones((1, 1)))

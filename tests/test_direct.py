@@ -135,8 +135,9 @@ def test_issue_failure_case_q_minus_1e4(dtype):
     spec = example_spec("linear")
     w = training_data(spec, 0, 0, "initial", 25)[2]
     w = as_float32(w) if dtype == "float32" else w
+    # the reproduction's settings: its step, and its data in one scale (`balance=False`)
     kw = dict(num_inits=20, learning_rate=spec.direct_learning_rate, max_steps=150, atol=0.0,
-              rtol=0.0)
+              rtol=0.0, balance=False)
     near = dj.fit_direct(jr.PRNGKey(0), w, dj.QSR(-1e-4 * I3, I3 / 2, 0 * I3), **kw)
     assert bool(jnp.all(near.certified)) and not bool(jnp.any(near.projected))
     med = float(jnp.median(near.final_loss))

@@ -9,7 +9,7 @@ import pytest
 from dissil_jax.experiments import __main__ as cli
 from dissil_jax.experiments.protocol import example_spec, run_config
 from dissil_jax.experiments.report import merge_records, tables_markdown
-from dissil_jax.internal import FIGURES, TABLES
+from dissil_jax.internal import FIGURES, TABLES, sdp
 
 KEYS = {"example", "data", "method", "segments", "percent_stable", "percent_change_cost",
         "train_time_s", "mse_median", "mse_max", "mse_q1", "mse_q3", "percent_bounded",
@@ -67,6 +67,81 @@ def test_cli_rejects_bad_values_before_any_training(argv, tmp_path, capsys, monk
     out = [] if "--out" in argv else ["--out", str(tmp_path)]
     assert cli.main(["linear", *argv, *out]) == 2
     assert argv[0] in capsys.readouterr().err
+
+
+def _no_training(monkeypatch):
+    monkeypatch.setattr("dissil_jax.experiments.protocol.run_config",
+                        lambda *a, **k: pytest.fail("trained despite a bad argument"))
+
+
+def test_cli_refuses_a_corrupt_summary_before_any_training(tmp_path, capsys, monkeypatch):
+    """A `summary.json` that is not JSON used to fail after all the training, losing it."""
+    _no_training(monkeypatch)
+    (tmp_path / "summary.json").write_text("{not json")
+    assert cli.main(["nonlinear", "--quick", "--methods", "gd", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and "summary.json is not valid JSON" in err
+    (tmp_path / "summary.json").write_text('{"example": "linear"}')  # JSON, not records
+    assert cli.main(["nonlinear", "--quick", "--methods", "gd", "--out", str(tmp_path)]) == 2
+    assert "is not a list of records" in capsys.readouterr().err
+
+
+def test_cli_refuses_to_mix_seeds_inits_or_quick_in_one_report(tmp_path, capsys,
+                                                               monkeypatch):
+    """Records of other settings used to merge silently into one table."""
+    _no_training(monkeypatch)
+    old = dict(example="nonlinear", data="initial", method="gd", segments=2, inits=2, seed=0,
+               quick=True)
+    (tmp_path / "summary.json").write_text(json.dumps([old]))
+    base = ["nonlinear", "--segments", "2", "3", "--methods", "pgd", "--out", str(tmp_path)]
+    for other in (["--inits", "2", "--seed", "1", "--quick"], ["--inits", "3", "--quick"],
+                  ["--inits", "2"]):
+        assert cli.main([*base, *other]) == 2
+        err = capsys.readouterr().err
+        assert "--out" in err and "seed 0, inits 2, quick True" in err, err
+        assert "pick another --out" in err
+    parse = lambda argv: cli._parser().parse_args(argv)  # noqa: E731
+    # the same settings, another example, or replacing every old record are fine
+    assert cli._argument_error(parse([*base, "--inits", "2", "--quick"])) is None
+    assert cli._argument_error(parse(["linear", "--seed", "5", "--out", str(tmp_path)])) is None
+    assert cli._argument_error(parse(["nonlinear", "--segments", "2", "--methods", "gd",
+                                      "--seed", "1", "--out", str(tmp_path)])) is None
+    with pytest.raises(ValueError, match="seed 0, inits 2, quick True"):
+        merge_records([old], [dict(old, segments=3, seed=1)])
+
+
+def test_cli_options_help_and_repeats(tmp_path, capsys, monkeypatch):
+    _no_training(monkeypatch)
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    assert cli.main(["linear", "--out", str(a_file)]) == 2
+    assert "is a file, not a directory" in capsys.readouterr().err
+    assert cli.main(["linear", "--lr-sweep", "1", "--methods", "gd", "--out",
+                     str(tmp_path)]) == 2
+    assert "--methods does not apply to --lr-sweep" in capsys.readouterr().err
+    args = cli._parser().parse_args(["linear", "--data", "initial", "initial", "--segments",
+                                     "2", "3", "2", "--methods", "gd", "pgd", "gd"])
+    assert cli._configs(args) == [("initial", m, s) for m in ("gd", "pgd") for s in (2, 3)]
+    with pytest.raises(SystemExit):
+        cli.main(["--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "(default: runs/latest)" in help_text and "random seed" in help_text
+
+
+def test_solver_thread_count_must_be_a_positive_integer(monkeypatch):
+    """`DISSIL_JAX_THREADS` (which `--jobs` sets for its workers) sizes the solver pool:
+    `abc` used to fail in `int()` without naming the variable, 0 and -1 were clipped to 1."""
+    import re
+
+    monkeypatch.setattr(sdp, "_POOL", None)
+    for bad in ("abc", "0", "-1", "2.5"):
+        monkeypatch.setenv("DISSIL_JAX_THREADS", bad)
+        with pytest.raises(ValueError, match=f"DISSIL_JAX_THREADS must be a positive "
+                                             f"integer.*{re.escape(repr(bad))}"):
+            sdp.pool()
+    monkeypatch.setenv("DISSIL_JAX_THREADS", " 2 ")
+    assert sdp.num_workers() == 2
+    sdp.pool().shutdown()
 
 
 def test_protocol_rejects_bad_arguments():
@@ -145,4 +220,5 @@ def test_entry_point_with_jobs_gives_the_serial_records(tmp_path):
         if rec["method"] in ("pgd", "direct"):
             assert rec["certified"] is True and rec["percent_stable"] == 100.0, rec
     assert "Direct (ours)" in (tmp_path / "serial" / "tables.md").read_text()
-    assert "direct" not in cli._parser().parse_args(["linear"]).methods  # not a paper method
+    default_methods = {m for _, m, _ in cli._configs(cli._parser().parse_args(["linear"]))}
+    assert "direct" not in default_methods  # not a paper method

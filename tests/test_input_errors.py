@@ -275,3 +275,20 @@ def test_rollout_refuses_a_ren_like_the_other_lti_tools(K11):
     R = dj.RENController.from_lti(K11, width=2)
     with pytest.raises(ValueError, match=r"`K` must be a `dj.LTIController`.*ren_rollout"):
         dj.rollout(R, None, jnp.zeros((3, 1)))
+
+
+@pytest.mark.parametrize("scale, word", [(1e20, "overflow"), (1e-20, "underflow")])
+@pytest.mark.parametrize("fit", ["fit_direct", "fit_pgd", "fit_gd", "fit_ico"])
+def test_float32_data_beyond_its_range_is_refused(scale, word, fit):
+    """float32 windows of size 1e20 or 1e-20 have squares outside float32: the loss was NaN
+    or 0 and the runs ended `max_steps` without a step. They are refused, naming `windows`."""
+    rng = np.random.default_rng(0)
+    w = dj.Windows(*(np.float32(scale) * rng.standard_normal(s).astype(np.float32)
+                     for s in ((20, 1), (20, 2, 1), (20, 2, 1))))
+    assert w.y.dtype == np.float32 and np.all(np.isfinite(np.asarray(w.y)))
+    qsr = () if fit == "fit_gd" else (dj.QSR.passive(1),)
+    with pytest.raises(ValueError, match=f"`windows`.*{word}"):
+        getattr(dj, fit)(jax.random.PRNGKey(0), w, *qsr, num_inits=2, max_steps=3)
+    # the same data in float64 are within range and train
+    w64 = dj.Windows(*(np.asarray(a, np.float64) for a in (w.x0, w.y, w.u)))
+    getattr(dj, fit)(jax.random.PRNGKey(0), w64, *qsr, num_inits=2, max_steps=3, throw=False)

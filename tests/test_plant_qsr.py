@@ -196,3 +196,44 @@ def test_lti_qsr_bad_input():
                    dj.passivity_indices):
             with pytest.raises(ValueError, match="`backoff`"):
                 fn(plant, backoff=backoff)
+
+
+def test_static_plant_rates_follow_from_the_feedthrough():
+    """A plant without state (n = 0, y = 2u) used to crash inside cvxpy."""
+    static = (np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)), np.array([[2.0]]))
+    nu = dj.input_passivity_qsr(static)  # y'u - nu |u|^2 = (2 - nu) |u|^2
+    np.testing.assert_allclose(-nu.R, [[2.0]], rtol=1e-2)
+    rho = dj.output_passivity_qsr(static)  # (2 - 4 rho) |u|^2
+    np.testing.assert_allclose(-rho.Q, [[0.5]], rtol=1e-2)
+    cone = dj.lti_cone_qsr(static)  # y = 2u exactly: centre 2, radius 0
+    np.testing.assert_allclose(cone.S, [[2.0]], atol=1e-4)
+    assert 0 < cone.R[0, 0] + cone.S[0, 0] ** 2 < 1e-3
+    joint = dj.passivity_indices(static)
+    K = dj.LTIController(*static)
+    for qsr in (nu, rho, cone, joint):
+        assert dj.certify(K, qsr).holds
+
+
+def test_plant_rate_errors_say_whether_the_plant_is_stable():
+    """A stable plant that is not passive enough used to be told to check its stability,
+    and an unstable one leaked cvxpy's "Solution may be inaccurate" warning."""
+    import warnings
+
+    strictly_proper = (np.array([[0.5]]), np.array([[1.0]]), np.array([[0.5]]),
+                       np.zeros((1, 1)))  # stable, y = 0.5x: no output passivity index
+    for fn in (dj.output_passivity_qsr, dj.passivity_indices):
+        with pytest.raises(ValueError, match=r"is stable \(spectral radius 0.5 < 1\), so the "
+                                             "plant itself has no such output") as err:
+            fn(strictly_proper)
+        assert "stabilise" not in str(err.value)
+    unstable = (np.array([[1.5]]), np.array([[1.0]]), np.array([[0.5]]), np.array([[1.0]]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a leaked warning fails the test
+        for fn in (dj.input_passivity_qsr, dj.output_passivity_qsr, dj.lti_cone_qsr,
+                   dj.passivity_indices):
+            with pytest.raises(ValueError, match=r"not stable \(spectral radius 1.5 >= 1\)"
+                               ) as err:
+                fn(unstable)
+            # "failed in Clarabel" or "is infeasible in Clarabel": one ending for both
+            assert " in Clarabel. The plant `A` is not stable" in str(err.value)
+            assert str(err.value).endswith("(and check that it is discrete-time).")

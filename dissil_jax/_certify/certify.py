@@ -22,13 +22,14 @@ class Certificate(eqx.Module):
       `infeasible` or `solver_failed` when the SDP found no storage.
     - `holds` (read-only): `result == Outcome.solved`, as a `bool` (a bool array when
       batched).
-    - `P`: the storage matrix ($V(x) = x^\\top P x$), float64.
+    - `P`: the storage matrix ($V(x) = x^\\top P x$), float64; all NaN when no storage
+      was found (`infeasible` or `solver_failed`), so that batched fields stack.
     - `margin`: $\\min(-\\lambda_{\\max}(\\mathrm{KYP}(P)), \\lambda_{\\min}(P))$; negative when
       no certificate was found.
     - `source`: where `P` came from: `"given"` (supplied), `"hint"`, `"cached"` (a recent
       projection's), `"riccati"`, `"static"` (a controller without state, $\\hat n = 0$:
       `P` is 0x0), or the SDP solver's status (`"optimal"`, ...); or, with
-      `result` `infeasible` and no `P`, the cheap disproof that skipped the SDP
+      `result` `infeasible` and `P` all NaN, the cheap disproof that skipped the SDP
       (`"disproved: ..."`); see
       [`certify`][dissil_jax.certify]. (Called `status` before; that name remains a
       read-only alias.)
@@ -62,10 +63,23 @@ class Certificate(eqx.Module):
         nested list of them when batched. The `Outcome` item's own sentence also serves the
         projection and the trainers, whose arguments (`eps`, `P_ref`) `certify` lacks."""
         codes = np.asarray(_outcome.codes(self.result))
-        text = lambda c: _outcome.message(_outcome.NAMES[int(c)], caller="certify")
-        if codes.ndim == 0:
-            return text(codes)
-        return np.vectorize(text, otypes=[object])(codes).tolist()
+        sources = np.broadcast_to(np.asarray(self.source, dtype=object), codes.shape)
+        vtext = np.vectorize(_message, otypes=[object])
+        return _message(codes, self.source) if codes.ndim == 0 else vtext(codes,
+                                                                          sources).tolist()
+
+
+_DISPROOF = "disproved: "
+
+
+def _message(code, source) -> str:
+    """The sentence of `Certificate.message` for one controller."""
+    if str(source).startswith(_DISPROOF):
+        return ("no storage exists: a necessary condition for dissipativity fails ("
+                f"{str(source)[len(_DISPROOF):]}), so the controller is not strictly "
+                "dissipative for `qsr`; the SDP was skipped and `P` is NaN. `dj.project` "
+                "finds the nearest controller that is")
+    return _outcome.message(_outcome.NAMES[int(code)], caller="certify")
 
 
 def _outcome_of_sdp(status: str) -> Outcome:
@@ -138,10 +152,10 @@ def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hi
     $\\Phi(z) = G^HQG + G^HS + S^\\top G + R\\succ0$ on the unit circle and at $z=\\infty$
     ($G$ its transfer function; the storage terms cancel along
     $x = (zI-A)^{-1}Bu$), and a Schur-stable $A$ when $Q\\preceq0$. A violation far beyond
-    round-off (on a grid of 257 frequencies) returns `infeasible` at once, with `source`
-    starting `"disproved: "` and saying which; the SDP, which costs seconds from
-    $\\hat n\\approx 24$ on and minutes at $\\hat n = 48$ for a controller that is not
-    dissipative, is then skipped. A controller that is not dissipative but passes these
+    round-off (on a grid of 257 frequencies) returns `infeasible` at once, with `P` all
+    NaN and `source` starting `"disproved: "` and saying which (as does `message`); the
+    SDP, which costs seconds from $\\hat n\\approx 24$ on and minutes at $\\hat n = 48$
+    for a controller that is not dissipative, is then skipped. A controller that is not dissipative but passes these
     necessary conditions still goes to the SDP.
 
     A controller with leading batch axes is certified member by member; with `P` given the

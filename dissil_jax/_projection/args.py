@@ -9,7 +9,7 @@ import numpy as np
 
 from .._controller import LTIController
 from .._sdp.indefinite import check_feasible, is_indefinite
-from .._supply import QSR
+from .._supply import QSR, rate_factor, scaled_rate
 from .._validate import check_int
 
 
@@ -39,10 +39,12 @@ def check_eps_room(qsr: QSR, eps) -> None:
     R - S^\\top Q^{-1}S$, so when $\\lambda_{\\min}(R - S^\\top Q^{-1}S)\\le\\varepsilon$ the
     set is empty whatever the solver does (e.g. a gain bound $\\gamma = 10^{-4}$ has room
     $\\gamma^2 = 10^{-8}$, below the default $\\varepsilon = 10^{-6}$). Other rates are left to
-    the solver (their room can be unbounded).
+    the solver (their room can be unbounded). A rate outside $[1/64, 64]$ in size is
+    solved divided by a power of two (`rate_factor`), and `eps` is its margin there.
     """
     if isinstance(eps, jax.core.Tracer) or isinstance(qsr.Q, jax.core.Tracer):
         return
+    qsr = scaled_rate(qsr, rate_factor(qsr))  # the margin applies to the rate as solved
     Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
     w = np.linalg.eigvalsh((Q + Q.T) / 2)
     if w.size == 0 or w[-1] >= -1e-12 * max(1.0, float(np.abs(w).max())):

@@ -23,7 +23,7 @@ from .._certify import fast as _certify_fast
 from .._controller import LTIController
 from .._sdp import sdp as _sdp
 from .._sdp.lmi import ConvexifiedLMI, cast, certified
-from .._supply import QSR
+from .._supply import QSR, rate_factor, scaled_rate
 from . import first_order as _projection_fo
 from .args import (
     check_eps_room as _check_eps_room,
@@ -344,14 +344,16 @@ def project(
     - `qsr`: the supply rate (any symmetric $Q$; an indefinite one that admits no strictly
       dissipative controller raises a `ValueError`).
     - `P_ref`: reference storage matrix $\\tilde P\\succ0$ (`[n, n]`, batched like `K`).
-    - `throw`: raise when a projection fails (`ValueError` eagerly, an
-      `EquinoxRuntimeError` under `jit`). With `throw=False` nothing is raised and
+    - `throw`: raise when a projection fails (`ValueError` eagerly, a `JaxRuntimeError`
+      under `jax.jit`, an `EquinoxRuntimeError` under `eqx.filter_jit`). With `throw=False` nothing is raised and
       `result` says what happened; a failed entry then holds its *uncertified* target,
       which must not be used.
     - `active`: bool, scalar or batched like `K`; inactive entries are returned as they
       are (`Outcome.skipped`) without a solve.
     - `eps`: strictness margin of the LMI, guarding the certificate against rounding. It
-      is absolute, so it must be small against the supply rate's own size: for $Q\\prec0$
+      is absolute for rates whose largest entry lies in $[1/64, 64]$; a rate outside is
+      solved divided by the power of two nearest that entry (`P` multiplied back, exactly),
+      and `eps` is the margin there. It must be small against the rate: for $Q\\prec0$
       a margin at or above $\\lambda_{\\min}(R - S^\\top Q^{-1}S)$, the most any feedthrough
       leaves in the LMI's input block (e.g. $10^{-8}$ for a gain bound of $10^{-4}$), is
       refused with a `ValueError` naming `eps` (as in `fit_pgd` and `fit_ico`).
@@ -381,6 +383,9 @@ def project(
     _check_options(K, P_ref, active, eps, reg, refine, metric)
     _check_eps_room(qsr, eps)
     _check_k_ref(K, K_ref)
+    # a rate far from unit size is solved divided by a power of two (exact both ways)
+    k = rate_factor(qsr)
+    qsr, P_ref = scaled_rate(qsr, k), None if P_ref is None else P_ref / k
     in_ref, in_act = None if P_ref is None else 0, 0 if jnp.ndim(active) else None
     first_order = _projection_fo.use_first_order(method, K, metric is not None, qsr)
     fn = (partial(_project_fo_cold, weighted=metric is not None) if first_order else
@@ -392,4 +397,4 @@ def project(
     K_out, P, codes = fn(K, P_ref, W, active, K if K_ref is None else K_ref)
     if throw:
         P = _raise_on_failure(P, codes)
-    return Projection(K_out, P, _outcome.item(codes))
+    return Projection(K_out, P * k if k != 1.0 else P, _outcome.item(codes))

@@ -40,7 +40,8 @@ class Projection(eqx.Module):
 
 
 def raise_on_failure(P, codes):
-    """`throw=True`: a ValueError eagerly, an `EquinoxRuntimeError` under `jit`."""
+    """`throw=True`: a ValueError eagerly; under `jax.jit` a `JaxRuntimeError` (an
+    `EquinoxRuntimeError` under `eqx.filter_jit`)."""
     bad = _outcome.failed(codes)
     if not isinstance(codes, jax.core.Tracer):
         codes = np.asarray(codes)

@@ -9,7 +9,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike
 
-from .._supply import QSR
+from .._supply import QSR, rate_factor
 from .indefinite import split_q
 from .sdp import Layout
 
@@ -45,11 +45,13 @@ def kyp_scale(A, B, C, D, qsr: QSR, P):
     """A magnitude for relative tolerances on the KYP matrix (batched like the inputs).
 
     Built from Frobenius norms (upper bounds of spectral norms, cheap on the hot path), so
-    the allowance it scales can only be stricter than one built from spectral norms.
+    the allowance it scales can only be stricter than one built from spectral norms. Its
+    floor is the rate's size $\\kappa$ (`rate_factor`: 1 for rates of ordinary size), so
+    that multiplying the rate and $P$ by a power of two changes no verdict.
     """
     nA, nB, nC, nD, nP = (_fro(M) for M in (A, B, C, D, P))
     q, s, r = (_fro(M) for M in (qsr.Q, qsr.S, qsr.R))
-    return 1.0 + nP * (1 + (nA + nB) ** 2) + q * (nC + nD) ** 2 + 2 * s * (nC + nD) + r
+    return rate_factor(qsr) + nP * (1 + (nA + nB) ** 2) + q * (nC + nD) ** 2 + 2 * s * (nC + nD) + r
 
 
 # Relative round-off allowance for the float64 eigenvalue check of the KYP matrix.

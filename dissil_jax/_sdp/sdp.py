@@ -177,11 +177,19 @@ def single_threaded_blas():
 
 
 def pool() -> ThreadPoolExecutor:
-    """A process-wide pool for batched host solves (Clarabel releases the GIL)."""
+    """A process-wide pool for batched host solves (Clarabel releases the GIL), with
+    `DISSIL_JAX_THREADS` workers (default: the number of cores)."""
     global _POOL
     if _POOL is None:
-        workers = int(os.environ.get("DISSIL_JAX_THREADS", os.cpu_count() or 1))
-        _POOL = ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="dissil-sdp")
+        text = os.environ.get("DISSIL_JAX_THREADS", "").strip()
+        try:
+            workers = int(text) if text else os.cpu_count() or 1
+        except ValueError:
+            workers = 0
+        if workers < 1:
+            raise ValueError("the environment variable DISSIL_JAX_THREADS must be a positive "
+                             f"integer (the number of solver threads), got {text!r}.")
+        _POOL = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="dissil-sdp")
     return _POOL
 
 

@@ -26,6 +26,7 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
         qsr.check_sizes(windows.n_in, windows.n_out)
         if is_indefinite(qsr):  # a Q <= 0 that admits no controller is reported by the solver
             check_feasible(qsr)
+    check_magnitude(windows)
     check_int("num_inits", num_inits)
     check_int("max_steps", max_steps, minimum=0)
     for name, v in nonnegative.items():
@@ -33,6 +34,31 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
             continue
         if not np.all(np.isfinite(v)) or np.any(np.asarray(v) < 0):
             raise ValueError(f"`{name}` must be finite and non-negative, got {v!r}.")
+
+
+def check_magnitude(windows: Windows) -> None:
+    """Refuse windows whose squares leave the data's floating-point range, naming `windows`.
+
+    The loss sums squares of the data, so with entries above $\\sqrt{\\text{max}/n}$ ($n$
+    the number of summed entries) it overflows, and with every entry below
+    $\\sqrt{\\text{tiny}}$ (about $10^{-19}$ in float32) each square underflows: the loss
+    is then NaN or 0 and no step can be taken. Traced windows are skipped.
+    """
+    arrays = [a for a in (windows.x0, windows.y, windows.u) if a is not None]
+    if any(isinstance(a, jax.core.Tracer) for a in arrays):
+        return
+    info = np.finfo(np.asarray(windows.y).dtype)
+    size = max(np.size(a) for a in arrays)
+    top = max(float(np.max(np.abs(a), initial=0.0)) for a in arrays)
+    high, low = float(np.sqrt(info.max / max(size, 1))), float(np.sqrt(info.tiny))
+    hint = ("pass the data in float64, or in units where they are of order one (a common "
+            "change of units does not change what the trainers learn)")
+    if top > high:
+        raise ValueError(f"`windows` has entries up to {top:.3g}, whose squares overflow "
+                         f"{info.dtype} when summed (limit {high:.3g}): {hint}.")
+    if 0.0 < top < low:
+        raise ValueError(f"`windows` has no entry above {top:.3g}, whose squares underflow "
+                         f"{info.dtype} (limit {low:.3g}): {hint}.")
 
 
 def check_keep(keep) -> str:

@@ -18,10 +18,11 @@ from .._projection.project import project
 from .._rollout import imitation_loss
 from .._sdp import lmi as _lmi
 from .._sdp.indefinite import is_indefinite
-from .._supply import QSR
+from .._supply import QSR, rate_factor, scaled_rate
 from ._checks import check_fit_args, check_keep, check_n_state, check_optimizer
 from ._iterate import Method, iterate, where
 from ._scale import loss_scale, scaled
+from ._units import balance as balanced, balance_factor, unbalance
 from .result import FitResult, fit_timed, raise_if_failed
 
 _CONVERGED = _outcome.code("converged")
@@ -125,6 +126,8 @@ def _run(key, windows, qsr, learning_rate, init_scale, *, optimizer, num_inits, 
          max_steps, atol, rtol, margin, keep="best") -> FitResult:
     """`direct_run` without argument checks or `throw` (traceable; `qsr`, `optimizer` static)."""
     s2 = loss_scale(windows)
+    k = rate_factor(qsr)  # a rate far from unit size: solved divided by k, P multiplied back
+    qsr = scaled_rate(qsr, k)
     dtype = windows.y.dtype
     theta0 = init_params(key, num_inits, n_state, windows.n_in, windows.n_out, init_scale,
                          dtype)
@@ -134,7 +137,7 @@ def _run(key, windows, qsr, learning_rate, init_scale, *, optimizer, num_inits, 
                    map_loss(lambda theta: direct_map(theta, qsr, margin), imitation_loss)),
         max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
     return FitResult(
-        controllers=K, P=P, certified=None,
+        controllers=K, P=P * k, certified=None,
         loss_history=hist * s2, final_loss=loss * s2, converged=reason == _CONVERGED,
         steps=steps, wall_time=jnp.asarray(jnp.nan, hist.dtype),
         result=_outcome.item(reason), projected=jnp.zeros(num_inits, bool), kept_step=kept)
@@ -248,7 +251,7 @@ def fit_direct(
     num_inits: int = 8, n_state: int | None = None, max_steps: int = MAX_STEPS,
     atol: float = 0.0,
     rtol: float = RTOL_DIRECT, init_scale: float | None = None, margin: float = MARGIN,
-    fallback_eps: float = 1e-6, throw: bool = True, keep: str = "best",
+    fallback_eps: float = 1e-6, throw: bool = True, keep: str = "best", balance: bool = True,
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers without projections, through a direct map.
 
@@ -262,7 +265,8 @@ def fit_direct(
     the degenerate cones ($Q = 0$) and rank-deficient $Q$ alike; no step inverts $Q$. So
     training is unconstrained gradient descent on $J_s(K(\\theta))$, the imitation loss
     ([`imitation_loss`][dissil_jax.imitation_loss]) of the windows in normalised units
-    (as [`fit_pgd`][dissil_jax.fit_pgd]: scaling $x_0$, $y$, $u$ by $c>0$ changes nothing;
+    (as [`fit_pgd`][dissil_jax.fit_pgd]: scaling $x_0$, $y$, $u$ by $c>0$ changes nothing,
+    and outputs whose units are far from the inputs' are rescaled exactly, `balance`;
     losses and `atol` are in the user's units), all in one compiled `lax.while_loop`
     without leaving the device (no LAPACK call in the loop either: its factorisations are
     loop-based, see [Thread-pool deadlocks](scaling.md#thread-pool-deadlocks)). The run
@@ -311,6 +315,9 @@ def fit_direct(
       failed fallback projection); with `throw=False` see `result`.
     - `keep`: `"best"` (default) returns each run's iterate of lowest loss, `"last"` its
       final iterate (`kept_step` records which step), as in `fit_pgd`.
+    - `balance`: as in `fit_pgd` (default True): when the outputs' size is more than 5x
+      above or below the inputs', train on outputs rescaled by a power of two and the
+      matching supply rate, and map the result back exactly.
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult] with `certified` from the float64
     check and `projected` (bool per initialisation).
@@ -323,13 +330,15 @@ def fit_direct(
     optimizer, learning_rate, init_scale, n_state, margin = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, margin=margin)
-    return fit_timed(
+    c = balance_factor(windows, balance)  # outputs' units against inputs' (`_units.py`)
+    windows, qsr = balanced(windows, qsr, c)
+    return unbalance(fit_timed(
         lambda *h: _run_jit(key, windows, qsr, *h, optimizer=optimizer,
                             num_inits=int(num_inits), n_state=n_state,
                             max_steps=int(max_steps),
                             # traced: another tolerance does not recompile the run
-                            atol=jnp.asarray(atol, windows.y.dtype),
+                            atol=jnp.asarray(atol / c**2, windows.y.dtype),
                             rtol=jnp.asarray(rtol, windows.y.dtype),
                             margin=margin, keep=check_keep(keep)),
         (learning_rate, init_scale), windows.y.dtype,
-        lambda res: certify_or_project(res, qsr, windows, eps=float(fallback_eps)), throw)
+        lambda res: certify_or_project(res, qsr, windows, eps=float(fallback_eps)), throw), c)

@@ -18,11 +18,12 @@ from .._projection.args import check_eps_room
 from .._projection.project import project, project_first_order_warm
 from .._rollout import imitation_loss
 from .._sdp import lmi as _lmi
-from .._supply import QSR
+from .._supply import QSR, rate_factor, scaled_rate
 from ._checks import check_fit_args, check_keep, check_n_state, check_optimizer
 from ._init import init_controllers
 from ._iterate import RTOL, RTOL_UNCONSTRAINED, Method, iterate
 from ._scale import loss_scale, scaled
+from ._units import balance as balanced, balance_factor, unbalance
 from .result import FitResult, fit_timed, raise_if_failed
 from .steps import (
     ADAM_LEARNING_RATE as ADAM_LEARNING_RATE,  # re-exported
@@ -107,6 +108,9 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
     depend on units; losses and `atol` are converted from and to the user's units.
     """
     s2 = loss_scale(windows)
+    # a rate far from unit size is solved divided by a power of two, P multiplied back
+    k = 1.0 if qsr is None else rate_factor(qsr)
+    qsr = None if qsr is None else scaled_rate(qsr, k)
     K0 = init_controllers(key, num_inits, windows, init_scale, n_state=n_state)
     if qsr is None:
         P0, code0 = None, jnp.full(num_inits, _MAX_STEPS, jnp.int32)
@@ -122,7 +126,7 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
         pgd, max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
     hist, loss = hist * s2, loss * s2
     return FitResult(
-        controllers=K, P=P,
+        controllers=K, P=None if P is None else P * k,
         certified=None if qsr is None else jnp.asarray(~_outcome.failed(code0)),
         loss_history=hist, final_loss=loss, converged=reason == _CONVERGED, steps=steps,
         wall_time=jnp.asarray(jnp.nan, hist.dtype), result=_outcome.item(reason),
@@ -175,9 +179,10 @@ def pgd_run(
     `decay` and `init_scale`, or over the hyperparameters an `optimizer` closes over (a
     hyperparameter sweep); `qsr` is static (hashable). `qsr=None` gives plain gradient
     descent. `wall_time` is NaN and `certified` comes from the projection's own float64
-    check (a failed initial projection leaves that initialisation with `certified=False`
-    and zero steps). `throw`, `method` and `keep` as in `fit_pgd`; under `jit` `throw` raises an
-    `EquinoxRuntimeError`.
+    check (with `throw=False`, a failed initial projection leaves that initialisation with
+    `certified=False` and zero steps). `throw`, `method` and `keep` as in `fit_pgd`: with
+    `throw=True` a failure raises a `ValueError` eagerly, a `jax.errors.JaxRuntimeError`
+    under `jax.jit` (an `equinox.EquinoxRuntimeError` under `equinox.filter_jit`).
 
     ```python
     lrs = jnp.logspace(-2, 0, 5)
@@ -197,11 +202,15 @@ def pgd_run(
 
 
 def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_inits,
-         n_state, max_steps, atol, rtol, eps, throw, method="clarabel", keep="best"):
+         n_state, max_steps, atol, rtol, eps, throw, method="clarabel", keep="best",
+         balance=True):
     """`pgd_run`, compiled once per static configuration, timed and certified as a batch."""
     optimizer, learning_rate, decay, n_state = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, eps=eps)
+
+    c = balance_factor(windows, balance)  # outputs' units against inputs' (`_units.py`)
+    windows, qsr = balanced(windows, qsr, c)
 
     def certify(res):
         if qsr is None:
@@ -211,15 +220,15 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
         ok = np.asarray(res.certified) & _lmi.certified(K.A, K.B, K.C, K.D, qsr, res.P)
         return eqx.tree_at(lambda r: r.certified, res, jnp.asarray(ok))
 
-    return fit_timed(
+    return unbalance(fit_timed(
         lambda *h: _run_jit(key, windows, qsr, *h, optimizer=optimizer,
                             num_inits=int(num_inits), n_state=n_state,
                             max_steps=int(max_steps),
                             # traced: another tolerance does not recompile the run
-                            atol=jnp.asarray(atol, windows.y.dtype),
+                            atol=jnp.asarray(atol / c**2, windows.y.dtype),
                             rtol=jnp.asarray(rtol, windows.y.dtype),
                             eps=float(eps), method=method, keep=check_keep(keep)),
-        (learning_rate, decay, init_scale), windows.y.dtype, certify, throw)
+        (learning_rate, decay, init_scale), windows.y.dtype, certify, throw), c)
 
 
 def fit_pgd(
@@ -227,7 +236,7 @@ def fit_pgd(
     decay: float | None = None, num_inits: int = 8, n_state: int | None = None,
     max_steps: int = 150, atol: float = 0.0, rtol: float = RTOL,
     init_scale: float = ADAM_INIT_SCALE, eps: float = 1e-6, throw: bool = True,
-    method: str = "auto", keep: str = "best",
+    method: str = "auto", keep: str = "best", balance: bool = True,
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers by projected gradient descent (paper Alg. 2).
 
@@ -251,7 +260,13 @@ def fit_pgd(
     $s$, the root mean power of their initial states and inputs,
     $s^2 = \\frac1N\\sum_i(\\lVert x_0^{(i)}\\rVert^2 + \\sum_k\\lVert y^{(i)}_k\\rVert^2)$.
     Scaling $x_0$, $y$ and $u$ by any $c > 0$ leaves every step unchanged; `loss_history`,
-    `final_loss` and `atol` are in the user's units ($J = s^2 J_s$).
+    `final_loss` and `atol` are in the user's units ($J = s^2 J_s$). **Nor do the
+    outputs' own units** (`balance=True`): when the size of the outputs $u$ is far from
+    that of the inputs (their ratio $r$ outside $[1/5, 5]$; a force against a velocity,
+    say), the run is made on $u/c$, $c$ the power of two nearest $r$, with the supply rate
+    $(c^2Q, cS, R)$ that the same controllers satisfy in those units, and the result is
+    mapped back exactly: $(A, B, cC, cD)$ with the same $P$
+    ([concepts](concepts.md#units-of-the-outputs)).
 
     **Arguments:**
 
@@ -298,6 +313,9 @@ def fit_pgd(
       (default): the first-order path from $\\hat n = 12$ on, where it was measured
       faster, with each step's ADMM warm-started from the previous one's; Clarabel below
       ([Scaling out](scaling.md#a-first-order-projection)).
+    - `balance`: rescale the outputs when their units are far from the inputs' (default
+      True, see "Units" above); False trains every signal in the one scale $s$, as the
+      paper's reproduction does (its step sizes were chosen that way).
 
     **Initialisation.** The paper draws "each matrix element from a normal distribution"
     and projects the draw (paper §4.1); `init_scale=1.0` is that N(0, 1), which the
@@ -324,14 +342,14 @@ def fit_pgd(
     return _fit(key, windows, qsr, optimizer=default_rule(optimizer, learning_rate, decay),
                 learning_rate=learning_rate, decay=decay, init_scale=init_scale,
                 num_inits=num_inits, n_state=n_state, max_steps=max_steps, atol=atol,
-                rtol=rtol, eps=eps, throw=throw, method=method, keep=keep)
+                rtol=rtol, eps=eps, throw=throw, method=method, keep=keep, balance=balance)
 
 
 def fit_gd(
     key, windows: Windows, *, optimizer=None, learning_rate: float | None = None,
     decay: float | None = None, num_inits: int = 8, n_state: int | None = None,
     max_steps: int = 150, atol: float = 0.0, rtol: float = RTOL_UNCONSTRAINED,
-    init_scale: float = ADAM_INIT_SCALE, throw: bool = True,
+    init_scale: float = ADAM_INIT_SCALE, throw: bool = True, balance: bool = True,
 ) -> FitResult:
     """Plain gradient descent on the imitation loss: [`fit_pgd`][dissil_jax.fit_pgd] without $\\Pi$.
 
@@ -358,4 +376,4 @@ def fit_gd(
                 optimizer=default_rule(optimizer, learning_rate, decay, windows, n_state),
                 learning_rate=learning_rate, decay=decay, init_scale=init_scale,
                 num_inits=num_inits, n_state=n_state, max_steps=max_steps, atol=atol,
-                rtol=rtol, eps=0.0, throw=throw)
+                rtol=rtol, eps=0.0, throw=throw, balance=balance)

@@ -22,10 +22,11 @@ from .._ren.certify import certified_batch, certify_ren
 from .._ren.controller import check_activation, ren_imitation_loss
 from .._ren.map import init_ren_params, ren_map
 from .._sdp.indefinite import is_indefinite
-from .._supply import QSR
+from .._supply import QSR, rate_factor, scaled_rate
 from ._checks import check_fit_args, check_keep, check_n_state
 from ._iterate import iterate
 from ._scale import loss_scale, scaled
+from ._units import balance as balanced, balance_factor, unbalance
 from .direct import MAX_STEPS, RTOL_DIRECT, MapDescent, default_hyperparameters, map_loss
 from .result import FitResult, raise_if_failed
 
@@ -59,6 +60,8 @@ def _run(key, windows, qsr, learning_rate, init_scale, *, width, activation, opt
     # Train in normalised units (`_scale.py`), as the LTI trainers do; the neurons stay in
     # those units, so the result is mapped back exactly for any activation (`to_user_units`).
     s2 = loss_scale(windows)
+    k = rate_factor(qsr)  # a rate far from unit size: solved divided by k, (P, lam) times k
+    qsr = scaled_rate(qsr, k)
     data = scaled(windows, s2)
     theta0 = init_ren_params(key, num_inits, n_state, width, windows.n_in, windows.n_out,
                              init_scale, windows.y.dtype)
@@ -71,10 +74,10 @@ def _run(key, windows, qsr, learning_rate, init_scale, *, width, activation, opt
         max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
     K, lam = to_user_units(K, lam, s2**0.5)
     return RENFitResult(
-        controllers=K, P=P, certified=None, loss_history=hist * s2, final_loss=loss * s2,
+        controllers=K, P=P * k, certified=None, loss_history=hist * s2, final_loss=loss * s2,
         converged=reason == _CONVERGED, steps=steps,
         wall_time=jnp.asarray(jnp.nan, hist.dtype), result=_outcome.item(reason),
-        projected=None, multiplier=lam, kept_step=kept)
+        projected=None, multiplier=lam * k, kept_step=kept)
 
 
 _run_jit = eqx.filter_jit(_run)
@@ -105,7 +108,7 @@ def fit_ren(
     optimizer=None, learning_rate: float | None = None, init_scale: float | None = None,
     num_inits: int = 8, n_state: int | None = None, max_steps: int = MAX_STEPS,
     atol: float = 0.0, rtol: float = RTOL_DIRECT, margin: float = MARGIN,
-    input_share: float = 0.0, throw: bool = True, keep: str = "best",
+    input_share: float = 0.0, throw: bool = True, keep: str = "best", balance: bool = True,
 ) -> RENFitResult:
     """Learn $(Q,S,R)$-dissipative REN controllers (nonlinear, dynamic) from demonstrations.
 
@@ -130,7 +133,7 @@ def fit_ren(
     **Arguments:**
 
     - `key`, `windows`, `qsr` ($Q\\preceq0$), `num_inits`, `n_state`, `max_steps`, `atol`, `rtol`,
-      `optimizer`, `learning_rate`, `init_scale`, `margin`, `throw`, `keep`: as in
+      `optimizer`, `learning_rate`, `init_scale`, `margin`, `throw`, `keep`, `balance`: as in
       [`fit_direct`][dissil_jax.fit_direct] (`learning_rate` is Adam's step on the REN
       map's free parameters); the default step and initial scale are `fit_direct`'s at
       order $\\hat n + q$.
@@ -146,7 +149,9 @@ def fit_ren(
       by one data scale $s$ (as in the LTI trainers), so the neurons work in units where
       the data are of order one (where tanh bends); the returned controller is the same
       map in the user's units ($C_1/s$, $D_{12}/s$, $sB_1$, $sD_{21}$, multiplier
-      $s^2\\Lambda$).
+      $s^2\\Lambda$). With `balance` the outputs' units are balanced first, as in
+      `fit_direct`: then $C_2$, $D_{21}$ and $D_{22}$ come back multiplied by the power
+      of two $c$, with the same $P$ and $\\Lambda$.
 
     **Returns:** a [`RENFitResult`][dissil_jax.RENFitResult].
     """
@@ -178,10 +183,12 @@ def fit_ren(
     init_scale = scale0 if init_scale is None else init_scale
     start = time.perf_counter()
     dtype = windows.y.dtype
+    c = balance_factor(windows, balance)  # outputs' units against inputs' (`_units.py`)
+    windows, qsr = balanced(windows, qsr, c)
     res = _run_jit(key, windows, qsr, jnp.asarray(learning_rate, dtype),
                    jnp.asarray(init_scale, dtype), width=int(width), activation=activation,
                    optimizer=optimizer, num_inits=int(num_inits), n_state=n_state,
-                   max_steps=int(max_steps), atol=jnp.asarray(atol, dtype),
+                   max_steps=int(max_steps), atol=jnp.asarray(atol / c**2, dtype),
                    rtol=jnp.asarray(rtol, dtype), margin=margin,
                    input_share=float(input_share), keep=check_keep(keep))
     jax.block_until_ready(res)
@@ -193,4 +200,4 @@ def fit_ren(
                          "controllers failed the float64 certificate check and its SDP "
                          "fallback; pass `throw=False` to inspect them (`certified`, "
                          "`result`), or raise `margin`.")
-    return raise_if_failed(res) if throw else res
+    return unbalance(raise_if_failed(res) if throw else res, c)

@@ -124,8 +124,9 @@ _Result = TypeVar("_Result", bound="FitResult")
 def raise_if_failed(res: _Result) -> _Result:
     """The trainers' `throw=True`: raise if a run ended other than `converged`/`max_steps`.
 
-    Eagerly a `ValueError` that counts the reasons; under `jit` an `EquinoxRuntimeError`
-    with the message of the worst outcome.
+    Eagerly a `ValueError` that counts the reasons; under `jax.jit` a `JaxRuntimeError`
+    (an `EquinoxRuntimeError` under `eqx.filter_jit`) with the message of the worst
+    outcome.
     """
     codes = _outcome.codes(res.result)
     bad = ~_outcome.is_in(codes, _outcome.FINE)

@@ -5,7 +5,10 @@
 
 Writes `summary.json`, `tables.md` and the figures into `--out`; records already in
 `--out/summary.json` are kept (new ones replace those of the same configuration), so
-several invocations build up one report.
+several invocations build up one report. The records of one example in a report must
+share `--seed`, `--inits` and `--quick`: a run with other settings is refused before any
+training (pick another `--out`). Repeated values of `--data`, `--segments` and `--methods`
+run once. `--lr-sweep` tunes PGD and GD only, so it refuses `--methods`.
 """
 
 from __future__ import annotations
@@ -30,11 +33,17 @@ def _parser() -> argparse.ArgumentParser:
                    help="numbers of training segments N (default: the paper's)")
     p.add_argument("--inits", type=int, default=None,
                    help="random initialisations per plant (default: 10 linear, 100 nonlinear)")
-    p.add_argument("--methods", nargs="+", choices=METHODS, default=list(PAPER_METHODS),
-                   help="default: the paper's methods; `direct` (dj.fit_direct) and `ren` "
-                        "(dj.fit_ren, certified REN controllers) are ours")
-    p.add_argument("--out", default="runs/latest", help="output directory")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--methods", nargs="+", choices=METHODS, default=None,
+                   help=f"default: the paper's methods ({' '.join(PAPER_METHODS)}); `direct` "
+                        "(dj.fit_direct) and `ren` (dj.fit_ren, certified REN controllers) "
+                        "are ours; not with --lr-sweep")
+    p.add_argument("--out", default="runs/latest",
+                   help="output directory (default: %(default)s); records of its "
+                        "summary.json are kept, and must have the same --seed, --inits and "
+                        "--quick for the same example")
+    p.add_argument("--seed", type=int, default=0,
+                   help="random seed of the linear example's plants, the training data, the "
+                        "initialisations and the test states (default: %(default)s)")
     p.add_argument("--quick", action="store_true",
                    help="small sizes (at most 2 plants, 50 test states, 30 training steps)")
     p.add_argument("--jobs", type=int, default=1,
@@ -45,7 +54,8 @@ def _parser() -> argparse.ArgumentParser:
                         "these values on training loss in every --data x --segments "
                         "configuration (default N = 25; --inits per plant, at most 2 plants), "
                         "choose the rate with the smallest worst-case regret and write "
-                        "lr_sweep_EXAMPLE.{md,json}")
+                        "lr_sweep_EXAMPLE.{md,json}; always PGD and GD, so --methods is "
+                        "refused with it")
     return p
 
 
@@ -74,10 +84,11 @@ def _sweep(args) -> int:
     from .tuning import learning_rate_sweep, sweep_markdown
 
     spec = example_spec(args.example, args.quick)
-    sweeps = [learning_rate_sweep(args.example, m, args.lr_sweep, segments=n, data=data,
-                                  inits=args.inits or 10, plants=min(spec.num_plants, 2),
-                                  seed=args.seed, spec=spec)
-              for m in ("pgd", "gd") for data in args.data for n in (args.segments or [25])]
+    sweeps = [learning_rate_sweep(args.example, m, _unique(args.lr_sweep), segments=n,
+                                  data=data, inits=args.inits or 10,
+                                  plants=min(spec.num_plants, 2), seed=args.seed, spec=spec)
+              for m in ("pgd", "gd") for data in _unique(args.data)
+              for n in (_unique(args.segments) or [25])]
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     text = sweep_markdown(sweeps)
@@ -101,14 +112,56 @@ def _argument_error(args) -> str | None:
     if args.lr_sweep is not None and not all(math.isfinite(v) and v > 0
                                              for v in args.lr_sweep):
         return f"--lr-sweep takes positive learning rates, got {args.lr_sweep}"
+    if args.lr_sweep is not None and args.methods is not None:
+        return "--methods does not apply to --lr-sweep, which always tunes PGD and GD"
     out = pathlib.Path(args.out)
+    if out.exists() and not out.is_dir():
+        return f"--out {args.out!r} is a file, not a directory"
     try:  # now, not after hours of training
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         return f"--out {args.out!r} cannot be created: {err.strerror or err}"
     if not os.access(out, os.W_OK):
         return f"--out {args.out!r} is not writable"
+    return None if args.lr_sweep is not None else _report_error(args)
+
+
+def _report_error(args) -> str | None:
+    """What keeps this run's records from joining the report in `--out`, if anything."""
+    from .report import load_records, merge_records
+
+    try:
+        old = load_records(args.out)
+    except ValueError as err:
+        return f"--out {args.out!r}: {err}; move the file away or pick another --out"
+    settings = dict(example=args.example, seed=args.seed, inits=_inits(args),
+                    quick=bool(args.quick))
+    planned = [dict(settings, data=d, method=m, segments=s) for d, m, s in _configs(args)]
+    try:
+        merge_records(old, planned)
+    except ValueError as err:
+        return (f"--out {args.out!r}: {err}; pick another --out, or the same --seed, "
+                "--inits and --quick")
     return None
+
+
+def _unique(values) -> list:
+    """`values` without repeats, in their order (empty for None)."""
+    return list(dict.fromkeys(values or ()))
+
+
+def _inits(args) -> int:
+    return args.inits or (10 if args.example == "linear" else 100)
+
+
+def _configs(args) -> list[tuple]:
+    """The (data, method, segments) configurations of a run, each once."""
+    from ._paper import SEGMENTS
+    from .protocol import PAPER_METHODS
+
+    segments = _unique(args.segments) or list(SEGMENTS[args.example])
+    methods = _unique(args.methods) or list(PAPER_METHODS)
+    return [(d, m, s) for d in _unique(args.data) for m in methods for s in segments]
 
 
 def _run(args) -> int:
@@ -121,15 +174,12 @@ def _run(args) -> int:
     if args.lr_sweep:
         return _sweep(args)
 
-    from ._paper import SEGMENTS
     from .protocol import METHOD_LABELS, run_config
     from .report import load_records, merge_records, write_report
 
-    segments = args.segments or list(SEGMENTS[args.example])
-    inits = args.inits or (10 if args.example == "linear" else 100)
-    configs = [(d, m, s) for d in args.data for m in args.methods for s in segments]
+    configs = _configs(args)
     start = time.perf_counter()
-    run = functools.partial(run_config, args.example, inits=inits, seed=args.seed,
+    run = functools.partial(run_config, args.example, inits=_inits(args), seed=args.seed,
                             quick=args.quick)
     bar = tqdm(total=len(configs), desc=f"{args.example}", unit="config", file=sys.stderr)
     if args.jobs == 1:

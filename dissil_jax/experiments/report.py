@@ -22,15 +22,53 @@ def _key(r: dict):
 
 
 def load_records(path: pathlib.Path) -> list[dict]:
-    """Records of `summary.json` in `path` (empty when absent)."""
+    """Records of `summary.json` in `path` (empty when absent).
+
+    Raises a `ValueError` naming the file when it is not a JSON list of records.
+    """
     f = pathlib.Path(path) / "summary.json"
-    return json.loads(f.read_text()) if f.exists() else []
+    if not f.exists():
+        return []
+    try:
+        records = json.loads(f.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{f} is not valid JSON ({err})") from err
+    if not (isinstance(records, list) and all(isinstance(r, dict) and _KEY_FIELDS <= set(r)
+                                              for r in records)):
+        raise ValueError(f"{f} is not a list of records (dicts with the fields "
+                         f"{', '.join(sorted(_KEY_FIELDS))})")
+    return records
+
+
+_KEY_FIELDS = {"example", "data", "method", "segments"}
+#: Settings that must agree between the records of one example in a report: its tables
+#: set results side by side and state one count of controllers per configuration.
+SETTINGS = ("seed", "inits", "quick")
+
+
+def _settings(r: dict) -> tuple:
+    return tuple(r.get(k) for k in SETTINGS)
+
+
+def _describe(settings: tuple) -> str:
+    return ", ".join(f"{k} {'unknown' if v is None else v}" for k, v in zip(SETTINGS, settings))
 
 
 def merge_records(old: list[dict], new: list[dict]) -> list[dict]:
-    """New records replace old ones of the same (example, data, method, segments)."""
+    """New records replace old ones of the same (example, data, method, segments).
+
+    The records of one example that remain must share their `seed`, `inits` and `quick`
+    settings: a `ValueError` refuses to mix settings in one report.
+    """
     merged = {_key(r): r for r in old}
     merged.update({_key(r): r for r in new})
+    for r_new in new:
+        for r in merged.values():
+            if r["example"] == r_new["example"] and _settings(r) != _settings(r_new):
+                raise ValueError(
+                    f"the {r['example']} records already in the report have "
+                    f"{_describe(_settings(r))}, the new ones {_describe(_settings(r_new))}; "
+                    "one report holds one setting per example")
     return sorted(merged.values(), key=lambda r: (r["example"], r["data"],
                                                   METHODS.index(r["method"]), r["segments"]))
 

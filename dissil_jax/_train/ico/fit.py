@@ -14,7 +14,7 @@ from ..._data import Windows
 from ..._projection.args import check_eps_room
 from ..._projection.project import project
 from ..._sdp import lmi as _lmi, sdp as _sdp
-from ..._supply import QSR
+from ..._supply import QSR, rate_factor, scaled_rate
 from .._checks import check_fit_args
 from .._init import INIT_SCALE, init_controllers
 from .._iterate import RTOL
@@ -92,7 +92,10 @@ def _run_one(pb: ICOProblem, theta, P, *, max_steps, atol, rtol, dtype, index, c
         J_new = pb.loss(theta_new)
         # Guards against solver inaccuracy (the SDP guarantees both in exact arithmetic).
         if not J_new <= J:
-            reason = _LOSS_INCREASED
+            # a rise below the stopping rule's tolerance: the run is at its floor, where
+            # the SDP's step moves the loss by round-off; keep the iterate, converged
+            small = abs(J_new - J) < atol + rtol * abs(hist[0])
+            reason = _CONVERGED if small else _LOSS_INCREASED
             break
         if qsr is not None and not _lmi.certified(*pb.mats(theta_new), qsr, P_new):
             # Near the edge, after the iterates' P, A and B have grown, the check's
@@ -126,8 +129,11 @@ def _not_started(pb: ICOProblem, theta, P, outcome, max_steps):
 def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps, prox,
          window_cone, callback, throw):
     _check_args(windows, qsr, num_inits, max_steps, atol, rtol, init_scale)
+    k = 1.0  # a rate far from unit size is solved divided by k, P multiplied back (exact)
     if qsr is not None:
         check_eps_room(qsr, eps)
+        k = rate_factor(qsr)
+        qsr = scaled_rate(qsr, k)
     dtype = windows.y.dtype
     start = time.perf_counter()
     K0 = init_controllers(key, num_inits, windows, init_scale, dtype)
@@ -146,7 +152,8 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
     user_cb = None
     if callback is not None:
         def in_controller_units(i, step, theta, P, J):
-            callback(i, step, LTIController(*pb.mats(theta)), P, s2 * J)
+            callback(i, step, LTIController(*pb.mats(theta)), None if P is None else k * P,
+                     s2 * J)
 
         user_cb = in_controller_units
 
@@ -166,7 +173,7 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
     if qsr is not None:
         Ps = np.stack([r["P"] for r in results])
         certified = jnp.asarray(_lmi.certified(A, B, C, D, qsr, Ps) & ~_outcome.failed(code0))
-        P = jnp.asarray(Ps, dtype)
+        P = jnp.asarray(k * Ps, dtype)
     reasons = np.asarray([r["reason"] for r in results], np.int32)
     res = FitResult(
         controllers=controllers,
@@ -285,9 +292,10 @@ def fit_ico(
     iterate it was built at, which goes stale as the data drift), then once more around the
     maximum-margin certificate of the iterate if that has more of the SDP's margin.
     Otherwise the previous, certified iterate is kept and that run stops (`result` names
-    the reason). A shortened step counts as a step in the stopping rule. Without early stop
-    (`rtol` = `atol` = 0) a run that has reached the loss's floor can still end
-    `loss_increased`: the SDP's step then changes the loss by round-off only.
+    the reason). A shortened step counts as a step in the stopping rule. A step that
+    raises the loss by less than the stopping rule's tolerance is not taken and the run
+    ends `converged` (at the loss's floor the SDP's step moves the loss by round-off);
+    without early stop (`rtol` = `atol` = 0) such a run ends `loss_increased`.
 
     Stops after `max_steps` iterations or when $|\\Delta J| <$ `atol` $+$ `rtol` $|J_0|$.
     Initialisations are solved in parallel threads (one Clarabel solver each), see `DISSIL_JAX_THREADS`.

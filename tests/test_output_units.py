@@ -1,0 +1,138 @@
+"""The trainers balance the units of the controller's output against its input's.
+
+When the outputs are far larger or smaller than the inputs, `fit_direct`, `fit_pgd`,
+`fit_gd` and `fit_ren` train on the outputs divided by a power of two c, with the supply
+rate (c²Q, cS, R), and scale the result back. Powers of two make every step exact, so a
+run on such data must equal, bit for bit, the run on the balanced problem mapped back.
+"""
+
+import jax.random as jr
+import numpy as np
+import pytest
+from helpers import dissipation_ok, index
+
+import dissil_jax as dj
+from dissil_jax.experiments import realisable_windows
+from dissil_jax.internal import output_factor, output_ratio
+
+QSR = dj.QSR(-0.2 * np.eye(2), 0.5 * np.eye(2), 0.3 * np.eye(2))  # a cone: Q, S, R all act
+SCALE = 64.0  # the user's outputs are 64x the base problem's (a change of units)
+
+
+def _base():
+    w, _ = realisable_windows(jr.PRNGKey(2), QSR, n_state=2, num_windows=20, noise=0.1)
+    return w
+
+
+def _rate(q: dj.QSR, a: float) -> dj.QSR:
+    """The rate of the outputs scaled by a: w(u, a y) = y'(a²Q)y + 2y'(aS)u + u'Ru, so the
+    same controllers in the new units satisfy (Q/a², S/a, R)."""
+    return dj.QSR(q.Q / a**2, q.S / a, q.R)
+
+
+def test_output_factor():
+    y = np.ones((4, 2, 1))
+    for r, c in ((1.0, 1.0), (0.21, 1.0), (4.9, 1.0), (50.0, 64.0), (1 / 20, 1 / 16),
+                 (3e5, 2.0**18)):
+        w = dj.Windows(None, y, r * np.ones((4, 2, 1)))
+        assert output_ratio(w) == pytest.approx(r)
+        assert output_factor(w) == c
+    # the initial states count as inputs; all-zero outputs or inputs leave the data alone
+    w = dj.Windows(np.full((4, 2), 10.0), y, np.ones((4, 2, 1)))
+    assert output_ratio(w) == pytest.approx(np.sqrt(2 / (2 + 200)))
+    assert output_factor(w) == 0.125
+    assert output_factor(dj.Windows(None, y, np.zeros((4, 2, 1)))) == 1.0
+    assert output_factor(dj.Windows(None, 0 * y, np.ones((4, 2, 1)))) == 1.0
+
+
+FITS = {
+    "direct": lambda w, q, **kw: dj.fit_direct(jr.PRNGKey(0), w, q, num_inits=3, max_steps=60,
+                                               **kw),
+    "pgd": lambda w, q, **kw: dj.fit_pgd(jr.PRNGKey(0), w, q, num_inits=3, max_steps=10, **kw),
+    "gd": lambda w, q, **kw: dj.fit_gd(jr.PRNGKey(0), w, num_inits=3, max_steps=30, **kw),
+    "ren": lambda w, q, **kw: dj.fit_ren(jr.PRNGKey(0), w, q, width=3, num_inits=3,
+                                         max_steps=40, **kw),
+}
+
+
+@pytest.mark.parametrize("name", list(FITS))
+def test_unbalanced_outputs_train_as_the_balanced_problem(name):
+    base = _base()
+    user = dj.Windows(base.x0, base.y, SCALE * base.u)
+    q_user = _rate(QSR, SCALE)
+    c = output_factor(user)
+    assert c > 8.0  # the user's data are out of balance
+    # the problem the trainer should solve: outputs divided by c (exactly: powers of two)
+    balanced = dj.Windows(base.x0, base.y, (SCALE / c) * base.u)
+    assert output_factor(balanced) == 1.0
+    q_bal = _rate(QSR, SCALE / c)
+    atol = 1e-6  # in the user's units; the balanced run's is atol / c²
+    res = FITS[name](user, q_user, atol=atol)
+    ref = FITS[name](balanced, q_bal, atol=atol / c**2)
+    out = ("C2", "D21", "D22") if name == "ren" else ("C", "D")
+    for field in vars(ref.controllers):
+        a, b = getattr(res.controllers, field), getattr(ref.controllers, field)
+        if isinstance(b, str) or callable(b):
+            continue
+        np.testing.assert_array_equal(a, c * np.asarray(b) if field in out else b)
+    np.testing.assert_array_equal(res.loss_history, c**2 * np.asarray(ref.loss_history))
+    np.testing.assert_array_equal(res.final_loss, c**2 * np.asarray(ref.final_loss))
+    np.testing.assert_array_equal(res.steps, ref.steps)
+    if name == "gd":
+        assert res.P is None
+        return
+    np.testing.assert_array_equal(res.P, ref.P)
+    assert bool(np.all(res.certified))
+    if name == "ren":
+        np.testing.assert_array_equal(res.multiplier, ref.multiplier)
+        for i in range(3):  # a fresh SDP in the user's units
+            assert dj.certify_ren(index(res.controllers, i), q_user).holds
+        return
+    for i in range(3):  # the independent float64 check, in the user's units
+        assert dissipation_ok(index(res.controllers, i), q_user, res.P[i])
+
+
+# A supply rate and its multiple 2^20 admit the same controllers, with storages P and
+# 2^20 P. The trainers and `project` divide a rate far from unit size by the power of two
+# nearest its largest entry, so the two runs must agree bit for bit.
+RATE_FITS = {
+    "direct": lambda w, q: dj.fit_direct(jr.PRNGKey(0), w, q, num_inits=2, max_steps=40),
+    "pgd": lambda w, q: dj.fit_pgd(jr.PRNGKey(0), w, q, num_inits=2, max_steps=8),
+    "ico": lambda w, q: dj.fit_ico(jr.PRNGKey(0), w, q, num_inits=2, max_steps=3),
+    "ren": lambda w, q: dj.fit_ren(jr.PRNGKey(0), w, q, width=2, num_inits=2, max_steps=30),
+}
+
+
+@pytest.mark.parametrize("name", list(RATE_FITS))
+@pytest.mark.parametrize("power", [20, -20])
+def test_a_scaled_supply_rate_trains_the_same_controllers(name, power):
+    w, a = _base(), 2.0**power
+    unit = dj.QSR(2 * QSR.Q, 2 * QSR.S, 2 * QSR.R)  # largest entry 1: used as it is
+    big = dj.QSR(a * unit.Q, a * unit.S, a * unit.R)
+    res, ref = RATE_FITS[name](w, big), RATE_FITS[name](w, unit)
+    for field in vars(ref.controllers):
+        b = getattr(ref.controllers, field)
+        if not (isinstance(b, str) or callable(b)):
+            np.testing.assert_array_equal(getattr(res.controllers, field), b)
+    np.testing.assert_array_equal(res.final_loss, ref.final_loss)
+    np.testing.assert_array_equal(res.P, a * np.asarray(ref.P))
+    assert bool(np.all(res.certified))
+    if name == "ren":
+        np.testing.assert_array_equal(res.multiplier, a * np.asarray(ref.multiplier))
+        return
+    for i in range(2):  # the independent float64 check, at the user's scale
+        assert dissipation_ok(index(res.controllers, i), big, res.P[i])
+
+
+def test_project_solves_a_scaled_rate_as_the_unit_one():
+    """A target inside a gain bound of 1e4 (rate entries up to 1e8) used to fail in
+    Clarabel; the rate divided by 2^27 is projected as a gain bound of ~1."""
+    K = dj.LTIController.random(jr.PRNGKey(3), 3, 2, 2, scale=0.5)
+    a = 2.0**27
+    unit = dj.QSR(-np.eye(2) / a, np.zeros((2, 2)), 1e8 / a * np.eye(2))
+    big = dj.QSR.bounded_gain(1e4, n_in=2, n_out=2)
+    (K1, P1), (K2, P2) = dj.project(K, big), dj.project(K, unit)
+    for f in "ABCD":
+        np.testing.assert_array_equal(getattr(K1, f), getattr(K2, f))
+    np.testing.assert_array_equal(P1, a * np.asarray(P2))
+    assert dissipation_ok(K1, big, P1)
