@@ -36,7 +36,7 @@ jax.config.update("jax_enable_x64", True)
 
 import dissil_jax as dj  # noqa: E402
 from dissil_jax.experiments import realisable_windows, zoo  # noqa: E402
-from dissil_jax.internal import is_indefinite, output_ratio, supply  # noqa: E402
+from dissil_jax.internal import is_indefinite, output_ratio, rate_scale  # noqa: E402
 
 TRAINERS = {
     "fit_direct": lambda w, q, b, **kw: dj.fit_direct(jr.PRNGKey(7), w, q, balance=b,
@@ -112,13 +112,13 @@ def rate():
             "fit_ren": lambda k, w, q, **kw: dj.fit_ren(k, w, q, width=4, **kw)}
     print("| c | trainer | rate as given | rate divided by a power of two |")
     print("|---:|---|---:|---:|")
-    band = supply.RATE_BAND
+    band = rate_scale.RATE_BAND
     for c in (1e-6, 1.0, 1e6):
         q = dj.QSR(c * base.Q, c * base.S, c * base.R)
         for name, fit in fits.items():
             cells = []
             for rb in (float("inf"), band):
-                supply.RATE_BAND = rb
+                rate_scale.RATE_BAND = rb
                 jax.clear_caches()  # the factor is read when a trainer is traced
                 try:
                     r = fit(jr.PRNGKey(0), w, q, num_inits=4, throw=False)
@@ -128,7 +128,7 @@ def rate():
                 except Exception as e:  # noqa: BLE001 -- a raising trainer is a result here
                     cells.append(f"{type(e).__name__}")
                 finally:
-                    supply.RATE_BAND = band
+                    rate_scale.RATE_BAND = band
                     jax.clear_caches()
             print(f"| {c:g} | `{name}` | {cells[0]} | {cells[1]} |", flush=True)
 

@@ -131,6 +131,10 @@ class Windows(eqx.Module):
             )
         if N < 1 or self.y.shape[1] < 1:
             raise ValueError("`Windows` needs at least one window of horizon at least 1.")
+        for name in ("y", "u"):
+            if getattr(self, name).shape[2] < 1:
+                raise ValueError(f"`{name}` has no channels (shape {getattr(self, name).shape}): "
+                                 "a controller needs at least one input and one output.")
         for name in ("x0", "y", "u"):
             arr = getattr(self, name)
             if arr is not None and has_non_finite(arr):

@@ -106,6 +106,9 @@ class QSR(eqx.Module):
     def __init__(self, Q, S, R):
         S = _as_matrix("S", S)
         m, p = S.shape
+        if m == 0 or p == 0:
+            raise ValueError(f"`S` must be m x p with m, p >= 1 (a controller with at least one "
+                             f"input and one output), got shape {S.shape}.")
         Q, R = _as_matrix("Q", Q), _as_matrix("R", R)
         if Q.shape != (m, m):
             raise ValueError(f"`Q` must be {m}x{m} to match `S` ({m}x{p}), got {Q.shape}.")
@@ -240,32 +243,6 @@ class QSR(eqx.Module):
 
 
 _check_dim = check_int
-
-
-#: Supply rates whose largest entry lies in [1/RATE_BAND, RATE_BAND] are used as given.
-RATE_BAND = 64.0
-
-
-def rate_factor(qsr: QSR) -> float:
-    """The factor $\\kappa$ by which the trainers and `project` divide a supply rate.
-
-    Dissipativity does not depend on the rate's scale ($w$ and $\\kappa w$ admit the same
-    controllers, with storages $P$ and $\\kappa P$), but the numerics do: the LMI margin
-    $\\varepsilon$, the solvers' tolerances and the direct map's $P\\approx I$ start are
-    absolute. So a rate whose largest entry $\\sigma$ lies outside
-    $[1/64, 64]$ is divided by $\\kappa = 2^{\\operatorname{round}(\\log_2\\sigma)}$, and
-    the storage found is multiplied back; a power of two keeps both steps exact, so the
-    float64 check sees the same matrix in both scales. 1 for every other rate.
-    """
-    size = max(float(np.abs(M).max(initial=0.0)) for M in (qsr.Q, qsr.S, qsr.R))
-    if size == 0.0 or 1.0 / RATE_BAND <= size <= RATE_BAND:
-        return 1.0
-    return float(2.0 ** np.clip(np.round(np.log2(size)), -500, 500))
-
-
-def scaled_rate(qsr: QSR, k: float) -> QSR:
-    """The supply rate $(Q, S, R)/\\kappa$ (`qsr` itself when $\\kappa = 1$)."""
-    return qsr if k == 1.0 else QSR(qsr.Q / k, qsr.S / k, qsr.R / k)
 
 
 class ClosedLoopCertificate(eqx.Module):

@@ -7,7 +7,7 @@ layout can change behind this one list (as lineax's `internal`).
 Modules, for monkeypatching in tests and for benchmarks that time one layer alone:
 `certify_fast`, `certify_sdp`, `direct`, `direct_map`, `ico`, `ico_sdp`, `linalg`, `lmi`, `mlp`, `outcome`,
 `pgd`, `projection`, `projection_admm`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `rollout`,
-`sdp`, `supply`; and the functions and constants in
+`rate_scale`, `sdp`; and the functions and constants in
 `__all__`.
 """
 
@@ -15,8 +15,8 @@ from . import (
     _direct_map as direct_map,
     _linalg as linalg,
     _outcome as outcome,
+    _rate_scale as rate_scale,
     _rollout as rollout,
-    _supply as supply,
 )
 from ._certify import fast as certify_fast, sdp as certify_sdp
 from ._projection import (
@@ -62,6 +62,6 @@ __all__ = [
     "optimizer_metric", "outcome", "output_factor", "output_ratio", "pgd", "projection", "projection_admm", "projection_fo",
     "ren_certify",
     "ren_controller",
-    "ren_map", "ren_train", "rollout", "scaled", "sdp", "supply", "single_threaded_blas", "smat",
+    "ren_map", "ren_train", "rollout", "rate_scale", "scaled", "sdp", "single_threaded_blas", "smat",
     "solver_stats", "stacked_factor", "static_point", "svec_len",
 ]

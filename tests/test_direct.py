@@ -324,7 +324,7 @@ def test_bad_arguments(getkey):
         dj.fit_direct(k, w, qsr, learning_rate=-1.0)
     with pytest.raises(ValueError, match="`qsr.Q`"):
         dj.fit_direct(k, w, dj.QSR(I2, I2 / 2, 0 * I2))
-    with pytest.raises(ValueError, match="`qsr` admits no"):
+    with pytest.raises(ValueError, match="`qsr` is infeasible"):
         dj.fit_direct(k, w, dj.QSR(0 * I2, 0 * I2, -I2))
 
 

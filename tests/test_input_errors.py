@@ -292,3 +292,23 @@ def test_float32_data_beyond_its_range_is_refused(scale, word, fit):
     # the same data in float64 are within range and train
     w64 = dj.Windows(*(np.asarray(a, np.float64) for a in (w.x0, w.y, w.u)))
     getattr(dj, fit)(jax.random.PRNGKey(0), w64, *qsr, num_inits=2, max_steps=3, throw=False)
+
+
+@pytest.mark.parametrize("call", ["fit_pgd", "fit_ico", "project"])
+@pytest.mark.parametrize("rate", ["negative", "rectangular_passive"])
+def test_a_rate_without_any_dissipative_controller_is_refused_up_front(call, rate):
+    """w = -|y|^2 - |u|^2, or a 'passivity' S of shape 1x2 (no D makes Phi(D) > 0): refused
+    by name before any SDP. fit_pgd and fit_ico used to run, then report `infeasible` as if
+    a certified iterate had been kept; project blamed the reference storage."""
+    qsr = (dj.QSR(-1.0, 0.0, -1.0) if rate == "negative" else
+           dj.QSR(np.zeros((1, 1)), 0.5 * np.ones((1, 2)), np.zeros((2, 2))))
+    p = qsr.n_in
+    rng = np.random.default_rng(0)
+    w = dj.Windows(rng.standard_normal((10, 1)), rng.standard_normal((10, 2, p)),
+                   rng.standard_normal((10, 2, 1)))
+    with pytest.raises(ValueError, match="`qsr` is infeasible"):
+        if call == "project":
+            dj.project(dj.LTIController.random(jax.random.PRNGKey(0), 1, p, 1), qsr)
+        else:
+            getattr(dj, call)(jax.random.PRNGKey(0), w, qsr, num_inits=2, max_steps=2,
+                              throw=False)

@@ -108,9 +108,11 @@ def test_infeasible_supply_rate_raises():
     # Q = -I, S = 0, R = -I: w = -|y|^2 - |u|^2 < 0, no system is dissipative.
     qsr = dj.QSR(-1.0, 0.0, -1.0)
     K = dj.LTIController.random(jax.random.PRNGKey(0), 1, 1, 1)
-    with pytest.raises(ValueError, match="infeasible"):
-        dj.project(K, qsr)
-    assert bool(dj.project(K, qsr, throw=False).result == dj.Outcome.infeasible)
+    # refused up front as a bad argument, naming `qsr`, whatever `throw` says: no static
+    # feedthrough is strictly dissipative, so no controller of any order is
+    for throw in (True, False):
+        with pytest.raises(ValueError, match="`qsr` is infeasible"):
+            dj.project(K, qsr, throw=throw)
     with pytest.raises(Exception, match="infeasible"):
         jax.block_until_ready(jax.jit(lambda K: dj.project(K, qsr))(K))
 

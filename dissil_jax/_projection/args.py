@@ -8,8 +8,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._controller import LTIController
-from .._sdp.indefinite import check_feasible, is_indefinite
-from .._supply import QSR, rate_factor, scaled_rate
+from .._rate_scale import rate_factor, scaled_rate
+from .._sdp.indefinite import check_feasible
+from .._supply import QSR
 from .._validate import check_int
 
 
@@ -26,8 +27,7 @@ def check_qsr(K: LTIController, qsr: QSR) -> None:
             "test is then Phi(D) = R + S'D + D'S + D'QD > 0), or project an order-1 "
             "controller.")
     qsr.check_sizes(K.n_in, K.n_out)
-    if is_indefinite(qsr):  # a Q <= 0 that admits no controller is reported by the solver
-        check_feasible(qsr)
+    check_feasible(scaled_rate(qsr, rate_factor(qsr)))  # some static D is strictly dissipative
 
 
 def check_eps_room(qsr: QSR, eps) -> None:

@@ -21,9 +21,10 @@ import numpy as np
 from .. import _outcome
 from .._certify import fast as _certify_fast
 from .._controller import LTIController
+from .._rate_scale import rate_factor, scaled_rate
 from .._sdp import sdp as _sdp
 from .._sdp.lmi import ConvexifiedLMI, cast, certified
-from .._supply import QSR, rate_factor, scaled_rate
+from .._supply import QSR
 from . import first_order as _projection_fo
 from .args import (
     check_eps_room as _check_eps_room,
@@ -341,8 +342,8 @@ def project(
     **Arguments:**
 
     - `K`: the target controller (may carry leading batch axes).
-    - `qsr`: the supply rate (any symmetric $Q$; an indefinite one that admits no strictly
-      dissipative controller raises a `ValueError`).
+    - `qsr`: the supply rate (any symmetric $Q$; one with no strictly dissipative static
+      controller, hence none at all, raises a `ValueError`).
     - `P_ref`: reference storage matrix $\\tilde P\\succ0$ (`[n, n]`, batched like `K`).
     - `throw`: raise when a projection fails (`ValueError` eagerly, a `JaxRuntimeError`
       under `jax.jit`, an `EquinoxRuntimeError` under `eqx.filter_jit`). With `throw=False` nothing is raised and
@@ -383,8 +384,7 @@ def project(
     _check_options(K, P_ref, active, eps, reg, refine, metric)
     _check_eps_room(qsr, eps)
     _check_k_ref(K, K_ref)
-    # a rate far from unit size is solved divided by a power of two (exact both ways)
-    k = rate_factor(qsr)
+    k = rate_factor(qsr)  # a rate far from unit size: divided by a power of two (exact)
     qsr, P_ref = scaled_rate(qsr, k), None if P_ref is None else P_ref / k
     in_ref, in_act = None if P_ref is None else 0, 0 if jnp.ndim(active) else None
     first_order = _projection_fo.use_first_order(method, K, metric is not None, qsr)

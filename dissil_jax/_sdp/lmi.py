@@ -9,7 +9,8 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike
 
-from .._supply import QSR, rate_factor
+from .._rate_scale import rate_factor
+from .._supply import QSR
 from .indefinite import split_q
 from .sdp import Layout
 

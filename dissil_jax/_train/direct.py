@@ -15,10 +15,11 @@ from .. import _outcome
 from .._data import Windows
 from .._direct_map import MARGIN, check_margin, direct_map, init_params
 from .._projection.project import project
+from .._rate_scale import rate_factor, scaled_rate
 from .._rollout import imitation_loss
 from .._sdp import lmi as _lmi
 from .._sdp.indefinite import is_indefinite
-from .._supply import QSR, rate_factor, scaled_rate
+from .._supply import QSR
 from ._checks import check_fit_args, check_keep, check_n_state, check_optimizer
 from ._iterate import Method, iterate, where
 from ._scale import loss_scale, scaled

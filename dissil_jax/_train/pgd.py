@@ -16,9 +16,10 @@ from .._data import Windows
 from .._projection import first_order as _first_order
 from .._projection.args import check_eps_room
 from .._projection.project import project, project_first_order_warm
+from .._rate_scale import rate_factor, scaled_rate
 from .._rollout import imitation_loss
 from .._sdp import lmi as _lmi
-from .._supply import QSR, rate_factor, scaled_rate
+from .._supply import QSR
 from ._checks import check_fit_args, check_keep, check_n_state, check_optimizer
 from ._init import init_controllers
 from ._iterate import RTOL, RTOL_UNCONSTRAINED, Method, iterate

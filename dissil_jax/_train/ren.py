@@ -18,11 +18,12 @@ import optax
 from .. import _outcome
 from .._data import Windows
 from .._direct_map import MARGIN, check_margin
+from .._rate_scale import rate_factor, scaled_rate
 from .._ren.certify import certified_batch, certify_ren
 from .._ren.controller import check_activation, ren_imitation_loss
 from .._ren.map import init_ren_params, ren_map
 from .._sdp.indefinite import is_indefinite
-from .._supply import QSR, rate_factor, scaled_rate
+from .._supply import QSR
 from ._checks import check_fit_args, check_keep, check_n_state
 from ._iterate import iterate
 from ._scale import loss_scale, scaled

@@ -13,8 +13,9 @@ from ..._controller import LTIController
 from ..._data import Windows
 from ..._projection.args import check_eps_room
 from ..._projection.project import project
+from ..._rate_scale import rate_factor, scaled_rate
 from ..._sdp import lmi as _lmi, sdp as _sdp
-from ..._supply import QSR, rate_factor, scaled_rate
+from ..._supply import QSR
 from .._checks import check_fit_args
 from .._init import INIT_SCALE, init_controllers
 from .._iterate import RTOL

@@ -1,0 +1,43 @@
+"""Supply rates far from unit size: solved divided by a power of two (trainers, `project`)."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from ._supply import QSR
+
+#: Supply rates whose largest entry lies in [1/RATE_BAND, RATE_BAND] are used as given.
+RATE_BAND = 64.0
+
+
+@functools.lru_cache(maxsize=256)
+def rate_factor(qsr: QSR) -> float:
+    """The factor $\\kappa$ by which the trainers and `project` divide a supply rate.
+
+    Dissipativity does not depend on the rate's scale ($w$ and $\\kappa w$ admit the same
+    controllers, with storages $P$ and $\\kappa P$), but the numerics do: the LMI margin
+    $\\varepsilon$, the solvers' tolerances and the direct map's $P\\approx I$ start are
+    absolute. So a rate whose largest entry lies outside $[1/64, 64]$ is divided by
+    $\\kappa = 2^{\\operatorname{round}(\\log_2\\sigma)}$, $\\sigma$ its size: the largest
+    entry, or for $Q\\prec0$ the room $\\lambda_{\\min}(R - S^\\top Q^{-1}S)$ when that is
+    smaller (a narrow cone far from zero has large entries and little room, and the margin
+    must stay small against the room). The storage found is multiplied back; a power of
+    two keeps both steps exact, so the float64 check sees the same matrix in both scales.
+    1 for every other rate (all of the paper's and the zoo's).
+    """
+    Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
+    size = max(float(np.abs(M).max(initial=0.0)) for M in (Q, S, R))
+    if size == 0.0 or 1.0 / RATE_BAND <= size <= RATE_BAND:
+        return 1.0
+    if np.linalg.eigvalsh(Q)[-1] < 0:
+        room = float(np.linalg.eigvalsh(R - S.T @ np.linalg.solve(Q, S))[0])
+        if 0.0 < room < size:
+            size = room
+    return float(2.0 ** np.clip(np.round(np.log2(size)), -500, 500))
+
+
+def scaled_rate(qsr: QSR, k: float) -> QSR:
+    """The supply rate $(Q, S, R)/\\kappa$ (`qsr` itself when $\\kappa = 1$)."""
+    return qsr if k == 1.0 else QSR(qsr.Q / k, qsr.S / k, qsr.R / k)
