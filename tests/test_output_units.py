@@ -13,7 +13,7 @@ from helpers import dissipation_ok, index
 
 import dissil_jax as dj
 from dissil_jax.experiments import realisable_windows
-from dissil_jax.internal import output_factor, output_ratio
+from dissil_jax.internal import output_factor, output_ratio, rate_scale
 
 QSR = dj.QSR(-0.2 * np.eye(2), 0.5 * np.eye(2), 0.3 * np.eye(2))  # a cone: Q, S, R all act
 SCALE = 64.0  # the user's outputs are 64x the base problem's (a change of units)
@@ -136,3 +136,16 @@ def test_project_solves_a_scaled_rate_as_the_unit_one():
         np.testing.assert_array_equal(getattr(K1, f), getattr(K2, f))
     np.testing.assert_array_equal(P1, a * np.asarray(P2))
     assert dissipation_ok(K1, big, P1)
+
+
+def test_rate_factor():
+    """1 for rates of ordinary size (the paper's, the zoo's); otherwise the power of two
+    nearest the rate's size: its largest entry, or its room when Q < 0 and that is smaller."""
+    f = rate_scale.rate_factor
+    assert f(dj.QSR(-29.867, 3.556, 0.601)) == 1.0  # the paper's nonlinear example
+    assert f(dj.QSR.passive(3)) == 1.0
+    assert f(dj.QSR(0.0, 0.5e6, 0.0)) == 2.0**19  # passivity times 1e6
+    assert f(dj.QSR.bounded_gain(1e3, n_in=1, n_out=1)) == 2.0**20  # R = 1e6, room 1e6
+    assert f(dj.QSR.bounded_gain(1e-4, n_in=1, n_out=1)) == 1.0  # largest entry |Q| = 1
+    # the cone [100, 101]: entries up to 1.01e4 but room 0.25, so the margin stays small
+    assert f(dj.QSR.conic(100.0, 101.0, dim=1)) == 0.25
