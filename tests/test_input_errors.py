@@ -312,3 +312,20 @@ def test_a_rate_without_any_dissipative_controller_is_refused_up_front(call, rat
         else:
             getattr(dj, call)(jax.random.PRNGKey(0), w, qsr, num_inits=2, max_steps=2,
                               throw=False)
+
+
+@pytest.mark.parametrize("fit", ["fit_direct", "fit_pgd", "fit_gd", "fit_ico", "fit_ren",
+                                 "fit_mlp", "pgd_run", "direct_run"])
+def test_a_key_that_is_not_a_prng_key_is_refused_by_name(fit):
+    """An integer seed (as in numpy or scikit-learn) used to fail inside JAX with "invalid
+    PRNG key data"; every trainer names `key`. Raw and typed keys both work."""
+    rng = np.random.default_rng(0)
+    w = dj.Windows(rng.standard_normal((6, 1)), rng.standard_normal((6, 2, 1)),
+                   rng.standard_normal((6, 2, 1)))
+    qsr = () if fit in ("fit_gd", "fit_mlp") else (dj.QSR.passive(1),)
+    kw = dict(num_inits=2, max_steps=2, throw=False)
+    for bad in (0, None, np.zeros(2)):
+        with pytest.raises(ValueError, match="`key` must be a JAX PRNG key"):
+            getattr(dj, fit)(bad, w, *qsr, **kw)
+    for good in (jax.random.PRNGKey(0), jax.random.key(0)):
+        getattr(dj, fit)(good, w, *qsr, **kw)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax
 import jax.core
+import jax.numpy as jnp
 import numpy as np
 import optax
 
@@ -36,6 +37,19 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
             continue
         if not np.all(np.isfinite(v)) or np.any(np.asarray(v) < 0):
             raise ValueError(f"`{name}` must be finite and non-negative, got {v!r}.")
+
+
+def check_key(key) -> None:
+    """A JAX PRNG key (raw `uint32` or typed), or a `ValueError` naming `key`; traced keys
+    (a vmapped sweep over keys) pass."""
+    if isinstance(key, jax.core.Tracer):
+        return
+    dtype = getattr(key, "dtype", None)
+    typed = dtype is not None and jnp.issubdtype(dtype, jax.dtypes.prng_key)
+    raw = dtype is not None and not typed and np.dtype(dtype) == np.uint32 and np.ndim(key) >= 1
+    if not (typed or raw):
+        raise ValueError(f"`key` must be a JAX PRNG key such as `jax.random.PRNGKey(0)` or "
+                         f"`jax.random.key(0)`, got {key!r}.")
 
 
 def check_magnitude(windows: Windows) -> None:

@@ -20,7 +20,7 @@ from .._rollout import imitation_loss
 from .._sdp import lmi as _lmi
 from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
-from ._checks import check_fit_args, check_keep, check_n_state, check_optimizer
+from ._checks import check_fit_args, check_keep, check_key, check_n_state, check_optimizer
 from ._iterate import Method, iterate, where
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balance_factor, unbalance
@@ -199,6 +199,7 @@ def direct_run(
     res = jax.jit(jax.vmap(run))(lrs)     # every field gains a leading axis of size 3
     ```
     """
+    check_key(key)
     optimizer, learning_rate, init_scale, n_state, margin = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, margin=margin)
@@ -328,6 +329,7 @@ def fit_direct(
     assert bool(res.certified.all())
     ```
     """
+    check_key(key)
     optimizer, learning_rate, init_scale, n_state, margin = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, margin=margin)

@@ -17,7 +17,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 from .. import _outcome
 from .._data import Windows
 from .._validate import check_int
-from ._checks import check_fit_args
+from ._checks import check_fit_args, check_key
 from ._iterate import RTOL_MLP, Method, iterate
 from .result import FitResult, fit_timed
 
@@ -203,6 +203,7 @@ def fit_mlp(
     [`MLPController`][dissil_jax.MLPController] with a leading `[num_inits]` axis; `P` and
     `certified` are None.
     """
+    check_key(key)
     check_fit_args(windows, None, num_inits, max_steps, learning_rate=learning_rate, atol=atol,
                    rtol=rtol)
     hidden = check_hidden(hidden)

@@ -20,7 +20,7 @@ from .._rate_scale import rate_factor, scaled_rate
 from .._rollout import imitation_loss
 from .._sdp import lmi as _lmi
 from .._supply import QSR
-from ._checks import check_fit_args, check_keep, check_n_state, check_optimizer
+from ._checks import check_fit_args, check_keep, check_key, check_n_state, check_optimizer
 from ._init import init_controllers
 from ._iterate import RTOL, RTOL_UNCONSTRAINED, Method, iterate
 from ._scale import loss_scale, scaled
@@ -191,6 +191,7 @@ def pgd_run(
     res = jax.jit(jax.vmap(run))(lrs)     # every field gains a leading axis of size 5
     ```
     """
+    check_key(key)
     optimizer, learning_rate, decay, n_state = _options(
         windows, qsr, num_inits, max_steps, optimizer=default_rule(
             optimizer, learning_rate, decay, windows if qsr is None else None, n_state),
@@ -206,6 +207,7 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
          n_state, max_steps, atol, rtol, eps, throw, method="clarabel", keep="best",
          balance=True):
     """`pgd_run`, compiled once per static configuration, timed and certified as a batch."""
+    check_key(key)
     optimizer, learning_rate, decay, n_state = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, eps=eps)

@@ -24,7 +24,7 @@ from .._ren.controller import check_activation, ren_imitation_loss
 from .._ren.map import init_ren_params, ren_map
 from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
-from ._checks import check_fit_args, check_keep, check_n_state
+from ._checks import check_fit_args, check_keep, check_key, check_n_state
 from ._iterate import iterate
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balance_factor, unbalance
@@ -167,6 +167,7 @@ def fit_ren(
         raise ValueError(f"`optimizer` must be an `optax.GradientTransformation`, got "
                          f"{type(optimizer).__name__}.")
     given = dict(learning_rate=learning_rate, init_scale=init_scale)
+    check_key(key)
     check_fit_args(windows, qsr, num_inits, max_steps, atol=atol, rtol=rtol,
                    **{k: v for k, v in given.items() if v is not None})
     if is_indefinite(qsr):
