@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._rate_scale import rate_factor, scaled_rate
 from .._supply import QSR
 
 _TOL = 1e-10
@@ -50,6 +51,7 @@ def check_feasible(qsr: QSR) -> None:
     $\\Phi$ has at least $p$ positive eigenvalues: a positive subspace of dimension $p$ exists
     then, the positive subspaces are open and the graphs are dense among $p$-subspaces.
     """
+    qsr = scaled_rate(qsr, rate_factor(qsr))  # its tolerance is for rates of unit size
     p = qsr.n_in
     w = np.linalg.eigvalsh(_supply_matrix(qsr))
     scale = max(1.0, float(np.abs(w).max(initial=0.0)))

@@ -9,7 +9,6 @@ import numpy as np
 import optax
 
 from .._data import Windows
-from .._rate_scale import rate_factor, scaled_rate
 from .._sdp.indefinite import check_feasible
 from .._supply import QSR
 from .._validate import check_int
@@ -27,8 +26,8 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
             raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
         qsr.check_sizes(windows.n_in, windows.n_out)
         # a rate admitting no strictly dissipative controller (no static D even) is refused
-        # here, not after the first SDP (at the rate's own scale, `rate_factor`)
-        check_feasible(scaled_rate(qsr, rate_factor(qsr)))
+        # here, not after the first SDP
+        check_feasible(qsr)
     check_magnitude(windows)
     check_int("num_inits", num_inits)
     check_int("max_steps", max_steps, minimum=0)
