@@ -17,6 +17,10 @@ Parts (`--part`):
   Writes `benchmarks/results/defaults_report.json` and `.md`. With `--half tuning` (and
   optionally a candidate `--init-scale`), the same on the tuning half, to
   `defaults_report_tuning.json`: where candidate defaults are compared.
+- `gd-budget`: `fit_gd` with its defaults but for the step budget and stopping `rtol`
+  (`GD_BUDGETS`), 8 initialisations, on one half (`--half`): per problem the median and
+  worst final/initial loss, the median held-out imitation error, the stable share and the
+  median steps. Writes `benchmarks/results/defaults_gd_budget_<half>.md`.
 - `gd`: `fit_gd`'s step rules (the paper's at PGD's default and Adam at three rates) on both
   halves: diverged runs and the median final/initial loss.
 
@@ -320,9 +324,32 @@ def part_gd(names):
     return "\n".join(lines)
 
 
+#: `fit_gd`'s candidate (max_steps, rtol): the old default first.
+GD_BUDGETS = ((150, 1e-7), (300, 1e-7), (600, 1e-7), (600, 1e-8))
+
+
+def part_gd_budget(names):
+    head = [f"{n} steps, rtol {r:g}" for n, r in GD_BUDGETS]
+    lines = ["median (worst) final/initial; median imitation error; stable; median steps", "",
+             "| problem | split | " + " | ".join(head) + " |",
+             "| --- | --- |" + " ---: |" * len(head)]
+    for name in names:
+        p = zoo.problem(name)
+        cells = []
+        for steps, rtol in GD_BUDGETS:
+            res, rep = run_defaults("gd", p, num_inits=8, max_steps=steps, rtol=rtol)
+            ratio = np.asarray(res.final_loss) / np.asarray(res.initial_loss)
+            cells.append(f"{np.median(ratio):.3g} ({np.max(ratio):.3g}); "
+                         f"{np.median(rep.imitation_error):.3g}; {np.mean(rep.stable):.0%}; "
+                         f"{np.median(np.asarray(res.steps)):.0f}")
+        lines.append(f"| {name} | {p.split} | " + " | ".join(cells) + " |")
+        print(lines[-1], flush=True)
+    return "\n".join(lines)
+
+
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--part", choices=("stop", "gd", "regret", "report"), required=True)
+    ap.add_argument("--part", choices=("stop", "gd", "gd-budget", "regret", "report"), required=True)
     ap.add_argument("--half", choices=("tuning", "held_out", "both"), default="both")
     ap.add_argument("--trainers", default=",".join(TRAINERS))
     ap.add_argument("--init-scale", type=float, default=None,
@@ -347,6 +374,11 @@ def main():
         report = part_report(args.trainers.split(","))
         table = report_table(report, load_regret()) + "\n\n" + choice_table(report)
         (RESULTS / "defaults_report.md").write_text(table + "\n")
+    elif args.part == "gd-budget":
+        names = {"tuning": zoo.TUNING, "held_out": zoo.HELD_OUT,
+                 "both": zoo.TUNING + zoo.HELD_OUT}[args.half]
+        table = part_gd_budget(list(names))
+        (RESULTS / f"defaults_gd_budget_{args.half}.md").write_text(table + "\n")
     else:
         table = part_gd(list(zoo.TUNING) + list(zoo.HELD_OUT))
         (RESULTS / "defaults_gd.md").write_text(table + "\n")

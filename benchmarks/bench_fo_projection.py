@@ -23,9 +23,17 @@ Clarabel projections) against the paper's rule (`learning_rate=1.0`, Frobenius, 
 `method="auto"` takes the first-order path from `AUTO_MIN_ORDER` on), on the chains of
 `--seeds`: seconds per step, its ratio, and the median and worst final/initial loss of each.
 
+`--to-loss`: time to equal loss, with `pgd_run`'s default step (projected Adam) on the
+chains of `--seeds`. Clarabel runs `--steps` steps, the first-order path twice as many; the
+target is Clarabel's median loss after its last step, and each method's time to it is its
+seconds per step times the steps (initial projection included) until its median loss
+curve first reaches the target. Every iterate of both runs is checked in float64.
+
 Usage: python benchmarks/bench_fo_projection.py [--steps 10] [--orders 6,12,24] [--adam]
        python benchmarks/bench_fo_projection.py --tol [--steps 60] [--orders 12,16] [--seeds 0,1]
        python benchmarks/bench_fo_projection.py --against-default [--steps 150] [--orders 12]
+              [--seeds 0,1]
+       python benchmarks/bench_fo_projection.py --to-loss [--steps 30] [--orders 24]
               [--seeds 0,1]
 """
 
@@ -122,6 +130,32 @@ def against_default(steps, orders, seeds):
               f"| {cert[0]}, {cert[1]} |", flush=True)
 
 
+def _steps_to(curve, target):
+    """Steps (the initial projection counted as one) until `curve` first reaches `target`,
+    or None when it never does."""
+    hit = np.nonzero(np.asarray(curve) <= target)[0]
+    return int(hit[0]) + 1 if len(hit) else None
+
+
+def to_loss(steps, orders, seeds):
+    _header("n̂", "chain seed", "target (Clarabel's median at its last step)",
+            "Clarabel: steps, s", "first-order: steps, s", "speed-up at equal loss",
+            "runs with every iterate certified (FO, Clarabel)", "rows to Clarabel")
+    for n, seed in itertools.product(orders, seeds):
+        w = chain_windows(seed, n // 2)
+        rc, tc, _ = run(w, "clarabel", steps, learning_rate=None)
+        rf, tf, fb = run(w, "first_order", 2 * steps, learning_rate=None)
+        curves = [np.median(np.asarray(r.loss_history), axis=0) for r in (rc, rf)]
+        target = float(curves[0][-1])
+        kc, kf = (_steps_to(c, target) for c in curves)
+        # A run stops `not_certified` at the first iterate that fails the float64 check.
+        cert = [f"{np.mean([x == 'max_steps' for x in r.result_names()]):.0%}" for r in (rf, rc)]
+        fo = "not reached" if kf is None else f"{kf}, {kf * tf:.1f}"
+        ratio = "–" if kf is None else f"{kc * tc / (kf * tf):.1f}x"
+        print(f"| {n} | {seed} | {target:.4g} | {kc}, {kc * tc:.1f} | {fo} | {ratio} "
+              f"| {cert[0]}, {cert[1]} | {fb['rows']} |", flush=True)
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=10)
@@ -129,12 +163,16 @@ if __name__ == "__main__":
     ap.add_argument("--against-default", action="store_true")
     ap.add_argument("--tol", action="store_true", help="PGD's ADMM tolerance")
     ap.add_argument("--seeds", default="0,1")
+    ap.add_argument("--to-loss", action="store_true",
+                    help="time until each method's median loss reaches Clarabel's final one")
     ap.add_argument("--adam", action="store_true",
                     help="PGD's default step (Adam, projected in its metric) for both methods")
     a = ap.parse_args()
     orders = [int(x) for x in a.orders.split(",")]
     if a.tol:
         tolerances(a.steps, orders, [int(x) for x in a.seeds.split(",")])
+    elif a.to_loss:
+        to_loss(a.steps, orders, [int(x) for x in a.seeds.split(",")])
     elif a.against_default:
         against_default(a.steps, orders, [int(x) for x in a.seeds.split(",")])
     else:

@@ -21,8 +21,10 @@ random order-n̂ passive expert ("real.", length 10, which some controller fits 
 4. **Order 16, every trainer** (`--order16`): `fit_direct`, `fit_pgd`, `fit_ico`, `fit_gd`
    and `fit_mlp`, each with all its defaults (8 initialisations), on the realisable order-16
    problem ("real.", two seeds): the final loss of each returned controller over its own
-   initial loss (median and worst), the share certified, and each trainer's median final
-   loss over the best trainer's.
+   initial loss (median and worst), the share certified, each trainer's median final
+   loss over the best trainer's, and the median loss on 200 fresh windows of the same
+   expert over the zero controller's there ("held-out"). Then the static floor: the loss
+   of the best static map of any kind, in expectation, over the same two references.
 
 5. **Plain GD's step** (`--gd`): `fit_gd` (8 initialisations, 150 steps, its defaults
    otherwise) with Adam at the fixed 0.1 and at the two width rules 0.1 min(1, 9/w) and
@@ -30,8 +32,13 @@ random order-n̂ passive expert ("real.", length 10, which some controller fits 
    the chains (the tuning problems); `--gd --report` runs the realisable order-16 problem
    (held out: the rule was chosen on the chains).
 
+6. **Plain GD's step budget** (`--gd-budget`): `fit_gd` with its defaults but for the
+   budget and stopping `rtol` (150, 300 and 600 steps at 1e-7, 600 at 1e-8): final over
+   initial loss per run (median, worst) and median steps on the chains (tuning);
+   `--gd-budget --report` on the realisable order-16 problems of seeds 0–5 (held out).
+
 Usage: python benchmarks/bench_high_order.py [--defaults] [--hang R] [--steps] [--order16]
-       [--gd [--report]]
+       [--gd [--report]] [--gd-budget [--report]]
 """
 
 import argparse
@@ -55,6 +62,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from _high_order import PASSIVE, chain_windows, realisable  # noqa: E402
 
 import dissil_jax as dj  # noqa: E402
+from dissil_jax.experiments import realisable_windows  # noqa: E402
 from dissil_jax.internal import default_hyperparameters  # noqa: E402
 
 LRS, SCALES = (0.3, 0.1, 0.03, 0.01), (0.5, 0.2, 0.05)
@@ -193,8 +201,8 @@ def order16(seeds=(0, 1)):
         "fit_mlp": lambda k, w: dj.fit_mlp(k, w, throw=False),
     }
     print("| seed | trainer | final / initial, median | worst | certified | steps (median) "
-          "| wall (s) | median final / best method's |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|")
+          "| wall (s) | median final / best method's | held-out / zero controller's |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for seed in seeds:
         w = realisable(seed, 16)
         rows = {}
@@ -210,12 +218,55 @@ def order16(seeds=(0, 1)):
             rel = np.asarray(r.final_loss) / np.asarray(r.loss_history)[:, 0]
             cert = "–" if r.certified is None else f"{np.mean(np.asarray(r.certified)):.0%}"
             rows[name] = (rel, cert, float(np.median(np.asarray(r.steps))), wall,
-                          float(np.median(np.asarray(r.final_loss))))
+                          float(np.median(np.asarray(r.final_loss))),
+                          float(np.median(np.asarray(r.loss_history)[:, 0])),
+                          held_out(seed, 16, r.controllers))
             print(f"  ({name}: {np.median(rel):.3g} median, {wall:.1f} s)", flush=True)
         best = min(v[4] for v in rows.values())
-        for name, (rel, cert, st, wall, med) in rows.items():
+        for name, (rel, cert, st, wall, med, _, test) in rows.items():
             print(f"| {seed} | `{name}` | {np.median(rel):.3g} | {np.max(rel):.3g} | {cert} | "
-                  f"{st:.0f} | {wall:.1f} | {med / best:.2f} |", flush=True)
+                  f"{st:.0f} | {wall:.1f} | {med / best:.2f} | {test:.3g} |", flush=True)
+        if "fit_mlp" in rows:
+            w = realisable(seed, 16)
+            zero = float(np.mean(np.sum(np.asarray(w.target) ** 2, axis=(-2, -1))))
+            print(f"  (static floor: {static_floor(seed, 16) / rows['fit_mlp'][5]:.3g} of "
+                  f"fit_mlp's median initial loss, {static_floor(seed, 16) / zero:.3g} of the "
+                  "zero controller's on the training windows)", flush=True)
+
+
+def _fresh(seed: int, n: int, num: int = 200):
+    """`num` new windows of `realisable(seed, n)`'s expert (new states and inputs)."""
+    K = realisable_windows(jr.PRNGKey(seed), PASSIVE, n_state=n, num_windows=1, horizon=10)[1]
+    kx, ky = jr.split(jr.PRNGKey(10_000 + seed))
+    x0, y = jr.normal(kx, (num, n)), jr.normal(ky, (num, 10, PASSIVE.n_in))
+    u = -jax.vmap(lambda x, yk: dj.rollout(K, x, yk))(x0, y)
+    return dj.Windows(x0, y, u)
+
+
+def held_out(seed: int, n: int, controllers) -> float:
+    """The median over `controllers` (a batch) of their loss on `_fresh` windows, over the
+    zero controller's loss there."""
+    w = _fresh(seed, n)
+    if isinstance(controllers, dj.MLPController):
+        pred = jax.vmap(lambda K: jax.vmap(jax.vmap(K.mlp))(w.y))(controllers)
+        loss = jnp.mean(jnp.sum((pred - w.target) ** 2, axis=(-2, -1)), axis=-1)
+    else:
+        loss = jax.vmap(dj.imitation_loss, in_axes=(0, None))(controllers, w)
+    zero = jnp.mean(jnp.sum(w.target**2, axis=(-2, -1)))
+    return float(np.median(np.asarray(loss / zero)))
+
+
+def static_floor(seed: int, n: int) -> float:
+    """The loss on `realisable(seed, n)` of the best static map $\\hat y = f(y)$ of any
+    kind, in expectation over the windows' distribution: the inputs $y_k$ are white and
+    independent of the expert's state $x_k$, so $E[u_k \\mid y_k] = -D_\\star y_k$ and
+    no static map does better on average than the expert's own feedthrough, whose loss is
+    $E\\lVert C_\\star x_k\\rVert^2$ summed over the window. Estimated on the windows
+    themselves (a map fitted to these samples can go lower only by memorising them)."""
+    w, K = realisable_windows(jr.PRNGKey(seed), PASSIVE, n_state=n, num_windows=25,
+                              horizon=10)
+    err = np.asarray(w.y) @ np.asarray(K.D).T - np.asarray(w.target)
+    return float(np.mean(np.sum(err**2, axis=(-2, -1))))
 
 
 def gd_rule(report=False):
@@ -236,6 +287,24 @@ def gd_rule(report=False):
         print(f"| {kind} {seed} | {n} | " + " | ".join(cells) + " |", flush=True)
 
 
+def gd_budget(report=False):
+    budgets = ((150, 1e-7), (300, 1e-7), (600, 1e-7), (600, 1e-8))
+    probs = ([("real.", s, 16) for s in range(6)] if report else
+             [("chain", s, n) for s in (0, 1) for n in (6, 12, 24, 48)])
+    print("| problem | n̂ | " + " | ".join(f"{n} steps, rtol {r:g}" for n, r in budgets) + " |")
+    print("|---|---:|" + "---:|" * len(budgets))
+    for kind, seed, n in probs:
+        w = chain_windows(seed, n // 2) if kind == "chain" else realisable(seed, n)
+        cells = []
+        for steps, rtol in budgets:
+            r = dj.fit_gd(jr.PRNGKey(seed + 1), w, n_state=n, max_steps=steps, rtol=rtol,
+                          throw=False)
+            rel = np.asarray(r.final_loss) / np.asarray(r.loss_history)[:, 0]
+            cells.append(f"{np.median(rel):.3g}, {np.max(rel):.3g} "
+                         f"({np.median(np.asarray(r.steps)):.0f})")
+        print(f"| {kind} {seed} | {n} | " + " | ".join(cells) + " |", flush=True)
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--defaults", action="store_true")
@@ -244,10 +313,13 @@ if __name__ == "__main__":
     ap.add_argument("--steps", action="store_true")
     ap.add_argument("--order16", action="store_true")
     ap.add_argument("--gd", action="store_true")
+    ap.add_argument("--gd-budget", action="store_true")
     ap.add_argument("--report", action="store_true")
     a = ap.parse_args()
     if a.gd:
         gd_rule(a.report)
+    if a.gd_budget:
+        gd_budget(a.report)
     if a.order16:
         order16()
     if a.defaults:

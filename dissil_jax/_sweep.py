@@ -73,8 +73,22 @@ def sweep(fn, mesh: Mesh | None = None):
                                    check_vma=False))
 
     @functools.wraps(fn)
-    def run(*args):
-        sizes = {np.shape(x)[0] if np.ndim(x) else None for x in jax.tree.leaves(args)}
+    def run(*args, **kwargs):
+        if kwargs:
+            raise ValueError(
+                "`dj.sweep` runs take the swept arguments by position only; got keyword "
+                f"arguments {sorted(kwargs)}. Pass them by position, or close over them "
+                "(e.g. `functools.partial`) when they are not swept.")
+        leaves = jax.tree.leaves(args)
+        if not leaves:
+            raise ValueError("`dj.sweep` runs need at least one swept array argument; got none.")
+        if any(isinstance(a, list | tuple) and a and all(np.ndim(x) == 0 for x in a)
+               for a in args):
+            raise ValueError(
+                "a swept argument is a Python list or tuple of scalars, which JAX reads as "
+                "a pytree of separate scalars, not as one axis: pass an array, e.g. "
+                "`jnp.asarray([0.1, 0.3])`.")
+        sizes = {np.shape(x)[0] if np.ndim(x) else None for x in leaves}
         if len(sizes) != 1 or None in sizes:
             raise ValueError("every leaf of the swept arguments must have the same leading "
                              f"(sweep) axis; got leading sizes {sorted(sizes, key=str)}. "

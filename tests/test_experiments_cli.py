@@ -8,7 +8,7 @@ import pytest
 
 from dissil_jax.experiments import __main__ as cli
 from dissil_jax.experiments.protocol import example_spec, run_config
-from dissil_jax.experiments.report import merge_records, tables_markdown
+from dissil_jax.experiments.report import load_records, merge_records, tables_markdown, write_report
 from dissil_jax.internal import FIGURES, TABLES, sdp
 
 KEYS = {"example", "data", "method", "segments", "percent_stable", "percent_change_cost",
@@ -21,7 +21,7 @@ def test_cli_writes_summary_tables_and_figures(tmp_path, capsys):
     argv = ["nonlinear", "--data", "initial", "--segments", "2", "--inits", "2",
             "--methods", "pgd", "mlp", "--out", str(out), "--quick"]
     assert cli.main(argv) == 0
-    records = json.loads((out / "summary.json").read_text())
+    records = load_records(out)
     assert {(r["method"], r["segments"]) for r in records} == {("pgd", 2), ("mlp", 2)}
     for r in records:
         assert KEYS <= set(r)
@@ -44,7 +44,7 @@ def test_cli_writes_summary_tables_and_figures(tmp_path, capsys):
     # a second invocation adds to the same report instead of replacing it
     assert cli.main(["nonlinear", "--data", "initial", "--segments", "2", "--inits", "2",
                      "--methods", "ico_nc", "--out", str(out), "--quick"]) == 0
-    methods = {r["method"] for r in json.loads((out / "summary.json").read_text())}
+    methods = {r["method"] for r in load_records(out)}
     assert methods == {"pgd", "mlp", "ico_nc"}
 
 
@@ -165,6 +165,24 @@ def test_tables_markdown_formats_infinity_and_merges():
     assert "**50** (32)" in md  # ours vs the paper's GD, sliding window, N = 25
 
 
+def test_summary_json_is_strict_json_and_reads_back(tmp_path, monkeypatch):
+    monkeypatch.setattr("dissil_jax.experiments.report.plot_figures", lambda records, out: [])
+    rec = dict(example="nonlinear", data="sliding", method="gd", segments=25, percent_stable=50.0,
+               percent_change_cost=-99.0, train_time_s=0.5, mse_min=0.01, mse_q1=0.02,
+               mse_median=0.03, mse_q3=math.inf, mse_max=math.nan,
+               stop_reasons={"non_finite": 2})
+    write_report([rec], tmp_path)
+
+    def refuse(token):
+        raise AssertionError(f"non-standard JSON token {token}")
+
+    strict = json.loads((tmp_path / "summary.json").read_text(), parse_constant=refuse)
+    assert strict[0]["mse_q3"] == "inf" and strict[0]["mse_max"] == "nan"
+    (back,) = load_records(tmp_path)
+    assert back["mse_q3"] == math.inf and math.isnan(back["mse_max"])
+    assert back["stop_reasons"] == {"non_finite": 2} and back["mse_median"] == 0.03
+
+
 def test_paper_numbers_transcribed():
     # spot checks against the paper's text: nonlinear initial segments, N = 25
     assert TABLES[("nonlinear", "initial")]["ico"][1][1] == -96.31
@@ -181,7 +199,7 @@ def test_demo_configuration_matches_the_papers_claims(tmp_path):
     out = tmp_path / "demo"
     assert cli.main(["nonlinear", "--data", "initial", "--segments", "25", "--inits", "10",
                      "--out", str(out)]) == 0
-    by = {r["method"]: r for r in json.loads((out / "summary.json").read_text())}
+    by = {r["method"]: r for r in load_records(out)}
     assert set(by) == {"pgd", "gd", "ico", "ico_nc", "mlp"}
     for m in ("pgd", "ico"):
         assert by[m]["percent_stable"] == 100.0 and by[m]["certified"] is True

@@ -22,7 +22,12 @@ def test_mlp_controller_is_memoryless(getkey):
         h = jax.nn.relu(layer.weight @ h + layer.bias)
     ref = K.mlp.layers[-1].weight @ h + K.mlp.layers[-1].bias
     np.testing.assert_allclose(y, ref, rtol=1e-12)
-    assert (K.n_in, K.n_out, K.batch_shape) == (2, 3, ())
+    assert (K.n_in, K.n_out, K.batch_shape, K.hidden) == (2, 3, (), (8, 8))
+    assert dj.MLPController(getkey(), 2, 3, ()).hidden == ()
+    # A batch prints as one line, also inside a FitResult's pretty-printed repr.
+    Ks = jax.vmap(lambda k: dj.MLPController(k, 2, 3, (8, 8)))(jr.split(getkey(), 4))
+    line = "MLPController(n_in=2, n_out=3, hidden=(8, 8), batch_shape=(4,), dtype=float"
+    assert repr(Ks).startswith(line) and line in eqx.tree_pformat({"controllers": Ks})
     with pytest.raises(ValueError, match="`hidden`"):
         dj.MLPController(getkey(), 2, 3, (8, 4))
 

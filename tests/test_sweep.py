@@ -207,6 +207,12 @@ def test_sweep_on_one_device_and_its_argument_errors():
         dj.sweep(fn)(x, jnp.float64(1.0))
     with pytest.raises(ValueError, match="`mesh`"):
         dj.sweep(fn, mesh="sweep")
+    with pytest.raises(ValueError, match="by position only.*'y'"):
+        dj.sweep(fn)(x, y=y)
+    with pytest.raises(ValueError, match="list or tuple of scalars.*jnp.asarray"):
+        dj.sweep(fn)([0.1, 0.3], y[:2])
+    with pytest.raises(ValueError, match="at least one swept"):
+        dj.sweep(lambda: 1.0)()
 
 
 @pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)

@@ -90,6 +90,24 @@ class MLPController(eqx.Module):
         """Leading batch axes of the parameters (empty for one controller)."""
         return self.params.layers[0].weight.shape[:-2]
 
+    @property
+    def hidden(self) -> tuple[int, ...]:
+        """The hidden layers' widths."""
+        return tuple(int(layer.out_features) for layer in self.static.layers[:-1])
+
+    def __repr__(self) -> str:
+        # One line instead of every layer's fields: a FitResult holds a batch of these.
+        dtype = self.params.layers[0].weight.dtype
+        batch = f", batch_shape={self.batch_shape}" if self.batch_shape else ""
+        return (f"MLPController(n_in={self.n_in}, n_out={self.n_out}, hidden={self.hidden}"
+                f"{batch}, dtype={dtype})")
+
+    def __pdoc__(self, **kwargs):
+        """The same line inside `eqx.tree_pformat` (a `FitResult`'s repr)."""
+        import wadler_lindig  # equinox's pretty-printer, installed with it
+
+        return wadler_lindig.TextDoc(repr(self))
+
     def __call__(
         self, xhat: Float[Array, " n"], uhat: Float[Array, " p"]
     ) -> tuple[Float[Array, " n"], Float[Array, " m"]]:

@@ -77,10 +77,10 @@ def main(argv=None) -> int:
 
 
 def _sweep(args) -> int:
-    import json
     import pathlib
 
     from .protocol import example_spec
+    from .report import write_json
     from .tuning import learning_rate_sweep, sweep_markdown
 
     spec = example_spec(args.example, args.quick)
@@ -93,7 +93,7 @@ def _sweep(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     text = sweep_markdown(sweeps)
     (out / f"lr_sweep_{args.example}.md").write_text(text)
-    (out / f"lr_sweep_{args.example}.json").write_text(json.dumps(sweeps, indent=1))
+    write_json(out / f"lr_sweep_{args.example}.json", sweeps)
     print(text)
     return 0
 

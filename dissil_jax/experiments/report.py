@@ -30,7 +30,7 @@ def load_records(path: pathlib.Path) -> list[dict]:
     if not f.exists():
         return []
     try:
-        records = json.loads(f.read_text())
+        records = _decode(json.loads(f.read_text()))
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise ValueError(f"{f} is not valid JSON ({err})") from err
     if not (isinstance(records, list) and all(isinstance(r, dict) and _KEY_FIELDS <= set(r)
@@ -38,6 +38,36 @@ def load_records(path: pathlib.Path) -> list[dict]:
         raise ValueError(f"{f} is not a list of records (dicts with the fields "
                          f"{', '.join(sorted(_KEY_FIELDS))})")
     return records
+
+
+#: Non-finite numbers (the test MSE of an unstable loop is infinite) are written as these
+#: strings, so that `summary.json` is strict JSON (no `Infinity` or `NaN` tokens).
+_NON_FINITE = {"inf": float("inf"), "-inf": float("-inf"), "nan": float("nan")}
+
+
+def _encode(obj):
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return str(obj)
+    if isinstance(obj, dict):
+        return {k: _encode(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_encode(v) for v in obj]
+    return obj
+
+
+def write_json(path, obj) -> None:
+    """Write `obj` to `path` as strict JSON, non-finite floats as the strings above."""
+    pathlib.Path(path).write_text(json.dumps(_encode(obj), indent=1, allow_nan=False))
+
+
+def _decode(obj):
+    if isinstance(obj, str) and obj in _NON_FINITE:
+        return _NON_FINITE[obj]
+    if isinstance(obj, dict):
+        return {k: _decode(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_decode(v) for v in obj]
+    return obj
 
 
 _KEY_FIELDS = {"example", "data", "method", "segments"}
@@ -239,7 +269,7 @@ def write_report(records: list[dict], out_dir) -> tuple[pathlib.Path, list[pathl
     """Write `summary.json`, `tables.md` and the figures into `out_dir`."""
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "summary.json").write_text(json.dumps(records, indent=1))
+    write_json(out_dir / "summary.json", records)
     tables = out_dir / "tables.md"
     tables.write_text(tables_markdown(records))
     return tables, plot_figures(records, out_dir)
