@@ -18,7 +18,7 @@ steps for both). Printed:
   to tell a method's advantage from one draw's luck. With `--seeds` the speed part is
   skipped;
 - **demonstrations as wide as the test** (`--wide`): the LTI direct map and a tanh REN
-  trained on 400 two-step windows from $x_0\sim\mathcal N(0, 15^2)$, the test states'
+  trained on 400 two-step windows from $x_0 \\sim \\mathcal N(0, 15^2)$, the test states'
   distribution, and tested on seed 0's test loops: how far the 25 small-state windows,
   not the model class, limit the test MSE.
 

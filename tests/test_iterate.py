@@ -18,12 +18,13 @@ CONVERGED, MAX_STEPS, NON_FINITE, FAILED = (
 # Gradient descent on J = (theta - c)^2 per lane. A step whose iterate falls below
 # `FAIL_BELOW` fails (as a failed projection would); the loss is NaN above `NAN_ABOVE`.
 FAIL_BELOW, NAN_ABOVE = -1.0, 3.0
-THETA0 = np.array([0.0, 0.0, 0.0, 0.0, 0.5])
-C = np.array([1.0, 1.0, 1.0, 1.0, 1.0])
+THETA0 = np.array([0.0, 0.0, 0.0, 0.0, 0.5, 0.0])
+C = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0])
 # Lanes: converges; its step fails at k = 4 (theta -1.07); its loss is NaN at k = 3 (theta
-# 3.20); converges fast; starts failed (as a failed initial projection), so takes no step.
-LR = np.array([0.1, 1.1, 1.15, 0.3, 0.2])
-CODE0 = np.array([MAX_STEPS, MAX_STEPS, MAX_STEPS, MAX_STEPS, FAILED])
+# 3.20); converges fast; starts failed (as a failed initial projection), so takes no step;
+# fits exactly at k = 1 (theta = 1, J = 0), where it stops although |J_1 - J_0| = 1.
+LR = np.array([0.1, 1.1, 1.15, 0.3, 0.2, 0.5])
+CODE0 = np.array([MAX_STEPS, MAX_STEPS, MAX_STEPS, MAX_STEPS, FAILED, MAX_STEPS])
 
 
 @jax.jit
@@ -80,7 +81,7 @@ def _reference(max_steps, rtol, keep_non_finite, keep_best):
                 hist[i, k] = J
                 code = NON_FINITE
                 break
-            stop = abs(J_new - J) < rtol * abs(J0)
+            stop = abs(J_new - J) < rtol * abs(J0) or J_new == 0.0
             theta, J = new, J_new
             hist[i, k] = J
             at = k if not keep_best else at
@@ -115,6 +116,8 @@ def test_driver_equals_a_python_loop(method, keep, max_steps):
     np.testing.assert_array_equal(at, ref["at"])
     if max_steps == 40:  # every ending is exercised
         assert set(np.asarray(code).tolist()) == {CONVERGED, NON_FINITE, FAILED}
+    if max_steps:  # the exact fit stops at once
+        assert (int(steps[-1]), int(code[-1]), float(final[-1])) == (1, CONVERGED, 0.0)
 
 
 def _count_calls(jaxpr, name):

@@ -32,7 +32,8 @@ stopping rule: a lane stops after step $k$ when
 
 $$|J_k - J_{k-1}| < \\text{atol} + \\text{rtol}\\,|J_0|$$
 
-(`converged`), when a step fails or its loss is not finite (that code), or after
+or $J_k = 0$, an exact fit that no step can improve (`converged`; with all-zero data the
+rule above never holds, since $J_0 = 0$), when a step fails or its loss is not finite (that code), or after
 `max_steps` (`max_steps`). All lanes run in one `lax.while_loop` until every lane stopped;
 stopped lanes are frozen. A new trainer (e.g. a nonlinear controller) is one more
 `Method`.
@@ -99,9 +100,9 @@ class Method(eqx.Module):
 
 
 def terminate(loss, prev, loss0, ok, *, atol, rtol):
-    """Per lane: the stopping rule $|J_k - J_{k-1}| <$ `atol` $+$ `rtol` $|J_0|$, or a
-    failed step (`ok` False)."""
-    return ~ok | (jnp.abs(loss - prev) < atol + rtol * jnp.abs(loss0))
+    """Per lane: the stopping rule $|J_k - J_{k-1}| <$ `atol` $+$ `rtol` $|J_0|$, an exact
+    fit ($J_k = 0$, the least loss there is), or a failed step (`ok` False)."""
+    return ~ok | (jnp.abs(loss - prev) < atol + rtol * jnp.abs(loss0)) | (loss == 0)
 
 
 @eqx.filter_jit
