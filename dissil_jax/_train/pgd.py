@@ -23,9 +23,9 @@ from .._supply import QSR
 from ._checks import check_fit_args, check_keep, check_key, check_n_state, check_optimizer
 from ._init import init_controllers
 from ._iterate import RTOL, Method, iterate
-from .direct import MAX_STEPS as GD_MAX_STEPS, RTOL_DIRECT as RTOL_GD
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balance_factor, unbalance
+from .direct import MAX_STEPS as GD_MAX_STEPS, RTOL_DIRECT as RTOL_GD
 from .result import FitResult, fit_timed, raise_if_failed
 from .steps import (
     ADAM_LEARNING_RATE as ADAM_LEARNING_RATE,  # re-exported

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import pathlib
+from typing import Any
 
 import numpy as np
 
@@ -30,7 +31,7 @@ def load_records(path: pathlib.Path) -> list[dict]:
     if not f.exists():
         return []
     try:
-        records = _decode(json.loads(f.read_text()))
+        records: Any = _decode(json.loads(f.read_text()))
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise ValueError(f"{f} is not valid JSON ({err})") from err
     if not (isinstance(records, list) and all(isinstance(r, dict) and _KEY_FIELDS <= set(r)
