@@ -35,8 +35,10 @@ class Outcome(eqx.Enumeration):
     )
     solver_failed = (
         "Clarabel failed to solve the SDP (max iterations or numerical trouble), usually for "
-        "a target far outside the dissipative set; to a projection or a trainer pass a "
-        "smaller `init_scale` or step, or a larger `eps` (`certify`: see `Certificate.message`)"
+        "a target far outside the dissipative set (entries of 1e5 and more); to a trainer "
+        "pass a smaller `init_scale` or step, or a larger `eps`; a single `project` call "
+        "with Q <= 0 solves such targets with `method=\"first_order\"` (ADMM, the same "
+        "float64 check) (`certify`: see `Certificate.message`)"
     )
     loss_increased = "ICO's float64 re-evaluation found the loss increased; the step was refused"
     not_certified = (

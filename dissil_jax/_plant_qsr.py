@@ -16,6 +16,7 @@ from typing import Literal, overload
 import numpy as np
 
 from ._sdp.sdp import single_threaded_blas
+from ._frequency import vanishing_supply as _vanishing_supply
 from ._supply import QSR
 from ._validate import check_abcd
 
@@ -281,6 +282,7 @@ def _backed_off(A, B, C, D, make, value: float, backoff: float, what: str):
             return qsr
         step *= 10
     hint = _hint(what, A) if _radius(A) >= 1 else (
+        _vanishing_supply(A, B, C, D, qsr) or
         f"The plant `A` is stable (spectral radius {_radius(A):.4g} < 1), so it may be "
         "nearly lossless.")
     raise ValueError(f"could not certify the {what} strictly near its optimum {value:.6g}. "

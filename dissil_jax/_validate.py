@@ -37,6 +37,19 @@ def check_int(name: str, value, *, minimum: int = 1) -> int:
     return int(value)
 
 
+def check_tolerance(name: str, value) -> float:
+    """A relative tolerance: a finite non-negative real number, or a ValueError naming it."""
+    try:
+        real = (not isinstance(value, bool | str | complex | np.complexfloating)
+                and np.ndim(value) == 0 and np.isrealobj(value))
+        v = float(value) if real else np.nan
+    except (TypeError, ValueError):
+        v = np.nan
+    if not (np.isfinite(v) and v >= 0):
+        raise ValueError(f"`{name}` must be a finite non-negative number, got {value!r}.")
+    return v
+
+
 def check_abcd(A, B, C, D, *, what: str = "") -> None:
     """The shapes of a state-space quadruple $(A, B, C, D)$ with shared leading batch axes;
     a `ValueError` naming the first wrong matrix (as `` `{what}B` ``) otherwise."""

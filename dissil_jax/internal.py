@@ -19,6 +19,7 @@ from . import (
     _rollout as rollout,
 )
 from ._certify import fast as certify_fast, sdp as certify_sdp
+from ._frequency import vanishing_supply
 from ._projection import (
     admm as projection_admm,
     first_order as projection_fo,
@@ -63,5 +64,5 @@ __all__ = [
     "ren_certify",
     "ren_controller",
     "ren_map", "ren_train", "rollout", "rate_scale", "scaled", "sdp", "single_threaded_blas", "smat",
-    "solver_stats", "stacked_factor", "static_point", "svec_len",
+    "solver_stats", "stacked_factor", "static_point", "svec_len", "vanishing_supply",
 ]

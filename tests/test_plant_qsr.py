@@ -6,6 +6,7 @@ import pytest
 from helpers import frequency_supply_min
 
 import dissil_jax as dj
+from dissil_jax.internal import vanishing_supply
 from dissil_jax.systems import mass_spring_chain
 
 pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
@@ -237,3 +238,27 @@ def test_plant_rate_errors_say_whether_the_plant_is_stable():
             # "failed in Clarabel" or "is infeasible in Clarabel": one ending for both
             assert " in Clarabel. The plant `A` is not stable" in str(err.value)
             assert str(err.value).endswith("(and check that it is discrete-time).")
+
+
+def test_plant_rate_errors_name_a_vanishing_supply():
+    """When the supply of a rate with R = 0 vanishes where the plant's response does, no
+    back-off can give a strict certificate, and the message says where, instead of
+    suggesting the plant is nearly lossless: a Tustin-discretised lag (G(-1) = 0), and a
+    zero-order-hold one (no feedthrough: the KYP input block needs Phi(D) > 0; its SDP
+    already fails, so the check is called directly)."""
+    from scipy.signal import cont2discrete
+
+    lag = (np.array([[-1.0]]), np.array([[1.0]]), np.array([[1.0]]), np.zeros((1, 1)))
+    tustin = cont2discrete(lag, 0.1, method="bilinear")[:4]
+    G = tustin[2] @ np.linalg.solve(-np.eye(1) - tustin[0], tustin[1]) + tustin[3]
+    assert abs(G[0, 0]) < 1e-12  # the premise: the response vanishes at z = -1
+    with pytest.raises(ValueError, match=r"not positive at z = -1.*input_passivity_qsr"):
+        dj.output_passivity_qsr(tustin)
+    zoh = cont2discrete(lag, 0.1, method="zoh")[:4]
+    # the check itself, at an output passivity rate of the plant without feedthrough
+    msg = vanishing_supply(*zoh, dj.QSR(-0.1 * np.eye(1), 0.5 * np.eye(1), np.zeros((1, 1))))
+    assert msg is not None and "not positive at" in msg
+    assert vanishing_supply(*zoh, dj.input_passivity_qsr(zoh)) is None
+    # a rate with R != 0 describes both
+    for plant in (tustin, zoh):
+        assert isinstance(dj.input_passivity_qsr(plant), dj.QSR)

@@ -1,6 +1,10 @@
 """REN controllers: the model, its certificate (against the definition), the direct map and
 `dj.fit_ren`."""
 
+import os
+import subprocess
+import sys
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -17,6 +21,7 @@ from dissil_jax.internal import (
     iterate,
     map_loss,
     ren_certify,
+    ren_controller,
     ren_map as rm,
     ren_train,
 )
@@ -413,3 +418,68 @@ def test_fit_ren_on_large_data_is_certified_and_dissipative():
     K = jax.tree.map(lambda a: a[0], res.controllers)
     K_bad = eqx.tree_at(lambda k: k.D22, K, K.D22 + 2.0)  # feedthrough beyond the gain bound
     assert not dj.certify_ren(K_bad, qsr, P=P[0], multiplier=lam[0]).holds
+    # A fresh SDP certifies it too: it is solved in balanced neuron units (before, Clarabel
+    # failed from data of size 1e3 on), and the multiplier it returns is of the trainer's size.
+    cert = dj.certify_ren(K, qsr)
+    assert cert.holds and cert.multiplier.min() > 1e3 * np.abs(cert.P).max()
+
+
+def test_certify_ren_refuses_what_the_layer_does_not_run():
+    """A D11 with entries on the diagonal (set by `tree_at`, or built under `jit` where the
+    constructor cannot check it) is refused: the layer runs only tril(D11, -1), so a
+    certificate of the whole matrix would be of another system. Here the full D11 = -10
+    would 'certify' a gain of 2.25 against the bound 1."""
+    one, z = np.ones((1, 1)), np.zeros((1, 1))
+    K = dj.RENController(z, z, z, z, z, 1.5 * one, z, 1.5 * one, z)  # y = 1.5 relu(1.5 u)
+    qsr = dj.QSR.bounded_gain(1.0, n_in=1, n_out=1)
+    assert not dj.certify_ren(K, qsr).holds
+    bad = eqx.tree_at(lambda k: k.D11, K, jnp.asarray(-10.0 * one))
+    with pytest.raises(ValueError, match="`K.D11` must be strictly lower"):
+        dj.certify_ren(bad, qsr)
+    with pytest.raises(ValueError, match="`K.D11`"):
+        dj.certify_ren(jax.jit(lambda d: eqx.tree_at(lambda k: k.D11, K, d))(-10.0 * one), qsr)
+    for tol in (-1.0, np.nan, "a"):
+        with pytest.raises(ValueError, match="`tol` must be a finite non-negative"):
+            dj.certify_ren(K, qsr, P=one, multiplier=np.ones(1), tol=tol)
+    for lam, msg in (([np.nan], "NaN or inf"), ("a", "real numbers"), ([1 + 1j], "real")):
+        with pytest.raises(ValueError, match=f"`multiplier`.*{msg}|`multiplier` contains {msg}"):
+            dj.certify_ren(K, qsr, P=one, multiplier=lam)
+
+
+def test_activation_screen_has_the_evaluations_precision():
+    """Without x64 the screen evaluates in float32; a slope of 1 + 1e-4 is refused there as
+    in float64 (the allowance is a few ulps per quotient, not a fixed 1e-2), while the
+    usual slope-restricted functions pass. An activation holding JAX arrays is refused
+    with the reason (it is a compile-time constant of the controller)."""
+    code = """
+import jax, jax.numpy as jnp
+from dissil_jax.internal import ren_controller
+check_activation = ren_controller.check_activation
+assert not jax.config.jax_enable_x64
+for f in (jnp.tanh, jax.nn.relu, jax.nn.hard_tanh, jax.nn.soft_sign, jax.nn.elu,
+          lambda v: 0.5 * (jnp.tanh(v) + jax.nn.relu(v))):
+    check_activation(f)
+for f in (lambda v: 1.0001 * v, lambda v: 1.011 * jnp.tanh(v), lambda v: 1.001 * jax.nn.relu(v)):
+    try:
+        check_activation(f)
+    except ValueError:
+        continue
+    raise SystemExit("accepted a slope above 1")
+print("OK")
+"""
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, env=env)
+    assert out.stdout.strip().endswith("OK"), out.stderr[-2000:]
+    for f in (lambda v: 1.0001 * v, lambda v: 1.00001 * jnp.tanh(v)):
+        with pytest.raises(ValueError, match="not slope-restricted"):
+            ren_controller.check_activation(f)
+
+    class Scaled(eqx.Module):
+        a: jax.Array
+
+        def __call__(self, v):
+            return self.a * jnp.tanh(v)
+
+    with pytest.raises(ValueError, match="holding JAX arrays"):
+        ren_controller.check_activation(Scaled(jnp.asarray(0.5)))

@@ -10,6 +10,7 @@ from .._controller import LTIController
 from .._outcome import Outcome
 from .._sdp.lmi import VERIFY_RTOL, kyp_margin, kyp_matrix, kyp_scale
 from .._supply import QSR
+from .._validate import check_tolerance
 from . import fast as _certify_fast, sdp as _certify_sdp
 
 
@@ -188,9 +189,7 @@ def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hi
     """
     A, B, C, D = _controller_arrays(K, qsr)
     batch, n = K.batch_shape, K.n_state
-    if not (np.ndim(rtol) == 0 and np.isfinite(rtol) and rtol >= 0):
-        raise ValueError(f"`rtol` must be a finite non-negative number, got {rtol!r}.")
-    tol = rtol
+    tol = check_tolerance("rtol", rtol)
     if P is not None:
         return _verdict(A, B, C, D, qsr, storage_arg("P", P, batch, n), tol, "given")
     if hint is not None:

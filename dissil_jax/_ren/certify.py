@@ -3,6 +3,8 @@ multiplier $\\Lambda$ (S-procedure), found by an SDP and checked by eigenvalues 
 
 from __future__ import annotations
 
+import warnings
+
 import equinox as eqx
 import numpy as np
 
@@ -11,6 +13,7 @@ from .._controller import LTIController
 from .._sdp import sdp as _sdp
 from .._sdp.lmi import VERIFY_RTOL, kyp_margin, kyp_matrix, kyp_scale
 from .._supply import QSR
+from .._validate import check_tolerance
 from .controller import RENController
 
 
@@ -83,6 +86,37 @@ def _check_args(K, qsr):
     if not isinstance(qsr, QSR):
         raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
     qsr.check_sizes(K.n_in, K.n_out)
+    # The layer uses tril(D11, -1) only; a traced or edited D11 may carry more, and the
+    # certificate of the full matrix would be of another system than the one that runs.
+    D11 = np.asarray(K.D11)
+    if D11.shape[-1] and np.any(np.triu(D11) != 0):
+        raise ValueError("`K.D11` must be strictly lower triangular (the explicit layer uses "
+                         "only the part below the diagonal, so a certificate of the whole "
+                         "matrix would be of another system); pass jnp.tril(D11, -1).")
+
+
+def _neuron_scale(G: LTIController, q: int, sweeps: int = 30) -> np.ndarray:
+    """Neuron units in which each neuron's input and effect have one size.
+
+    In the units $\\tilde w = d^{1/2}w$, $\\tilde v = d^{1/2}v$ (`_unit_multiplier` with
+    $d$), neuron $i$'s column of $[B_1; D_{11}; D_{21}]$ (its effect on
+    $(x^+, v, \\hat y)$) and its row of $[C_1\\ D_{11}\\ D_{12}]$ (its input) are balanced
+    to equal 2-norms by a few damped sweeps (the $D_{11}$ entries couple the neurons, as in
+    matrix balancing). A multiplier found there is $\\tilde\\Lambda = \\Lambda/d$, and the
+    SDP is well scaled: a REN trained on data of size $s$ and returned in those units has
+    $\\Lambda\\sim s^2$ against $P\\sim1$, which Clarabel failed on from $s = 10^3$."""
+    d = np.ones(q)
+    for _ in range(sweeps):
+        Gd = _unit_multiplier(G, d)
+        B, C, D = (np.asarray(M, np.float64) for M in (Gd.B, Gd.C, Gd.D))
+        out = np.sqrt((B[:, :q] ** 2).sum(0) + (D[:, :q] ** 2).sum(0))
+        inp = np.sqrt((C[:q] ** 2).sum(1) + (D[:q] ** 2).sum(1))
+        ok = (out > 0) & (inp > 0) & np.isfinite(out) & np.isfinite(inp)
+        step = np.sqrt(np.where(ok, out / np.where(ok, inp, 1.0), 1.0))  # damped
+        if np.all(np.abs(np.log(step)) < 1e-3):
+            break
+        d = d * step
+    return d
 
 
 def _unit_multiplier(G: LTIController, lam) -> LTIController:
@@ -127,9 +161,12 @@ def _margin_and_holds(G: LTIController, qsr: QSR, P, lam, tol):
 
 def _solve(G: LTIController, qsr: QSR, q: int):
     """$\\max t$ s.t. $M(P,\\Lambda)\\preceq -tI$, $P\\succeq tI$, $\\Lambda\\succeq tI$,
-    $t\\le1$, with cvxpy and Clarabel (BLAS single-threaded); returns `(P, λ, status)`."""
+    $t\\le1$, in balanced neuron units (`_neuron_scale`), with cvxpy and Clarabel (BLAS
+    single-threaded); returns `(P, λ, status)` in the controller's own units."""
     import cvxpy as cp
 
+    d = _neuron_scale(G, q)
+    G = _unit_multiplier(G, d)  # solved in balanced neuron units; Λ = d Λ̃ below
     A, B, C, D = (np.asarray(M, np.float64) for M in (G.A, G.B, G.C, G.D))
     n = B.shape[0]
     k = n + B.shape[1]
@@ -155,14 +192,17 @@ def _solve(G: LTIController, qsr: QSR, q: int):
     if q:
         cons.append(lam >= t)
     prob = cp.Problem(cp.Maximize(t), cons)
-    with _sdp.single_threaded_blas():
+    with _sdp.single_threaded_blas(), warnings.catch_warnings():
+        # The status is returned, and the verdict is the float64 check of the pair anyway.
+        warnings.filterwarnings("ignore", message="Solution may be inaccurate",
+                                category=UserWarning)
         try:
             prob.solve(solver=cp.CLARABEL)
         except cp.SolverError as err:
             return None, None, f"solver_error: {err}"
     if P.value is None:
         return None, None, str(prob.status)
-    return (np.asarray(P.value), np.asarray(lam.value if q else np.zeros(0)).reshape(q),
+    return (np.asarray(P.value), d * np.asarray(lam.value if q else np.zeros(0)).reshape(q),
             str(prob.status))
 
 
@@ -194,6 +234,7 @@ def certify_ren(K: RENController, qsr: QSR, *, P=None, multiplier=None,
     **Returns:** a [`RENCertificate`][dissil_jax.RENCertificate].
     """
     _check_args(K, qsr)
+    tol = check_tolerance("tol", tol)
     if (P is None) != (multiplier is None):
         raise ValueError("pass both `P` and `multiplier` (an eigenvalue check of a given "
                          "certificate) or neither (solve for one).")
@@ -202,7 +243,16 @@ def certify_ren(K: RENController, qsr: QSR, *, P=None, multiplier=None,
     if P is not None:
         # shape, finiteness and symmetry as in `dj.certify`
         P = np.broadcast_to(storage_arg("P", P, batch, n), batch + (n, n))
-        lam = np.asarray(multiplier, np.float64)
+        try:
+            lam = np.asarray(multiplier)
+            if np.iscomplexobj(lam):
+                raise TypeError("complex")
+            lam = lam.astype(np.float64)
+        except (TypeError, ValueError):
+            raise ValueError("`multiplier` must be an array of real numbers (the diagonal of "
+                             f"Lambda), got {multiplier!r}.") from None
+        if not np.all(np.isfinite(lam)):
+            raise ValueError("`multiplier` contains NaN or inf.")
         if lam.shape not in ((q,), batch + (q,)):
             raise ValueError(f"`multiplier` must be {batch + (q,)} (the diagonal of Lambda), "
                              f"got {lam.shape}.")

@@ -23,10 +23,10 @@ ACTIVATIONS: dict[str, Callable] = {"relu": jax.nn.relu, "tanh": jnp.tanh}
 
 # The screen of a user-supplied activation: difference quotients on this grid (and at 0).
 _GRID = np.concatenate([-np.logspace(-3, 3, 61)[::-1], [0.0], np.logspace(-3, 3, 61)])
-# Round-off allowance of the screen's difference quotients, in units of the evaluation's
-# machine epsilon (neighbouring grid points differ by >= 1e-4 relative, so a quotient of
-# exact-slope-1 values is off by at most ~1e4 eps).
-_SLOPE_TOL = 1e5
+# Round-off allowance of the screen, in units of the evaluation's machine epsilon per
+# rounded value: each quotient (s(a) - s(b)) / (a - b) is allowed 8 eps (|s(a)| + |s(b)|)
+# / |a - b|, room for a correctly rounded s and a few ulps of a library's tanh.
+_ULPS = 8.0
 
 
 def check_activation(activation) -> str | Callable:
@@ -45,31 +45,43 @@ def check_activation(activation) -> str | Callable:
         return activation
     if not callable(activation):
         raise ValueError(f"`activation` must be a name or a callable, got {activation!r}.")
+    if isinstance(activation, eqx.Module) and jax.tree.leaves(eqx.filter(activation,
+                                                                          eqx.is_array)):
+        raise ValueError(
+            "`activation` is an equinox Module holding JAX arrays. The activation is a static "
+            "(compile-time) part of the controller, so its constants must be Python numbers: "
+            "declare them `eqx.field(static=True)` with float values, or close over floats.")
     if _passed(activation):
         return activation
     # Trainers build controllers inside their compiled, differentiated loops, where the
     # screen cannot run: `fit_ren` screens first, eagerly, and this remembers the result.
     try:
         with jax.ensure_compile_time_eval():
-            out = jax.vmap(activation)(jnp.asarray(_GRID))
+            grid = jnp.asarray(_GRID)  # float32 without x64: the points it rounds to are used
+            out = jax.vmap(activation)(grid)
             dtype = jnp.result_type(out)
             vals = np.asarray(out, np.float64)
+            points = np.asarray(grid, np.float64)
     except jax.errors.TracerArrayConversionError:
         raise ValueError(
             "`activation` (a callable) must be screened once outside any JAX transformation "
             "before a RENController is built inside one: build one RENController with it "
             "eagerly first (`dj.fit_ren` does this for you).") from None
-    # Round-off allowance of the quotients: the evaluation's precision (float32 without x64).
-    tol = (_SLOPE_TOL * float(jnp.finfo(dtype).eps) if jnp.issubdtype(dtype, jnp.floating)
-           else 0.0)
     if vals.shape != _GRID.shape or not np.all(np.isfinite(vals)):
         raise ValueError("`activation` must map scalars to finite scalars elementwise.")
-    slopes = np.diff(vals) / np.diff(_GRID)
-    zero = vals[len(_GRID) // 2]
-    if abs(zero) > tol or slopes.min() < -tol or slopes.max() > 1 + tol:
+    # Round-off allowance per quotient, in the evaluation's precision (float32 without x64):
+    # a slope of 1 + 1e-2 in float32 is refused, as in float64.
+    eps = float(jnp.finfo(dtype).eps) if jnp.issubdtype(dtype, jnp.floating) else 0.0
+    step = np.diff(points)
+    slopes = np.diff(vals) / step
+    tol = _ULPS * eps * (np.abs(vals[1:]) + np.abs(vals[:-1])) / step
+    mid = len(_GRID) // 2
+    zero = vals[mid]
+    zero_tol = _ULPS * eps * max(abs(vals[mid - 1]), abs(vals[mid + 1]))
+    if abs(zero) > zero_tol or np.any(slopes < -tol) or np.any(slopes > 1 + tol):
         raise ValueError(
             "`activation` is not slope-restricted in [0, 1] with sigma(0) = 0 (found sigma(0) "
-            f"= {zero:.3g}, difference quotients in [{slopes.min():.3g}, {slopes.max():.3g}] "
+            f"= {zero:.3g}, difference quotients in [{slopes.min():.6g}, {slopes.max():.6g}] "
             "on a grid in [-1e3, 1e3]); the certificate's sector condition w (v - w) >= 0 "
             "needs it. Rescale it (e.g. sigma(v)/L for slopes in [0, L]) or use 'relu'/'tanh'.")
     _remember(activation)
