@@ -15,8 +15,8 @@ from typing import Literal, overload
 
 import numpy as np
 
-from ._sdp.sdp import single_threaded_blas
 from ._frequency import vanishing_supply as _vanishing_supply
+from ._sdp.sdp import single_threaded_blas
 from ._supply import QSR
 from ._validate import check_abcd
 

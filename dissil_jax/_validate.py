@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any, cast
+
 import jax.core
 import numpy as np
 
@@ -42,7 +44,7 @@ def check_tolerance(name: str, value) -> float:
     try:
         real = (not isinstance(value, bool | str | complex | np.complexfloating)
                 and np.ndim(value) == 0 and np.isrealobj(value))
-        v = float(value) if real else np.nan
+        v = float(cast(Any, value)) if real else np.nan
     except (TypeError, ValueError):
         v = np.nan
     if not (np.isfinite(v) and v >= 0):

@@ -45,8 +45,7 @@ def check_activation(activation) -> str | Callable:
         return activation
     if not callable(activation):
         raise ValueError(f"`activation` must be a name or a callable, got {activation!r}.")
-    if isinstance(activation, eqx.Module) and jax.tree.leaves(eqx.filter(activation,
-                                                                          eqx.is_array)):
+    if _holds_arrays(activation):
         raise ValueError(
             "`activation` is an equinox Module holding JAX arrays. The activation is a static "
             "(compile-time) part of the controller, so its constants must be Python numbers: "
@@ -86,6 +85,11 @@ def check_activation(activation) -> str | Callable:
             "needs it. Rescale it (e.g. sigma(v)/L for slopes in [0, L]) or use 'relu'/'tanh'.")
     _remember(activation)
     return activation
+
+
+def _holds_arrays(fn) -> bool:
+    """An equinox Module with JAX array leaves (which cannot be a static field)."""
+    return isinstance(fn, eqx.Module) and bool(jax.tree.leaves(eqx.filter(fn, eqx.is_array)))
 
 
 # Callables that passed the screen (weakly held; by id for those that take no weak ref).
