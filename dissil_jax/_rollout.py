@@ -81,6 +81,10 @@ def scan_outputs(K, x0, u_in):
     """`rollout` for any controller module with `n_state`, a state matrix `A` and
     `K(x, u) -> (x_next, y)` (the LTI controller and the REN): the outputs of a `lax.scan`
     from `x0`, or from rest when it is None."""
+    if K.batch_shape:
+        raise ValueError(f"`K` must be a single controller (batch shape {K.batch_shape}); "
+                         "vmap the rollout over a batch, e.g. `jax.vmap(dj.rollout, (0, None, "
+                         "None))(K, x0, u_in)`.")
     u_in = jnp.asarray(u_in)
     if x0 is None:
         x0 = jnp.zeros((K.n_state,), jnp.result_type(K.A.dtype, u_in.dtype))

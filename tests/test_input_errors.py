@@ -324,8 +324,25 @@ def test_a_key_that_is_not_a_prng_key_is_refused_by_name(fit):
                    rng.standard_normal((6, 2, 1)))
     qsr = () if fit in ("fit_gd", "fit_mlp") else (dj.QSR.passive(1),)
     kw = dict(num_inits=2, max_steps=2, throw=False)
-    for bad in (0, None, np.zeros(2)):
+    # raw uint32 arrays that are not one key (a split batch, a wrong length) too
+    for bad in (0, None, np.zeros(2), jnp.zeros(3, jnp.uint32), jax.random.split(jax.random.PRNGKey(0))):
         with pytest.raises(ValueError, match="`key` must be a JAX PRNG key"):
             getattr(dj, fit)(bad, w, *qsr, **kw)
     for good in (jax.random.PRNGKey(0), jax.random.key(0)):
         getattr(dj, fit)(good, w, *qsr, **kw)
+
+
+def test_rollouts_of_a_batch_say_to_vmap():
+    """`dj.rollout` and `dj.ren_rollout` take one controller; a batch used to fail inside
+    JAX's dot_general."""
+    Ks = jax.vmap(lambda k: dj.LTIController.random(k, 2, 1, 1))(jax.random.split(
+        jax.random.PRNGKey(0), 3))
+    u = jnp.ones((4, 1))
+    with pytest.raises(ValueError, match=r"`K` must be a single controller.*vmap"):
+        dj.rollout(Ks, None, u)
+    with pytest.raises(ValueError, match=r"`K` must be a single controller.*vmap"):
+        dj.ren_rollout(jax.vmap(dj.RENController.from_lti)(Ks), None, u)
+    out = jax.vmap(dj.rollout, (0, None, None))(Ks, None, u)
+    for i in range(3):  # the vmapped rollout against one controller at a time
+        Ki = jax.tree.map(lambda a: a[i], Ks)
+        np.testing.assert_array_equal(out[i], dj.rollout(Ki, None, u))

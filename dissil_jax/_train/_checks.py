@@ -45,7 +45,10 @@ def check_key(key) -> None:
         return
     dtype = getattr(key, "dtype", None)
     typed = dtype is not None and jnp.issubdtype(dtype, jax.dtypes.prng_key)
-    raw = dtype is not None and not typed and np.dtype(dtype) == np.uint32 and np.ndim(key) >= 1
+    # a raw key is `uint32[2]` (threefry) or `uint32[4]` (rbg); leading batch axes are not
+    # one key
+    raw = (dtype is not None and not typed and np.dtype(dtype) == np.uint32
+           and np.ndim(key) == 1 and np.shape(key)[0] in (2, 4))
     if not (typed or raw):
         raise ValueError(f"`key` must be a JAX PRNG key such as `jax.random.PRNGKey(0)` or "
                          f"`jax.random.key(0)`, got {key!r}.")
