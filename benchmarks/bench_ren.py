@@ -4,9 +4,10 @@ The paper's nonlinear example with 25 initial segments (the reproduction's data)
 protocol's settings (`dissil_jax.experiments.protocol.fit`: all `max_steps` = 150 Adam
 steps for both). Printed:
 
-- **speed**: training wall time of `fit_ren` (width 16, tanh) and of `fit_direct` for the
-  same number of initialisations, each the second of two identical calls (JIT compilation
-  excluded), and their ratio;
+- **speed**: training wall time of `fit_ren` (width 16, the experiments' settings) and of
+  `fit_direct` for the same number of initialisations, each the second of two identical
+  calls (JIT compilation excluded), and the first calls (compilation included), with
+  their ratios;
 - **why a direct map, not a projection**: the wall time of one certificate SDP of a
   trained REN (`dj.certify_ren`, cvxpy + Clarabel: the LMI in (P, Lambda) alone, which is
   smaller than a projection onto a convexified REN LMI would be) against the time of one
@@ -88,7 +89,7 @@ def wide(inits, quick):
                                           learning_rate=0.1, init_scale=0.5, throw=False),
             "REN tanh, width 16": dj.fit_ren(k_fit, W, spec.qsr, num_inits=inits, width=16,
                                              activation="tanh", learning_rate=0.03,
-                                             input_share=0.5, max_steps=600, throw=False)}
+                                             max_steps=600, throw=False)}
     print(f"nonlinear example, 400 windows from x0 ~ N(0, {spec.test_std:g}^2), {inits} "
           "initialisations x 600 steps, tested on seed 0's loops")
     print("| method | median test MSE | % stable | median train loss | certified |")
@@ -127,7 +128,56 @@ def zoo_budget(split):
               f"| {'all' if cert else 'NOT all'} |", flush=True)
 
 
-def main(quick=False, inits=100, loop=False, seeds=None, wide_data=False, zoo=None):
+#: Candidate defaults of `fit_ren`'s Adam step and initial scale (`--defaults`): the LTI
+#: rule of `default_hyperparameters` at order n + q or at order n, and fixed grid points.
+CANDIDATES = {"rule(n+q)": "n+q", "rule(n)": "n", **{f"({lr}, {sc})": (lr, sc)
+              for lr in (0.1, 0.03, 0.01) for sc in (0.1, 0.3)}}
+
+
+def defaults(split):
+    """`fit_ren` (width 4, 8 initialisations, default budget) with each candidate (Adam
+    step, initial scale) on one half of the zoo: median final loss over the best
+    candidate's per problem, and the worst such ratio per candidate."""
+    from dissil_jax.experiments import zoo
+    from dissil_jax.internal import default_hyperparameters, is_indefinite
+
+    names = [n for n in (zoo.TUNING if split == "tuning" else zoo.HELD_OUT)
+             if not is_indefinite(zoo.task(zoo.problem(n)).qsr)]
+    table = {}
+    for name in names:
+        t = zoo.task(zoo.problem(name))
+        n_state = t.n_state if t.windows.x0 is None else t.windows.x0.shape[-1]
+        kw = dict(width=4, num_inits=8, throw=False,
+                  **({} if t.windows.x0 is not None else {"n_state": t.n_state}))
+        row = {}
+        for label, cand in CANDIDATES.items():
+            if isinstance(cand, str):
+                order = n_state + 4 if cand == "n+q" else n_state
+                lr, sc = default_hyperparameters(order, t.windows.n_in)
+            else:
+                lr, sc = cand
+            res = dj.fit_ren(t.key, t.windows, t.qsr, learning_rate=lr, init_scale=sc, **kw)
+            row[label] = (float(np.median(res.final_loss)), bool(np.all(res.certified)))
+        table[name] = row
+        best = min(v[0] for v in row.values())
+        print(f"{name}: " + ", ".join(f"{k} {v[0] / best:.3g}{'' if v[1] else ' (NOT cert.)'}"
+                                      for k, v in row.items()), flush=True)
+    print(f"\nfit_ren, width 4, 8 initialisations, zoo {split}: median final loss over the "
+          "best candidate's")
+    print("| problem | " + " | ".join(CANDIDATES) + " |")
+    print("|---|" + "---:|" * len(CANDIDATES))
+    for name, row in table.items():
+        best = min(v[0] for v in row.values())
+        print(f"| {name} | " + " | ".join(f"{v[0] / best:.3g}" for v in row.values()) + " |")
+    worst = {k: max(row[k][0] / min(v[0] for v in row.values()) for row in table.values())
+             for k in CANDIDATES}
+    print("| **worst** | " + " | ".join(f"{worst[k]:.3g}" for k in CANDIDATES) + " |")
+
+
+def main(quick=False, inits=100, loop=False, seeds=None, wide_data=False, zoo=None,
+         defaults_split=None):
+    if defaults_split:
+        return defaults(defaults_split)
     if zoo:
         return zoo_budget(zoo)
     if wide_data:
@@ -137,14 +187,22 @@ def main(quick=False, inits=100, loop=False, seeds=None, wide_data=False, zoo=No
     spec = example_spec("nonlinear", quick)
     inits = min(inits, 8) if quick else inits
     _, _, windows, (k_fit, _, _) = training_data(spec, 0, 0, "initial", 25)
+    first = {}
+    for method in ("ren", "direct"):  # the first call of each compiles its own program
+        t = time.perf_counter()
+        fit(method, k_fit, windows, spec, inits)
+        first[method] = time.perf_counter() - t
     ren, t_ren = timed(lambda: fit("ren", k_fit, windows, spec, inits))
     lti, t_lti = timed(lambda: fit("direct", k_fit, windows, spec, inits))
     print(f"nonlinear example, 25 initial segments, {inits} initialisations x "
           f"{spec.max_steps} steps, REN width {spec.ren_width} ({spec.ren_activation})")
-    print("| method | wall (s) | ratio to direct | median train loss | % certified |")
-    print("|---|---:|---:|---:|---:|")
-    for name, res, t in (("fit_ren", ren, t_ren), ("fit_direct", lti, t_lti)):
-        print(f"| {name} | {t:.2f} | {t / t_lti:.2f} | {float(np.median(res.final_loss)):.4g} "
+    print("| method | wall, compiled (s) | ratio to direct | first call, with compilation (s) "
+          "| ratio to direct | median train loss | % certified |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    for name, res, t, t1 in (("fit_ren", ren, t_ren, first["ren"]),
+                             ("fit_direct", lti, t_lti, first["direct"])):
+        print(f"| {name} | {t:.3f} | {t / t_lti:.1f} | {t1:.2f} | {t1 / first['direct']:.2f} "
+              f"| {float(np.median(res.final_loss)):.4g} "
               f"| {100 * float(np.mean(np.asarray(res.certified))):.0f} |")
     one = jax.tree.map(lambda a: a[0], ren.controllers)
     sdp = []
@@ -178,5 +236,8 @@ if __name__ == "__main__":
                         help="train on windows drawn like the test states (no timing)")
     parser.add_argument("--zoo", choices=("tuning", "held_out"),
                         help="fit_ren's step budget on one half of the problem zoo")
+    parser.add_argument("--defaults", choices=("tuning", "held_out"),
+                        help="fit_ren's default Adam step and initial scale on one half of the "
+                             "problem zoo")
     args = parser.parse_args()
-    main(args.quick, args.inits, args.loop, args.seeds, args.wide, args.zoo)
+    main(args.quick, args.inits, args.loop, args.seeds, args.wide, args.zoo, args.defaults)

@@ -130,6 +130,32 @@ def _right_inv(Z, G):
     return _linalg.solve_triangular(G, Z.T, lower=False, trans=True).T
 
 
+def output_map(W: Float[Array, "m n+p"], G_P: Float[Array, "n n"], qsr: QSR,
+               margin: float = MARGIN):
+    """Step 3 of the map, the loop transformation: `(C, D, K_F)` from `W` and the storage's
+    upper Cholesky factor $G_P$ ($P = G_P^\\top G_P$).
+
+    $[C\\ \\ D] = [0\\ \\ D_0] + (1-\\varepsilon)ZY^{-1}G$ with $G = \\operatorname{diag}(G_P,
+    G_\\Phi)$ and $K_F = \\sqrt{1-\\varepsilon}\\,G_W^{-1}Y^{-1}G$ (module docstring). With
+    $\\hat n = 0$ ($G_P$ empty) it maps $W$ ($m\\times p$) onto the static feedthroughs with
+    $\\Phi(D)\\succeq\\varepsilon\\Phi_0$, which the REN map uses.
+    """
+    n, p, dtype = G_P.shape[0], W.shape[1] - G_P.shape[0], W.dtype
+    D0, _, G_phi, T_u, N = (jnp.asarray(M, dtype) for M in _constants(qsr, margin))
+    eye = lambda k: jnp.eye(k, dtype=dtype)
+    G = jsl.block_diag(G_P, G_phi)
+    # (C, D): the loop transformation, Z' N Z < I, Y = I - T'Z invertible since N >= T T'.
+    G_W = _upper_chol(eye(n + p) + W.T @ N @ W)
+    Z = _right_inv(W, G_W)
+    # Y = [[I, 0], [-T_u'Z_x, I - T_u'Z_u]] is block lower triangular: one p x p solve.
+    TZ = T_u.T @ Z
+    lower = _linalg.solve(eye(p) - TZ[:, n:], jnp.concatenate([TZ[:, :n], eye(p)], 1))
+    Y_inv = jnp.concatenate([jnp.concatenate([eye(n), jnp.zeros((n, p), dtype)], 1), lower])
+    CD = (1.0 - margin) * Z @ Y_inv @ G
+    K_F = jnp.sqrt(1.0 - margin) * _linalg.solve_triangular(G_W, Y_inv @ G, lower=False)
+    return CD[:, :n], D0 + CD[:, n:], K_F
+
+
 def direct_map(theta: DirectParams, qsr: QSR, margin: float = MARGIN):
     """The controller and certificate of one parameter $\\theta$ (unbatched; vmap for batches).
 
@@ -147,22 +173,11 @@ def direct_map(theta: DirectParams, qsr: QSR, margin: float = MARGIN):
     X, W, V = theta.X, theta.W, theta.V
     n, dtype = X.shape[0], X.dtype
     p = W.shape[1] - n
-    D0, _, G_phi, T_u, N = (jnp.asarray(M, dtype) for M in _constants(qsr, margin))
     eye = lambda k: jnp.eye(k, dtype=dtype)
     P = X.T @ X + margin * eye(n)
     G_P = _upper_chol(P)
-    G = jsl.block_diag(G_P, G_phi)
-    # (C, D): the loop transformation, Z' N Z < I, Y = I - T'Z invertible since N >= T T'.
-    G_W = _upper_chol(eye(n + p) + W.T @ N @ W)
-    Z = _right_inv(W, G_W)
-    # Y = [[I, 0], [-T_u'Z_x, I - T_u'Z_u]] is block lower triangular: one p x p solve.
-    TZ = T_u.T @ Z
-    lower = _linalg.solve(eye(p) - TZ[:, n:], jnp.concatenate([TZ[:, :n], eye(p)], 1))
-    Y_inv = jnp.concatenate([jnp.concatenate([eye(n), jnp.zeros((n, p), dtype)], 1), lower])
-    CD = (1.0 - margin) * Z @ Y_inv @ G
-    C, D = CD[:, :n], D0 + CD[:, n:]
+    C, D, K_F = output_map(W, G_P, qsr, margin)
     # (A, B): [A B]' P [A B] = K_F' U'U K_F < K_F' K_F = F(C, D) - eps G'G.
-    K_F = jnp.sqrt(1.0 - margin) * _linalg.solve_triangular(G_W, Y_inv @ G, lower=False)
     U = _right_inv(V, _upper_chol(eye(n + p) + V.T @ V))
     AB = _linalg.solve_triangular(G_P, U @ K_F, lower=False)
     return LTIController(AB[:, :n], AB[:, n:], C, D), (P + P.T) / 2

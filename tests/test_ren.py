@@ -115,6 +115,48 @@ def test_layer_unrolled_and_looped_match_the_definition(activation, monkeypatch)
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("activation", ["relu", "tanh"])
+def test_layer_derivatives_match_differentiating_the_definition(activation, monkeypatch):
+    """The layer's own derivative rule (a pass over the tangents) against JAX
+    differentiating a plain row-by-row layer written here, in reverse and forward mode,
+    on both sides of `UNROLL_MAX`."""
+    from dissil_jax.internal import ren_controller
+
+    sigma = {"relu": jax.nn.relu, "tanh": jnp.tanh}[activation]
+
+    def plain(C1, D11, D12, x, u):
+        w = []
+        for i in range(C1.shape[0]):
+            v = C1[i] @ x + D12[i] @ u + sum((D11[i, j] * w[j] for j in range(i)), 0.0)
+            w.append(sigma(v))
+        return jnp.stack(w)
+
+    rng = np.random.default_rng(8)
+    for q in (6, ren_controller.UNROLL_MAX + 2):
+        K = _random_ren(rng, q=q, activation=activation, scale=0.8 / np.sqrt(q))
+        args = (K.C1, K.D11, K.D12, jnp.asarray(rng.standard_normal(2)),
+                jnp.asarray(rng.standard_normal(2)))
+        weights = jnp.asarray(rng.standard_normal(q))
+
+        def lib(C1, D11, D12, x, u):
+            return eqx.tree_at(lambda k: (k.C1, k.D11, k.D12), K, (C1, D11, D12)).layer(x, u)
+
+        for mode in ("unrolled", "looped"):
+            if mode == "looped":
+                monkeypatch.setattr(ren_controller, "UNROLL_MAX", 0)
+            scalar = lambda f: lambda *a: weights @ jnp.sin(f(*a))
+            g_lib = jax.grad(scalar(lib), argnums=range(5))(*args)
+            g_ref = jax.grad(scalar(plain), argnums=range(5))(*args)
+            tangents = tuple(jnp.asarray(rng.standard_normal(a.shape)) for a in args)
+            t_lib = jax.jvp(lib, args, tangents)[1]
+            t_ref = jax.jvp(plain, args, tangents)[1]
+            monkeypatch.undo()
+            # the same products summed in another order: round-off only
+            for a, b in zip(g_lib, g_ref):
+                np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-12)
+            np.testing.assert_allclose(t_lib, t_ref, rtol=1e-11, atol=1e-12)
+
+
 def _rollout_np(K, x, u):
     out = []
     for k in range(u.shape[0]):
@@ -263,34 +305,52 @@ def test_a_non_dissipative_ren_is_rejected():
 
 # -- the direct map ------------------------------------------------------------------------
 
+def _random_params(key, num, n, q, p, m, scale):
+    """Parameters of the REN map with every entry random (X around I, E's skew part,
+    the neurons' direct input), not only the trainer's initial draw."""
+    theta = rm.init_ren_params(key, num, n, q, p, m, scale, jnp.float64)
+    leaves, tree = jax.tree.flatten(theta)
+    keys = jr.split(jr.fold_in(key, 1), len(leaves))
+    return jax.tree.unflatten(tree, [a + scale * jr.normal(k, a.shape, a.dtype)
+                                     for a, k in zip(leaves, keys)])
+
+
 @pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 @pytest.mark.parametrize("name", list(SUPPLY_RATES))
 def test_map_values_are_certified_for_every_q(name):
+    """Every value of the map holds its certificate with the margin the map promises,
+    M(P, Lam) <= -eps diag(P, 2 Lam, Phi0 / 2), checked in float64 on the REN's own
+    dissipation matrix (`ren_lmi`, built from the definition's blocks)."""
     qsr = SUPPLY_RATES[name]
-    theta = rm.init_ren_params(jr.PRNGKey(2), 6, 2, 4, 2, 2, 1.0, jnp.float64)
-    K, P, lam = jax.jit(jax.vmap(lambda t: rm.ren_map(t, qsr, 4, "tanh", input_share=0.5)))(theta)
+    theta = _random_params(jr.PRNGKey(2), 6, 2, 4, 2, 2, 0.5)
+    K, P, lam = jax.jit(jax.vmap(lambda t: rm.ren_map(t, qsr, 4, "tanh",
+                                                      direct_input=True)))(theta)
     cert = dj.certify_ren(K, qsr, P=P, multiplier=lam)
     assert cert.holds.all() and (np.asarray(lam) > 0).all()
     assert np.abs(np.asarray(K.D12)).min() > 0  # the neurons' direct input is in use
     assert (np.asarray(K.D11)[:, np.triu_indices(4)[0], np.triu_indices(4)[1]] == 0).all()
-    # the map's bound M_REN <= -eps diag(M, Phi0) implies at least eps * lambda_min(P)
+    Phi0 = dm.feedthrough_centre(qsr)[1]
     for i in range(6):
-        M = ren_certify.ren_lmi(jax.tree.map(lambda a: a[i], K), qsr, P[i], lam[i])
-        assert np.linalg.eigvalsh(M)[-1] < -0.5 * dm.MARGIN * min(
-            1.0, np.linalg.eigvalsh(np.asarray(P[i]))[0])
+        Pi, li = np.asarray(P[i]), np.asarray(lam[i])
+        M = ren_certify.ren_lmi(jax.tree.map(lambda a: a[i], K), qsr, Pi, li)
+        bound = dm.MARGIN * np.block([
+            [Pi, np.zeros((2, 6))],
+            [np.zeros((4, 2)), np.diag(2 * li), np.zeros((4, 2))],
+            [np.zeros((2, 6)), Phi0 / 2]])
+        # round-off of the float64 products, relative to the matrix's largest entry
+        assert np.linalg.eigvalsh(M + bound)[-1] <= 1e-10 * np.abs(M).max()
 
 
 @pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
-def test_width_zero_reproduces_the_lti_direct_map():
-    qsr = SUPPLY_RATES["rank_deficient"]
-    theta = jax.tree.map(lambda a: a[0], rm.init_ren_params(jr.PRNGKey(3), 1, 3, 0, 2, 2, 0.5,
-                                                         jnp.float64))
-    K, P, lam = rm.ren_map(theta, qsr, 0, input_share=0.0)
-    K_lti, P_lti = dm.direct_map(theta.lti, qsr)
-    assert lam.shape == (0,)
-    # [A B] = G_P^{-1} (G_P [A B]): one triangular product and solve, round-off only
-    for a, b in zip((K.A, K.B2, K.C2, K.D22, P), (K_lti.A, K_lti.B, K_lti.C, K_lti.D, P_lti)):
-        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-13)
+def test_width_zero_is_a_certified_lti_controller():
+    """At width 0 the REN map is a direct map of LTI controllers: its storage is a KYP
+    certificate of `K.to_lti()` (`dj.certify`'s float64 check, the LTI tools' own)."""
+    for name, qsr in SUPPLY_RATES.items():
+        theta = _random_params(jr.PRNGKey(3), 4, 3, 0, 2, 2, 0.5)
+        K, P, lam = jax.jit(jax.vmap(lambda t: rm.ren_map(t, qsr, 0)))(theta)
+        assert lam.shape == (4, 0), name
+        cert = dj.certify(K.to_lti(), qsr, P=P)
+        assert np.all(cert.holds), name
 
 
 # -- training --------------------------------------------------------------------------------
@@ -359,11 +419,9 @@ def test_failed_end_check_gets_an_sdp_certificate(monkeypatch):
     assert dj.certify_ren(res.controllers, qsr, P=res.P, multiplier=res.multiplier).holds.all()
 
 
-def test_input_share_zero_gives_no_direct_input():
-    theta = rm.init_ren_params(jr.PRNGKey(7), 2, 1, 3, 2, 2, 1.0, jnp.float64)
-    K, P, lam = jax.jit(jax.vmap(lambda t: rm.ren_map(t, SUPPLY_RATES["passive"], 3,
-                                                   input_share=0.0)))(
-        theta)
+def test_without_direct_input_d12_is_zero():
+    theta = _random_params(jr.PRNGKey(7), 2, 1, 3, 2, 2, 0.5)
+    K, P, lam = jax.jit(jax.vmap(lambda t: rm.ren_map(t, SUPPLY_RATES["passive"], 3)))(theta)
     assert not np.asarray(K.D12).any()
     assert dj.certify_ren(K, SUPPLY_RATES["passive"], P=P, multiplier=lam).holds.all()
 
@@ -378,6 +436,34 @@ def test_experiments_protocol_records_ren_as_certified():
     rec = run_config("nonlinear", "initial", "ren", 3, inits=2, spec=spec)
     assert rec["certified"] is True and rec["controllers"] == 2
     assert METHOD_LABELS["ren"] == "REN (ours)"
+
+
+def test_batched_check_equals_a_loop_over_controllers():
+    """`certify_ren` checks a batch of given pairs in one vectorised pass; a loop over the
+    members gives the same verdicts and margins, for certified members, members whose pair
+    fails and a member certified only in the unit-multiplier form (large data)."""
+    qsr = SUPPLY_RATES["strict"]
+    theta = _random_params(jr.PRNGKey(11), 4, 2, 3, 2, 2, 0.5)
+    K, P, lam = jax.jit(jax.vmap(lambda t: rm.ren_map(t, qsr, 3)))(theta)
+    K = jax.tree.map(np.array, K)
+    P, lam = np.array(P), np.array(lam)
+    K.D22[1] += 3.0  # breaks the gain bound: refused
+    P[2] *= 0.5  # the pair no longer certifies
+    # member 3 in large units (as `to_user_units` returns a REN trained on data of size s):
+    # Lambda ~ s^2 P, where the plain form's allowance (0.1 here) swamps its margin (~0.16)
+    # and only the unit-multiplier form certifies it
+    s = 1e4
+    K.B1[3] *= s
+    K.D21[3] *= s
+    K.C1[3] /= s
+    K.D12[3] /= s
+    lam[3] *= s**2
+    batch = dj.certify_ren(K, qsr, P=P, multiplier=lam)
+    assert list(batch.holds) == [True, False, False, True]
+    for i in range(4):
+        one = dj.certify_ren(jax.tree.map(lambda a: a[i], K), qsr, P=P[i], multiplier=lam[i])
+        assert one.holds == batch.holds[i]
+        np.testing.assert_array_equal(one.margin, batch.margin[i])
 
 
 def test_certify_ren_checks_the_given_pair():

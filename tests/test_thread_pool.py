@@ -47,8 +47,8 @@ def test_direct_run_compiles_without_custom_calls(getkey):
 
 
 def test_ren_run_compiles_without_custom_calls(getkey):
-    # The REN trainer runs the LTI map at order n + q and its own factorisations batched
-    # over initialisations inside the same loop.
+    # The REN trainer runs its factorisations (orders n and p) batched over initialisations
+    # inside the same loop.
     from dissil_jax.internal import ren_train
 
     n, p = 2, 1
@@ -57,7 +57,7 @@ def test_ren_run_compiles_without_custom_calls(getkey):
     run = lambda key, w: ren_train._run(
         key, w, dj.QSR(-1.0, 0.5, 1.0), 0.03, 0.3, width=3, activation="relu",
         optimizer=None, num_inits=4, n_state=n, max_steps=3, atol=0.0, rtol=0.0,
-        margin=1e-2, input_share=0.5)
+        margin=1e-2, direct_input=True)
     assert _custom_calls(run, getkey(), w) == []
 
 

@@ -10,8 +10,16 @@ import numpy as np
 
 from .._certify.certify import storage_arg
 from .._controller import LTIController
+from .._rate_scale import RATE_BAND, rate_factor
 from .._sdp import sdp as _sdp
-from .._sdp.lmi import VERIFY_RTOL, kyp_margin, kyp_matrix, kyp_scale
+from .._sdp.lmi import (
+    VERIFY_RTOL,
+    kyp_margin,
+    kyp_matrix,
+    kyp_matrix_of,
+    kyp_scale,
+    kyp_scale_of,
+)
 from .._supply import QSR
 from .._validate import check_tolerance
 from .controller import RENController
@@ -127,15 +135,40 @@ def _unit_multiplier(G: LTIController, lam) -> LTIController:
     q = lam.shape[-1]
     r = np.sqrt(lam)
     B, C, D = (np.array(M, np.float64) for M in (G.B, G.C, G.D))
-    B[:, :q] /= r
-    C[:q] *= r[:, None]
-    D[:q] *= r[:, None]
-    D[:, :q] /= r
+    B[..., :, :q] /= r[..., None, :]
+    C[..., :q, :] *= r[..., :, None]
+    D[..., :q, :] *= r[..., :, None]
+    D[..., :, :q] /= r[..., None, :]
     return LTIController(G.A, B, C, D)
 
 
+def _augmented_arrays(qsr: QSR, lam):
+    """`augmented_qsr` for a batch of multipliers `lam` (`[*batch, q]`): its $(Q, S, R)$ as
+    batched arrays and its `rate_factor` per member."""
+    lam = np.asarray(lam, np.float64)
+    batch, q, m, p = lam.shape[:-1], lam.shape[-1], qsr.n_out, qsr.n_in
+    if q == 0:  # the rate itself
+        return qsr.Q, qsr.S, qsr.R, rate_factor(qsr)
+    L = lam[..., :, None] * np.eye(q)
+    Q = np.zeros(batch + (q + m, q + m))
+    Q[..., q:, q:] = qsr.Q
+    S = np.zeros(batch + (q + m, q + p))
+    S[..., :q, :q], S[..., q:, q:] = -L, qsr.S
+    R = np.zeros(batch + (q + p, q + p))
+    R[..., :q, :q], R[..., q:, q:] = 2 * L, qsr.R
+    # `rate_factor` of each augmented rate: Q is singular (its neuron block is zero), so the
+    # size is the largest entry, 2 max(lam) or the rate's own
+    size = np.maximum(max(np.abs(M).max(initial=0.0) for M in (qsr.Q, qsr.S, qsr.R)),
+                      2 * np.abs(lam).max(-1))
+    inside = (size == 0) | ((1 / RATE_BAND <= size) & (size <= RATE_BAND))
+    factor = np.where(inside, 1.0, 2.0 ** np.clip(np.round(np.log2(np.where(
+        size > 0, size, 1.0))), -500, 500))
+    return Q, S, R, factor
+
+
 def _margin_and_holds(G: LTIController, qsr: QSR, P, lam, tol):
-    """Margin and verdict of the eigenvalue check for one (augmented system, P, Λ).
+    """Margin and verdict of the eigenvalue check for (augmented systems, P, Λ), batched
+    over leading axes (numpy arrays of the batch's shape).
 
     The verdict accepts the check of $M(P,\\Lambda)$ itself or of its congruent form with a
     unit multiplier (`_unit_multiplier`): each is a float64 eigenvalue test with its own
@@ -144,19 +177,26 @@ def _margin_and_holds(G: LTIController, qsr: QSR, P, lam, tol):
     in the user's units, with $\\Lambda\\sim10^7$ and $P\\sim10$): the allowance, which grows
     with the largest term, then swamps the first test's margin.
     """
-    aug = augmented_qsr(qsr, lam)
-    mats = (G.A, G.B, G.C, G.D)
-    margin = float(min(kyp_margin(*mats, aug, P), lam.min(initial=np.inf)))
-    finite = all(np.all(np.isfinite(M)) for M in (*mats, P, lam))
-    if not finite:
-        return margin, False
-    if margin > tol * kyp_scale(*mats, aug, P):
-        return margin, True
-    if not (lam.size and lam.min() > 0):
-        return margin, False
-    unit = _unit_multiplier(G, lam)
-    umats, uaug = (unit.A, unit.B, unit.C, unit.D), augmented_qsr(qsr, np.ones_like(lam))
-    return margin, bool(kyp_margin(*umats, uaug, P) > tol * kyp_scale(*umats, uaug, P))
+    P, lam = np.asarray(P, np.float64), np.asarray(lam, np.float64)
+    A, B, C, D = (np.asarray(M, np.float64) for M in (G.A, G.B, G.C, G.D))
+    finite = np.all([np.all(np.isfinite(M), axis=(-2, -1)) for M in (A, B, C, D, P)], axis=0) \
+        & np.all(np.isfinite(lam), axis=-1)
+    # non-finite members are judged on zeros (and refused below), so the others still batch
+    zero = lambda M, k: np.where(finite[(...,) + (None,) * k], M, 0.0)
+    A, B, C, D, P = (zero(M, 2) for M in (A, B, C, D, P))
+    lam = zero(lam, 1)
+    Q, S, R, factor = _augmented_arrays(qsr, lam)
+    M = kyp_matrix_of(A, B, C, D, Q, S, R, P)
+    margin = np.minimum(np.minimum(-np.linalg.eigvalsh(M)[..., -1],
+                                   np.linalg.eigvalsh(P)[..., 0]), lam.min(-1, initial=np.inf))
+    holds = finite & (margin > tol * kyp_scale_of(A, B, C, D, Q, S, R, P, factor))
+    retry = finite & ~holds & (lam.shape[-1] > 0) & np.all(lam > 0, axis=-1)
+    if np.any(retry):
+        unit = _unit_multiplier(LTIController(A, B, C, D), np.where(retry[..., None], lam, 1.0))
+        umats = (unit.A, unit.B, unit.C, unit.D)
+        uaug = augmented_qsr(qsr, np.ones(lam.shape[-1]))
+        holds |= retry & (kyp_margin(*umats, uaug, P) > tol * kyp_scale(*umats, uaug, P))
+    return np.where(finite, margin, -np.inf), holds
 
 
 def _solve(G: LTIController, qsr: QSR, q: int):
@@ -257,20 +297,16 @@ def certify_ren(K: RENController, qsr: QSR, *, P=None, multiplier=None,
             raise ValueError(f"`multiplier` must be {batch + (q,)} (the diagonal of Lambda), "
                              f"got {lam.shape}.")
         lam = np.broadcast_to(lam, batch + (q,))
-    holds = np.zeros(batch, bool)
-    margin = np.full(batch, -np.inf)
-    Ps, lams = np.full(batch + (n, n), np.nan), np.full(batch + (q,), np.nan)
     status = np.full(batch, "given", dtype=object)
-    for idx in np.ndindex(*batch):
-        Gi = LTIController(*(M[idx] for M in (G.A, G.B, G.C, G.D)))
-        if P is None:
+    if P is None:  # one SDP per controller
+        P, lam = np.full(batch + (n, n), np.nan), np.full(batch + (q,), np.nan)
+        for idx in np.ndindex(*batch):
+            Gi = LTIController(*(M[idx] for M in (G.A, G.B, G.C, G.D)))
             Pi, li, status[idx] = _solve(Gi, qsr, q)
-            if Pi is None:
-                continue
-        else:
-            Pi, li = P[idx], lam[idx]
-        Ps[idx], lams[idx] = Pi, li
-        margin[idx], holds[idx] = _margin_and_holds(Gi, qsr, Pi, li, tol)
+            if Pi is not None:
+                P[idx], lam[idx] = Pi, li
+    Ps, lams = np.array(P, np.float64), np.array(lam, np.float64)
+    margin, holds = _margin_and_holds(G, qsr, Ps, lams, tol)  # one batched check
     if not batch:
         return RENCertificate(bool(holds), Ps, lams, float(margin), str(status[()]))
     return RENCertificate(holds, Ps, lams, margin, status.astype(str))

@@ -1,44 +1,48 @@
 """A direct parameterisation of $(Q,S,R)$-dissipative REN controllers, for every $Q\\preceq0$.
 
-It reuses the LTI map of `_direct_map.py` on an **extended state** $z = (x, w)$ of size
-$\\hat n + q$. That map returns, for free parameters $\\theta$, a storage
-$M = X^\\top X + \\varepsilon I$ (size $\\hat n + q$), an output map $[C_z\\ D]$ and a
-contraction $U$ with
+The certificate (`certify.ren_lmi`) asks, for $\\xi = (x, w, \\hat u)$, that
+$-M(P,\\Lambda) = \\Psi - G^\\top PG\\succ0$, with $G = [A\\ B_1\\ B_2]$ and
 
-$$[A_z\\ B_z]^\\top M[A_z\\ B_z] - \\operatorname{diag}(M, 0) - (\\text{supply of }
-[C_z\\ D]) \\preceq -\\varepsilon\\operatorname{diag}(M,\\Phi_0),\\qquad
-G_M[A_z\\ B_z] = UK_F.$$
+$$\\Psi = \\begin{bmatrix} P & -C_1^\\top\\Lambda & 0\\\\ \\ast & 2\\Lambda - \\Lambda D_{11}
+- D_{11}^\\top\\Lambda & -\\Lambda D_{12}\\\\ \\ast & \\ast & R\\end{bmatrix} + H^\\top QH
++ H^\\top SE_u + E_u^\\top S^\\top H,\\qquad H = [C_2\\ D_{21}\\ D_{22}],$$
 
-The REN is read off $M$ and the map's output:
+$E_u$ picking $\\hat u$ out of $\\xi$. The map writes the REN in the implicit form
+$Ex^+ = Fx + \\tilde B_1w + \\tilde B_2\\hat u$ with the storage $P = E^\\top\\mathcal P^{-1}E$,
+as recurrent equilibrium networks are usually parameterised, and uses
+$E^\\top\\mathcal P^{-1}E\\succeq E + E^\\top - \\mathcal P$: the certificate then follows from
+one matrix being positive definite, the matrix $\\mathcal M$ over $(x, w, \\hat u, x^+)$ whose
+$\\xi$-block is $\\Psi$ with $E + E^\\top - \\mathcal P$ in place of $P$, whose $(x^+,\\xi)$ block
+is $[F\\ \\tilde B_1\\ \\tilde B_2]$ and whose $(x^+, x^+)$ block is $\\mathcal P$ (a Schur
+complement). The map builds such an $\\mathcal M$ from free parameters and reads the REN off
+its blocks, all linearly but for one division by a $p\\times p$ matrix:
 
-- storage $P = M_{xx}$ and $[A\\ B_1\\ B_2] = G_P^{-1}(UK_F)_{1:\\hat n}$ ($G_P^\\top G_P = P$),
-  so that $[A\\ B_1\\ B_2]^\\top P[A\\ B_1\\ B_2] = K_F^\\top U_{1:\\hat n}^\\top
-  U_{1:\\hat n}K_F \\preceq K_F^\\top U^\\top UK_F$;
-- the sector multiplier and the explicit layer from the block $M_{ww}$, split into its
-  diagonal and strictly lower part: $\\Lambda = \\tfrac12\\operatorname{diag}(M_{ww})\\succ0$,
-  $D_{11} = -\\Lambda^{-1}\\operatorname{tril}(M_{ww},-1)$ (strictly lower triangular), so
-  $2\\Lambda - \\Lambda D_{11} - D_{11}^\\top\\Lambda = M_{ww}$;
-- $C_1 = -\\Lambda^{-1}M_{wx}$;
-- $[C_2\\ D_{21}] = C_z$ and $D_{22} = D$ (for $D_{12} = 0$; see below for $D_{12}\\ne0$).
+1. $D_{22}$ from `W` by the LTI map's loop transformation at order 0
+   (`_direct_map.output_map`), so that $\\Phi = R + S^\\top D_{22} + D_{22}^\\top S +
+   D_{22}^\\top QD_{22}\\succeq\\varepsilon\\Phi_0$; $T = S + QD_{22}$;
+2. the $\\hat u$ column of $\\mathcal M$ is $\\mathcal C = [C_2^\\top T;\\ \\Xi;\\ \\tilde B_2]$
+   with $\\Xi = D_{21}^\\top T - \\Lambda D_{12}$, and its remaining block is
+   $\\mathcal M_Z = X^\\top X + \\varepsilon I + \\mathcal C\\tilde\\Phi^{-1}\\mathcal C^\\top$,
+   $\\tilde\\Phi = \\Phi - \\tfrac\\varepsilon2\\Phi_0\\succ0$, so that
+   $\\mathcal M\\succeq\\operatorname{diag}(\\varepsilon I, \\tfrac\\varepsilon2\\Phi_0)\\succ0$;
+3. from the blocks of $\\mathcal M_Z$ over $(x, w, x^+)$, with $C_2$ and $D_{21}$ free:
+   $\\mathcal P = \\mathcal M_{x^+x^+}$, $[F\\ \\tilde B_1] = \\mathcal M_{x^+,(x,w)}$,
+   $E = \\tfrac12[(\\mathcal M_{xx} - C_2^\\top QC_2)/(1-\\varepsilon) + \\mathcal P] +
+   \\tfrac12(Y - Y^\\top)$; with $H_{ww} = \\mathcal M_{ww} - D_{21}^\\top QD_{21}$,
+   $\\Lambda = \\operatorname{diag}(H_{ww})/(2(1-\\varepsilon))$ and
+   $D_{11} = -\\Lambda^{-1}\\operatorname{tril}(H_{ww}, -1)$ (strictly lower triangular),
+   $C_1 = -\\Lambda^{-1}(\\mathcal M_{wx} - D_{21}^\\top QC_2)$ and
+   $D_{12} = \\Lambda^{-1}\\Xi_\\mathrm{free}$ (zero unless `direct_input`);
+4. $[A\\ B_1\\ B_2] = E^{-1}[F\\ \\tilde B_1\\ \\tilde B_2]$ ($E + E^\\top\\succ0$, so $E$ is
+   invertible) and $P = E^\\top\\mathcal P^{-1}E$.
 
-With $D_{12} = 0$, the REN's dissipation matrix (`certify.ren_lmi`) at $(P,\\Lambda)$ has the
-same supply and storage-difference terms as the extended LTI system's KYP matrix at $M$,
-except that the successor's storage is $P$ on $x^+$ instead of $M$ on $z^+$, which can only
-lower it: $M_{\\mathrm{REN}}(P,\\Lambda)\\preceq -\\varepsilon\\operatorname{diag}(M,\\Phi_0)
-\\prec 0$ for every $\\theta$. No step inverts $Q$ (the LTI map's loop transformation
-covers $Q\\preceq0$, passivity included).
-
-**The neurons' direct input $D_{12}$.** It adds the block $N = [0;\\ -\\Lambda D_{12}]$
-between $z$ and $\\hat u$. The congruence $T = \\bigl[\\begin{smallmatrix}I & -M^{-1}N\\\\
-0 & I\\end{smallmatrix}\\bigr]$ removes it at the price of an input weight
-$R - N^\\top M^{-1}N$ and a feedthrough $D' = D - C_zM^{-1}N$. With
-$N = G_M^\\top[0;\\ \\tilde N]$, $\\tilde N = \\sqrt\\rho\\,U_NG_\\Phi$ and a contraction
-$U_N = Y(I + Y^\\top Y)^{-1/2}$, $N^\\top M^{-1}N = \\tilde N^\\top\\tilde N\\preceq\\rho\\Phi_0$, so
-running the LTI map for the fixed rate $(Q, S, R - \\rho\\Phi_0)$ ($\\rho\\in[0,1)$, the
-`input_share`; $\\Phi_0$ the LTI map's feedthrough slack, so the rate stays strictly
-feasible) certifies the REN; then $D_{22} = D' + C_zM^{-1}N$ and
-$B_2 = B_2' + [A\\ B_1]M^{-1}N$. $\\rho = 0$ gives $D_{12} = 0$ and, at width 0, exactly the
-LTI map.
+Then $M(P,\\Lambda)\\preceq-\\varepsilon\\operatorname{diag}(P, 2\\Lambda, \\tfrac12\\Phi_0)$
+**for every parameter**: the factors $1-\\varepsilon$ in step 3 leave $\\varepsilon P$ and
+$2\\varepsilon\\Lambda$ over, and the $\\hat u$ block keeps $\\tfrac\\varepsilon2\\Phi_0$.
+Conversely every REN with a certificate of that margin is reached ($E = \\mathcal P = P$).
+No step inverts $Q$, so passivity and the degenerate cones ($Q = 0$) and rank-deficient $Q$
+are covered. The factorisations are of order $\\hat n$ ($E$, $\\mathcal P$) and $p$
+($\\tilde\\Phi$, step 1), not $\\hat n + q$: the width enters through one matrix product.
 """
 
 from __future__ import annotations
@@ -46,86 +50,105 @@ from __future__ import annotations
 import functools
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Float
 
 from .. import _linalg
-from .._direct_map import MARGIN, DirectParams, direct_map, feedthrough_centre, init_params
+from .._direct_map import MARGIN, feedthrough_centre, output_map
 from .._supply import QSR
 from .controller import RENController
 
 
 class RENParams(eqx.Module):
-    """The free parameters of `ren_map`: the LTI map's $(X, W, V)$ at order
-    $\\hat n + q$ (`lti`) and `Y` ($q\\times p$), the neurons' direct input."""
+    """The free parameters of `ren_map` (any real values; vmap for batches).
 
-    lti: DirectParams
-    Y: Float[Array, "q p"]
+    - `X`: $(2\\hat n + q)\\times(2\\hat n + q)$, the block $\\mathcal M_Z = X^\\top X +
+      \\varepsilon I + \\dots$ over $(x, w, x^+)$;
+    - `Y`: $\\hat n\\times\\hat n$, the skew part of $E$;
+    - `C2`, `D21`: the output matrices ($m\\times\\hat n$, $m\\times q$);
+    - `B`: $\\hat n\\times p$, the implicit input matrix $\\tilde B_2 = EB_2$;
+    - `W`: $m\\times p$, the feedthrough $D_{22}$ through the loop transformation;
+    - `Xi`: $q\\times p$, the neurons' direct input $\\Lambda D_{12}$ (used with
+      `direct_input` only).
+    """
+
+    X: Float[Array, "2n+q 2n+q"]
+    Y: Float[Array, "n n"]
+    C2: Float[Array, "m n"]
+    D21: Float[Array, "m q"]
+    B: Float[Array, "n p"]
+    W: Float[Array, "m p"]
+    Xi: Float[Array, "q p"]
 
 
 @functools.lru_cache(maxsize=64)
-def _shared_input(qsr: QSR, share: float) -> tuple[QSR, np.ndarray]:
-    """The supply rate $(Q, S, R - \\rho\\Phi_0)$ handed to the LTI map and $G_\\Phi$
-    ($\\Phi_0 = G_\\Phi^\\top G_\\Phi$), with $\\Phi_0$ the LTI map's feedthrough slack."""
-    _, Phi0 = feedthrough_centre(qsr)
-    G_phi = np.linalg.cholesky(Phi0).T
-    if share == 0.0:
-        return qsr, G_phi
-    return QSR(qsr.Q, qsr.S, qsr.R - share * Phi0), G_phi
+def _phi0(qsr: QSR) -> np.ndarray:
+    return feedthrough_centre(qsr)[1]
 
 
 def ren_map(theta: RENParams, qsr: QSR, width: int, activation="tanh",
-            margin: float = MARGIN, input_share: float = 0.0):
+            margin: float = MARGIN, direct_input: bool = False):
     """The REN controller and certificate of one parameter $\\theta$ (unbatched; vmap for
     batches).
 
-    $$\\theta = (X, W, V, Y)\\mapsto (K, P, \\Lambda),\\qquad M_{\\mathrm{REN}}(P,\\Lambda)
-    \\prec 0$$
+    $$\\theta\\mapsto (K, P, \\Lambda),\\qquad M(P,\\Lambda)\\preceq
+    -\\varepsilon\\operatorname{diag}(P, 2\\Lambda, \\tfrac12\\Phi_0)$$
 
-    (module docstring). `qsr`, `width` $q$, `activation`, `margin` and `input_share`
-    $\\rho\\in[0,1)$ are static.
+    (steps 1-4 of the module docstring). `qsr` ($Q\\preceq0$), `width` $q$, `activation`,
+    `margin` $\\varepsilon\\in(0,1)$ and `direct_input` (train $D_{12}$, else
+    $D_{12} = 0$) are static.
 
     **Returns:** `(K, P, lam)`: a [`RENController`][dissil_jax.RENController], its storage
     and the diagonal of its multiplier, in `theta`'s dtype.
     """
-    q = int(width)
-    X = theta.lti.X
-    nz, dtype = X.shape[0], X.dtype
-    n = nz - q
-    qsr_lti, G_phi = _shared_input(qsr, float(input_share))
-    Kz, M = direct_map(theta.lti, qsr_lti, margin)
-    G_M = _linalg.cholesky(M).T  # M = G_M' G_M; the LTI map's [A_z B_z] = G_M^{-1} U K_F
-    UK = (G_M @ jnp.concatenate([Kz.A, Kz.B], 1))[:n]
-    P = (M[:n, :n] + M[:n, :n].T) / 2
-    G_P = _linalg.cholesky(P).T
-    Xi = _linalg.solve_triangular(G_P, UK, lower=False)  # [A B1 B2'] of the transformed loop
-    lam = jnp.diagonal(M[n:, n:]) / 2
-    D11 = -jnp.tril(M[n:, n:], -1) / lam[:, None]
-    C1 = -M[n:, :n] / lam[:, None]
-    p = Kz.B.shape[1]
-    # The neurons' direct input: N = [0; -Lam D12] = G_M' [0; Nt], Nt = sqrt(rho) U_N G_phi
-    # with |U_N| < 1, so N' M^{-1} N = Nt'Nt <= rho Phi0 and R - N'M^{-1}N >= R - rho Phi0.
-    G_Y = _linalg.cholesky(jnp.eye(p, dtype=dtype) + theta.Y.T @ theta.Y).T
-    U_N = _linalg.solve_triangular(G_Y, theta.Y.T, lower=False, trans=True).T
-    Nt = jnp.sqrt(jnp.asarray(input_share, dtype)) * U_N @ jnp.asarray(G_phi, dtype)
-    D12 = -(G_M[n:, n:].T @ Nt) / lam[:, None]
-    MinvN = _linalg.solve_triangular(G_M, jnp.concatenate([jnp.zeros((n, p), dtype), Nt]),
-                                     lower=False)  # M^{-1} N = G_M^{-1} [0; Nt]
-    # undo the congruence T = [[I, -M^{-1}N], [0, I]]: D = D' + C_z M^{-1}N, B = B' + Xi_z M^{-1}N
-    D22 = Kz.D + Kz.C @ MinvN
-    B2 = Xi[:, nz:] + Xi[:, :nz] @ MinvN
-    K = RENController(Xi[:, :n], Xi[:, n:nz], B2, C1, D11, D12, Kz.C[:, :n], Kz.C[:, n:], D22,
+    q, n = int(width), theta.Y.shape[0]
+    X, C2, D21, B = theta.X, theta.C2, theta.D21, theta.B
+    dtype = X.dtype
+    Q, S, R, Phi0 = (jnp.asarray(M, dtype) for M in (qsr.Q, qsr.S, qsr.R, _phi0(qsr)))
+    # 1. the feedthrough: Phi(D22) >= eps Phi0
+    _, D22, _ = output_map(theta.W, jnp.zeros((0, 0), dtype), qsr, margin)
+    Phi = R + S.T @ D22 + D22.T @ S + D22.T @ Q @ D22
+    T = S + Q @ D22
+    # 2. the u column of the big matrix and the Schur complement over it
+    xi = theta.Xi if direct_input else jnp.zeros_like(theta.Xi)
+    col = jnp.concatenate([C2.T @ T, D21.T @ T - xi, B])
+    M = X.T @ X + margin * jnp.eye(X.shape[0], dtype=dtype) \
+        + col @ _linalg.spd_solve(Phi - 0.5 * margin * Phi0, col.T)
+    M = (M + M.T) / 2
+    # 3. the REN's blocks
+    Pcal, FB1 = M[n + q:, n + q:], M[n + q:, :n + q]
+    E = 0.5 * ((M[:n, :n] - C2.T @ Q @ C2) / (1.0 - margin) + Pcal) + 0.5 * (theta.Y - theta.Y.T)
+    H_ww = M[n:n + q, n:n + q] - D21.T @ Q @ D21
+    lam = jnp.diagonal(H_ww) / (2.0 * (1.0 - margin))
+    D11 = -jnp.tril(H_ww, -1) / lam[:, None]
+    C1 = -(M[n:n + q, :n] - D21.T @ Q @ C2) / lam[:, None]
+    D12 = xi / lam[:, None]
+    # 4. the explicit form and the storage
+    AB = _linalg.solve(E, jnp.concatenate([FB1, B], 1))
+    P = E.T @ _linalg.spd_solve(Pcal, E)
+    K = RENController(AB[:, :n], AB[:, n:n + q], AB[:, n + q:], C1, D11, D12, C2, D21, D22,
                       activation=activation)
-    return K, P, lam
+    return K, (P + P.T) / 2, lam
 
 
 def init_ren_params(key, num_inits: int, n: int, width: int, p: int, m: int, scale,
                     dtype) -> RENParams:
-    """`num_inits` parameters of `ren_map`: the LTI map's initial draw at order
-    $\\hat n + q$ ($X = I$, $W$ and $V$ i.i.d. $\\mathcal N(0,\\text{scale}^2)$) and $Y$
-    i.i.d. $\\mathcal N(0,\\text{scale}^2)$."""
-    k1, k2 = jr.split(key)
-    Y = scale * jr.normal(k2, (num_inits, int(width), p), dtype)
-    return RENParams(init_params(k1, num_inits, n + int(width), p, m, scale, dtype), Y)
+    """`num_inits` parameters of `ren_map`: $X = I$, $Y = 0$, $\\Xi = 0$, and `C2`, `D21`,
+    `B`, `W` with i.i.d. $\\mathcal N(0,\\text{scale}^2)$ entries (one key per
+    initialisation; `scale` may be traced).
+
+    At $X = I$ the draw is near $E = \\mathcal P\\approx I$ (so $P\\approx I$) with small
+    couplings between the neurons, a REN close to the LTI controller of its output map."""
+    q = int(width)
+
+    def one(k):
+        kC, kD, kB, kW = jr.split(k, 4)
+        return RENParams(jnp.eye(2 * n + q, dtype=dtype), jnp.zeros((n, n), dtype),
+                         scale * jr.normal(kC, (m, n), dtype), scale * jr.normal(kD, (m, q), dtype),
+                         scale * jr.normal(kB, (n, p), dtype), scale * jr.normal(kW, (m, p), dtype),
+                         jnp.zeros((q, p), dtype))
+
+    return jax.vmap(one)(jr.split(key, num_inits))

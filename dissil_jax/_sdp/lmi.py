@@ -27,12 +27,17 @@ def kyp_matrix(A, B, C, D, qsr: QSR, P) -> np.ndarray:
 
     Accepts stacks of controllers (leading batch axes on every matrix).
     """
-    A, B, C, D, P = (np.asarray(M, np.float64) for M in (A, B, C, D, P))
-    Q, S, R = qsr.Q, qsr.S, qsr.R
+    return kyp_matrix_of(A, B, C, D, qsr.Q, qsr.S, qsr.R, P)
+
+
+def kyp_matrix_of(A, B, C, D, Q, S, R, P) -> np.ndarray:
+    """`kyp_matrix` with the rate's matrices given as arrays, which may carry batch axes too
+    (a rate per controller, as a REN's multiplier makes it)."""
+    A, B, C, D, P, Q, S, R = (np.asarray(M, np.float64) for M in (A, B, C, D, P, Q, S, R))
     PA, PB = P @ A, P @ B
     M11 = _T(A) @ PA - P - _T(C) @ Q @ C
     M12 = _T(A) @ PB - _T(C) @ (S + Q @ D)
-    M22 = _T(B) @ PB - _T(D) @ Q @ D - _T(D) @ S - S.T @ D - R
+    M22 = _T(B) @ PB - _T(D) @ Q @ D - _T(D) @ S - _T(S) @ D - R
     M = np.concatenate([np.concatenate([M11, M12], -1), np.concatenate([_T(M12), M22], -1)], -2)
     return (M + _T(M)) / 2
 
@@ -50,9 +55,15 @@ def kyp_scale(A, B, C, D, qsr: QSR, P):
     floor is the rate's size $\\kappa$ (`rate_factor`: 1 for rates of ordinary size), so
     that multiplying the rate and $P$ by a power of two changes no verdict.
     """
+    return kyp_scale_of(A, B, C, D, qsr.Q, qsr.S, qsr.R, P, rate_factor(qsr))
+
+
+def kyp_scale_of(A, B, C, D, Q, S, R, P, factor):
+    """`kyp_scale` with the rate's matrices as (possibly batched) arrays and its
+    `rate_factor` given (batched like them, or a number)."""
     nA, nB, nC, nD, nP = (_fro(M) for M in (A, B, C, D, P))
-    q, s, r = (_fro(M) for M in (qsr.Q, qsr.S, qsr.R))
-    return rate_factor(qsr) + nP * (1 + (nA + nB) ** 2) + q * (nC + nD) ** 2 + 2 * s * (nC + nD) + r
+    q, s, r = (_fro(M) for M in (Q, S, R))
+    return factor + nP * (1 + (nA + nB) ** 2) + q * (nC + nD) ** 2 + 2 * s * (nC + nD) + r
 
 
 # Relative round-off allowance for the float64 eigenvalue check of the KYP matrix.

@@ -10,7 +10,6 @@ import time
 
 import equinox as eqx
 import jax
-import jax.core
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -57,7 +56,7 @@ def to_user_units(K, lam, s):
 
 
 def _run(key, windows, qsr, learning_rate, init_scale, *, width, activation, optimizer,
-         num_inits, n_state, max_steps, atol, rtol, margin, input_share, keep="best"):
+         num_inits, n_state, max_steps, atol, rtol, margin, direct_input, keep="best"):
     # Train in normalised units (`_scale.py`), as the LTI trainers do; the neurons stay in
     # those units, so the result is mapped back exactly for any activation (`to_user_units`).
     s2 = loss_scale(windows)
@@ -69,7 +68,7 @@ def _run(key, windows, qsr, learning_rate, init_scale, *, width, activation, opt
     opt = optax.adam(learning_rate) if optimizer is None else optimizer
     # The driver loop of every gradient trainer, with the LTI direct map's method and the
     # REN map's loss in place of the LTI one.
-    ren = lambda theta: ren_map(theta, qsr, width, activation, margin, input_share)
+    ren = lambda theta: ren_map(theta, qsr, width, activation, margin, direct_input)
     (_, _, (K, P, lam), _), hist, loss, steps, reason, kept = iterate(
         MapDescent(theta0, data, opt, map_loss(ren, ren_imitation_loss)),
         max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
@@ -109,21 +108,21 @@ def fit_ren(
     optimizer=None, learning_rate: float | None = None, init_scale: float | None = None,
     num_inits: int = 8, n_state: int | None = None, max_steps: int = MAX_STEPS,
     atol: float = 0.0, rtol: float = RTOL_DIRECT, margin: float = MARGIN,
-    input_share: float = 0.0, throw: bool = True, keep: str = "best", balance: bool = True,
+    direct_input: bool = False, throw: bool = True, keep: str = "best", balance: bool = True,
 ) -> RENFitResult:
     """Learn $(Q,S,R)$-dissipative REN controllers (nonlinear, dynamic) from demonstrations.
 
     Every controller is the image of free parameters under the REN direct map
     ([REN controllers](ren.md)), whose values satisfy the REN certificate
-    $M(P,\\Lambda)\\preceq-\\varepsilon\\operatorname{diag}(M,\\Phi_0)$ for every supply rate
-    with $Q\\preceq0$ (passivity included; no step inverts $Q$). Training is unconstrained
-    gradient descent on the imitation loss
+    $M(P,\\Lambda)\\preceq-\\varepsilon\\operatorname{diag}(P, 2\\Lambda, \\tfrac12\\Phi_0)$
+    for every supply rate with $Q\\preceq0$ (passivity included; no step inverts $Q$).
+    Training is unconstrained gradient descent on the imitation loss
     ([`ren_imitation_loss`][dissil_jax.ren_imitation_loss]) in one compiled
     `lax.while_loop`, vmapped over `num_inits` initialisations; it stops after `max_steps`
     or when $|J_k - J_{k-1}| <$ `atol` $+$ `rtol`$\\,|J_0|$ (defaults 600, 0 and 1e-8,
     [`fit_direct`][dissil_jax.fit_direct]'s: on the problem zoo's tuning half 150 steps at
-    1e-6 left the median loss up to 10x higher, and on its held-out half up to 2.1x, for
-    at most 2.5 s of training at width 4, `benchmarks/bench_ren.py --zoo`); the driver
+    1e-6 left the median loss up to 12x higher, and on its held-out half up to 4.1x, for
+    at most 2.1 s of training at width 4, `benchmarks/bench_ren.py --zoo`); the driver
     loop of every gradient trainer, with the REN map in place of the LTI one.
 
     **Certified at the end:** each returned `(K, P, multiplier)` is checked in float64 by
@@ -137,14 +136,12 @@ def fit_ren(
       `optimizer`, `learning_rate`, `init_scale`, `margin`, `throw`, `keep`, `balance`: as in
       [`fit_direct`][dissil_jax.fit_direct] (`learning_rate` is Adam's step on the REN
       map's free parameters); the default step and initial scale are `fit_direct`'s at
-      order $\\hat n + q$.
+      the controller's order $\\hat n$ (chosen on the problem zoo's tuning half against the
+      same rule at order $\\hat n + q$ and fixed steps 0.01-0.1: the smallest worst-case
+      regret, `benchmarks/bench_ren.py --defaults`).
     - `width` $q\\ge0$: the number of neurons (0 gives an LTI controller, as a REN).
-    - `input_share` $\\rho\\in[0,1)$: the share of the LTI map's feedthrough slack
-      $\\Phi_0$ given to the neurons' direct input $D_{12}$ (static; 0 gives
-      $D_{12} = 0$, the network then sees the plant output only through the state; the
-      default, since the share is taken from the LTI part's feedthrough room: on the
-      linear example's passive controllers 0.5 gave a 25x worse median test MSE than 0,
-      on the nonlinear example the two were within 5 %, see [REN controllers](ren.md)).
+    - `direct_input`: train the neurons' direct input $D_{12}$ (static; default False,
+      $D_{12} = 0$: the network then sees the plant output through the state only).
     - `activation`: `"tanh"` (default), `"relu"` or a slope-restricted callable (see
       [`RENController`][dissil_jax.RENController]). Training runs on the windows divided
       by one data scale $s$ (as in the LTI trainers), so the neurons work in units where
@@ -176,11 +173,9 @@ def fit_ren(
                          "controller with `dj.fit_pgd` / `dj.fit_ico`.")
     n_state = check_n_state(windows, n_state)
     margin = check_margin(margin)
-    if isinstance(input_share, jax.core.Tracer) or not (np.ndim(input_share) == 0
-                                                       and 0.0 <= input_share < 1.0):
-        raise ValueError(f"`input_share` must be a number in [0, 1) (static), got "
-                         f"{input_share!r}.")
-    lr0, scale0 = default_hyperparameters(n_state + int(width), windows.n_in)
+    if not isinstance(direct_input, bool | np.bool_):
+        raise ValueError(f"`direct_input` must be True or False, got {direct_input!r}.")
+    lr0, scale0 = default_hyperparameters(n_state, windows.n_in)
     learning_rate = lr0 if learning_rate is None else learning_rate
     init_scale = scale0 if init_scale is None else init_scale
     start = time.perf_counter()
@@ -192,7 +187,7 @@ def fit_ren(
                    optimizer=optimizer, num_inits=int(num_inits), n_state=n_state,
                    max_steps=int(max_steps), atol=jnp.asarray(atol / c**2, dtype),
                    rtol=jnp.asarray(rtol, dtype), margin=margin,
-                   input_share=float(input_share), keep=check_keep(keep))
+                   direct_input=bool(direct_input), keep=check_keep(keep))
     jax.block_until_ready(res)
     res = _certify_all(res, qsr)
     res = eqx.tree_at(lambda r: r.wall_time, res, jnp.asarray(time.perf_counter() - start,
