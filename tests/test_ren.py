@@ -88,14 +88,11 @@ def test_predict_and_loss_vmapped_equal_python_loops():
 
 @pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 @pytest.mark.parametrize("activation", ["relu", "tanh"])
-def test_layer_unrolled_and_looped_match_the_definition(activation, monkeypatch):
-    """Both forms of the explicit layer (unrolled up to `UNROLL_MAX`, a row loop above)
-    against the numpy row-by-row definition, at a width on either side of the switch; and
-    their reverse-mode gradients agree with each other."""
-    from dissil_jax.internal import ren_controller
-
+def test_layer_matches_the_definition(activation):
+    """The explicit layer against the numpy row-by-row definition, at small and large
+    widths."""
     rng = np.random.default_rng(7)
-    for q in (5, ren_controller.UNROLL_MAX + 3):
+    for q in (5, 35):
         K = _random_ren(rng, q=q, activation=activation, scale=0.8 / np.sqrt(q))
         x, u = rng.standard_normal(2), rng.standard_normal(2)
         _, _, _, w_ref = _np_step(K, x, u)
@@ -103,25 +100,11 @@ def test_layer_unrolled_and_looped_match_the_definition(activation, monkeypatch)
         np.testing.assert_allclose(K.layer(jnp.asarray(x), jnp.asarray(u)), w_ref,
                                    rtol=1e-12, atol=1e-12)
 
-        def g(K):
-            return jax.grad(lambda K: jnp.sum(jnp.sin(K.layer(jnp.asarray(x),
-                                                              jnp.asarray(u)))))(K)
-
-        unrolled = jax.jit(g)(K)
-        monkeypatch.setattr(ren_controller, "UNROLL_MAX", 0)
-        looped = jax.jit(g)(K)
-        monkeypatch.undo()
-        for a, b in zip(unrolled.matrices, looped.matrices):
-            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
-
 
 @pytest.mark.parametrize("activation", ["relu", "tanh"])
-def test_layer_derivatives_match_differentiating_the_definition(activation, monkeypatch):
+def test_layer_derivatives_match_differentiating_the_definition(activation):
     """The layer's own derivative rule (a pass over the tangents) against JAX
-    differentiating a plain row-by-row layer written here, in reverse and forward mode,
-    on both sides of `UNROLL_MAX`."""
-    from dissil_jax.internal import ren_controller
-
+    differentiating a plain row-by-row layer written here, in reverse and forward mode."""
     sigma = {"relu": jax.nn.relu, "tanh": jnp.tanh}[activation]
 
     def plain(C1, D11, D12, x, u):
@@ -132,7 +115,7 @@ def test_layer_derivatives_match_differentiating_the_definition(activation, monk
         return jnp.stack(w)
 
     rng = np.random.default_rng(8)
-    for q in (6, ren_controller.UNROLL_MAX + 2):
+    for q in (6, 20):
         K = _random_ren(rng, q=q, activation=activation, scale=0.8 / np.sqrt(q))
         args = (K.C1, K.D11, K.D12, jnp.asarray(rng.standard_normal(2)),
                 jnp.asarray(rng.standard_normal(2)))
@@ -141,20 +124,16 @@ def test_layer_derivatives_match_differentiating_the_definition(activation, monk
         def lib(C1, D11, D12, x, u):
             return eqx.tree_at(lambda k: (k.C1, k.D11, k.D12), K, (C1, D11, D12)).layer(x, u)
 
-        for mode in ("unrolled", "looped"):
-            if mode == "looped":
-                monkeypatch.setattr(ren_controller, "UNROLL_MAX", 0)
-            scalar = lambda f: lambda *a: weights @ jnp.sin(f(*a))
-            g_lib = jax.grad(scalar(lib), argnums=range(5))(*args)
-            g_ref = jax.grad(scalar(plain), argnums=range(5))(*args)
-            tangents = tuple(jnp.asarray(rng.standard_normal(a.shape)) for a in args)
-            t_lib = jax.jvp(lib, args, tangents)[1]
-            t_ref = jax.jvp(plain, args, tangents)[1]
-            monkeypatch.undo()
-            # the same products summed in another order: round-off only
-            for a, b in zip(g_lib, g_ref):
-                np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-12)
-            np.testing.assert_allclose(t_lib, t_ref, rtol=1e-11, atol=1e-12)
+        scalar = lambda f: lambda *a: weights @ jnp.sin(f(*a))
+        g_lib = jax.jit(jax.grad(scalar(lib), argnums=range(5)))(*args)
+        g_ref = jax.grad(scalar(plain), argnums=range(5))(*args)
+        tangents = tuple(jnp.asarray(rng.standard_normal(a.shape)) for a in args)
+        t_lib = jax.jit(lambda a, t: jax.jvp(lib, a, t)[1])(args, tangents)
+        t_ref = jax.jvp(plain, args, tangents)[1]
+        # the same products summed in another order: round-off only
+        for a, b in zip(g_lib, g_ref):
+            np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-12)
+        np.testing.assert_allclose(t_lib, t_ref, rtol=1e-11, atol=1e-12)
 
 
 def _rollout_np(K, x, u):

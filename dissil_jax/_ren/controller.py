@@ -119,10 +119,6 @@ def _as_array(name, M):
         raise ValueError(f"`{name}` must be a floating-point array, got {M!r}.") from None
 
 
-#: Widths up to which `RENController.layer` is unrolled (its compile time grows with the
-#: width; above, a loop over the rows).
-UNROLL_MAX = 32
-
 _NAMES = ("A", "B1", "B2", "C1", "D11", "D12", "C2", "D21", "D22")
 
 
@@ -130,17 +126,13 @@ def _sweep(D11, b, f):
     """One pass over the rows of a strictly lower-triangular `D11`:
     $z_i = f_i\\bigl(b_i + \\sum_{j<i}(D_{11})_{ij}z_j\\bigr)$, with `f(i, a)`.
 
-    Unrolled up to width `UNROLL_MAX` (each row a dot product with the entries already
-    known; a loop-carried form costs a while-loop iteration, and in reverse mode a stored
-    copy of $z$, per row: 2-4x the time at width 16), above it a `lax.fori_loop`.
+    A `lax.fori_loop` over the rows: its compile time does not grow with the width. The
+    pass unrolled into static slices ran 10-20 % faster per step but compiled 0.3 s (width
+    4 and 8) to 1.5 s (width 16) longer, so a single `fit_ren` call, even with 600 steps,
+    took longer unrolled (`benchmarks/bench_ren.py`).
     """
-    q = b.shape[0]
-    if q <= UNROLL_MAX:
-        z = [f(0, b[0])]
-        for i in range(1, q):
-            z.append(f(i, b[i] + D11[i, :i] @ jnp.stack(z)))
-        return jnp.stack(z)
-    return jax.lax.fori_loop(0, q, lambda i, z: z.at[i].set(f(i, b[i] + D11[i] @ z)),
+    return jax.lax.fori_loop(0, b.shape[0],
+                             lambda i, z: z.at[i].set(f(i, b[i] + D11[i] @ z)),
                              jnp.zeros_like(b))
 
 
@@ -153,7 +145,7 @@ def _explicit_layer(sigma, D11, b):
     \\sum_{j<i}(D_{11})_{ij}\\dot w_j\\bigr)$, which is linear in the tangents, so reverse
     mode is its transpose (a backward pass). Differentiating the forward pass op by op
     instead costs about 1.5x the time of the loss gradient at width 16
-    (`benchmarks/bench_ren.py`).
+    (`benchmarks/README.md`, "REN controllers").
     """
     return _sweep(D11, b, lambda i, a: sigma(a))
 
@@ -280,10 +272,8 @@ class RENController(eqx.Module):
         Explicit: $D_{11}$ is strictly lower triangular, so neuron $i$ needs only the
         neurons $j < i$, and one pass over the rows,
         $w_i = \\sigma\\bigl(b_i + \\sum_{j<i}(D_{11})_{ij}w_j\\bigr)$ with
-        $b = C_1x + D_{12}\\hat u$, solves it in $O(q^2)$ operations. Up to width
-        `UNROLL_MAX` the pass is unrolled (static slices, no loop), above it a
-        `lax.fori_loop` over the rows (compile time constant in the width). Its derivative
-        is the same pass on the tangents (`_explicit_layer`).
+        $b = C_1x + D_{12}\\hat u$, solves it in $O(q^2)$ operations (a `lax.fori_loop`
+        over the rows). Its derivative is the same pass on the tangents (`_explicit_layer`).
         """
         b = self.C1 @ x + self.D12 @ u
         D11 = jnp.tril(self.D11, -1)  # traced D11 is not checked in __check_init__
