@@ -18,11 +18,11 @@ random order-n̂ passive expert ("real.", length 10, which some controller fits 
    steps, compiled), loop-based solves against the LAPACK custom calls in the same run (the
    latter in a subprocess with a timeout, since it can hang).
 
-4. **Order 16, every trainer** (`--order16`): `fit_direct`, `fit_pgd`, `fit_ico`, `fit_gd`
-   and `fit_mlp`, each with all its defaults (8 initialisations), on the realisable order-16
-   problem ("real.", two seeds): the final loss of each returned controller over its own
-   initial loss (median and worst), the share certified, each trainer's median final
-   loss over the best trainer's, and the median loss on 200 fresh windows of the same
+4. **Order 16, every trainer** (`--order16`): `fit_direct`, `fit_pgd`, `fit_ico`, `fit_gd`,
+   `fit_mlp` and `fit_ren`, each with all its defaults (8 initialisations), on the
+   realisable order-16 problem ("real.", two seeds): the final loss of each returned
+   controller over its own initial loss (median and worst), the share certified, each
+   trainer's median final loss over the best trainer's, and the median loss on 200 fresh windows of the same
    expert over the zero controller's there ("held-out"). Then the static floor: the loss
    of the best static map of any kind, in expectation, over the same two references.
 
@@ -199,6 +199,7 @@ def order16(seeds=(0, 1)):
         "fit_ico": lambda k, w: dj.fit_ico(k, w, PASSIVE, throw=False),
         "fit_gd": lambda k, w: dj.fit_gd(k, w, throw=False),
         "fit_mlp": lambda k, w: dj.fit_mlp(k, w, throw=False),
+        "fit_ren": lambda k, w: dj.fit_ren(k, w, PASSIVE, throw=False),
     }
     print("| seed | trainer | final / initial, median | worst | certified | steps (median) "
           "| wall (s) | median final / best method's | held-out / zero controller's |")
@@ -250,6 +251,8 @@ def held_out(seed: int, n: int, controllers) -> float:
     if isinstance(controllers, dj.MLPController):
         pred = jax.vmap(lambda K: jax.vmap(jax.vmap(K.mlp))(w.y))(controllers)
         loss = jnp.mean(jnp.sum((pred - w.target) ** 2, axis=(-2, -1)), axis=-1)
+    elif isinstance(controllers, dj.RENController):
+        loss = jax.vmap(dj.ren_imitation_loss, in_axes=(0, None))(controllers, w)
     else:
         loss = jax.vmap(dj.imitation_loss, in_axes=(0, None))(controllers, w)
     zero = jnp.mean(jnp.sum(w.target**2, axis=(-2, -1)))
