@@ -185,6 +185,9 @@ def test_bad_input_names_the_argument():
         dj.fit_ren(jr.PRNGKey(0), w, SUPPLY_RATES["passive"], width=-1)
     with pytest.raises(ValueError, match="`S`|`qsr`"):
         dj.fit_ren(jr.PRNGKey(0), w, dj.QSR.passive(3), max_steps=1)
+    for bad in (0.5, "yes", None):  # the old `input_share` was a number
+        with pytest.raises(ValueError, match="`direct_input` must be True or False"):
+            dj.fit_ren(jr.PRNGKey(0), w, SUPPLY_RATES["passive"], direct_input=bad)
     with pytest.raises(ValueError, match="`multiplier`"):
         dj.certify_ren(K, SUPPLY_RATES["gain"], P=np.eye(2), multiplier=np.ones(2))
 
