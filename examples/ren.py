@@ -5,7 +5,8 @@ controller supply rate (-29.867, 3.556, 0.601), which closes the loop stably by 
 Theorem 1), this script trains on the same 25 initial segments
 
 - LTI controllers with `dj.fit_direct` (the paper's controller class), and
-- REN controllers with `dj.fit_ren` (an LTI system in feedback with `width` tanh neurons),
+- REN controllers with `dj.fit_ren` (an LTI system in feedback with `width` ReLU neurons,
+  the experiments' settings),
 
 checks every REN's certificate twice (the float64 check of the trainer's (P, Lambda), and
 a fresh SDP with `dj.certify_ren`), and tests all controllers in closed loop against the
