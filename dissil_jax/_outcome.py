@@ -45,8 +45,9 @@ class Outcome(eqx.Enumeration):
         "the exact float64 KYP check failed. In a projection or a certified trainer the "
         "solver's point failed it even after the safeguards (an enlarged margin in a "
         "projection, shorter steps in ICO; no controller is returned without a "
-        "certificate): pass a larger `eps`. In `certify` (which has no `eps`) the "
-        "storage P does not prove the certificate beyond round-off: see `Certificate.message`"
+        "certificate): pass a larger `eps` (`margin` in `fit_direct` and `fit_ren`). In "
+        "`certify` (which has no `eps`) the storage P does not prove the certificate beyond "
+        "round-off: see `Certificate.message`"
     )
     solved = "solved and verified by the exact float64 check"
     unchanged = "the target was already certified by P_ref and is returned as is"

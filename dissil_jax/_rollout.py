@@ -77,13 +77,14 @@ def rollout(
     return scan_outputs(K, x0, u_in)
 
 
-def scan_outputs(K, x0, u_in):
+def scan_outputs(K, x0, u_in, name: str = "dj.rollout"):
     """`rollout` for any controller module with `n_state`, a state matrix `A` and
     `K(x, u) -> (x_next, y)` (the LTI controller and the REN): the outputs of a `lax.scan`
-    from `x0`, or from rest when it is None."""
+    from `x0`, or from rest when it is None; `name` is the public function, for the
+    message that refuses a batch of controllers."""
     if K.batch_shape:
         raise ValueError(f"`K` must be a single controller (batch shape {K.batch_shape}); "
-                         "vmap the rollout over a batch, e.g. `jax.vmap(dj.rollout, (0, None, "
+                         f"vmap the rollout over a batch, e.g. `jax.vmap({name}, (0, None, "
                          "None))(K, x0, u_in)`.")
     u_in = jnp.asarray(u_in)
     if x0 is None:

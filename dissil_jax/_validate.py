@@ -19,6 +19,14 @@ def has_non_finite(x) -> bool:
     return not np.isfinite(np.asarray(x)).all()
 
 
+def check_flag(name: str, value) -> bool:
+    """`value` as a `bool` (Python or numpy), or a `ValueError` naming `name`: a string such
+    as `"no"` is truthy, so accepting anything would read it as True."""
+    if not isinstance(value, bool | np.bool_):
+        raise ValueError(f"`{name}` must be True or False, got {value!r}.")
+    return bool(value)
+
+
 def check_int(name: str, value, *, minimum: int = 1) -> int:
     """`value` as an `int`, or a `ValueError` naming `name`.
 

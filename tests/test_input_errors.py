@@ -346,3 +346,37 @@ def test_rollouts_of_a_batch_say_to_vmap():
     for i in range(3):  # the vmapped rollout against one controller at a time
         Ki = jax.tree.map(lambda a: a[i], Ks)
         np.testing.assert_array_equal(out[i], dj.rollout(Ki, None, u))
+
+
+@pytest.mark.parametrize("fit", ["fit_direct", "fit_pgd", "fit_gd", "fit_ico", "fit_ico_nc",
+                                 "fit_ren", "fit_mlp", "pgd_run", "direct_run"])
+def test_throw_must_be_a_bool(fit):
+    """`throw="no"` is truthy: it used to be read as True without a word."""
+    rng = np.random.default_rng(0)
+    w = dj.Windows(rng.standard_normal((6, 1)), rng.standard_normal((6, 2, 1)),
+                   rng.standard_normal((6, 2, 1)))
+    qsr = () if fit in ("fit_gd", "fit_mlp", "fit_ico_nc") else (dj.QSR.passive(1),)
+    with pytest.raises(ValueError, match="`throw` must be True or False"):
+        getattr(dj, fit)(jax.random.PRNGKey(0), w, *qsr, num_inits=2, max_steps=2, throw="no")
+
+
+@pytest.mark.parametrize("fit, alternative", [("fit_direct", "dj.direct_run"),
+                                              ("fit_pgd", "dj.pgd_run"), ("fit_ico", None),
+                                              ("fit_ren", None)])
+def test_certified_trainers_under_vmap_say_why_they_cannot_be_traced(fit, alternative):
+    """The certified trainers check every controller in float64 on the host; under
+    `jax.vmap` over keys they used to fail with JAX's TracerArrayConversionError. Plain GD
+    has no host check and still runs under vmap, equal to a loop over the keys."""
+    rng = np.random.default_rng(0)
+    w = dj.Windows(rng.standard_normal((6, 1)), rng.standard_normal((6, 2, 1)),
+                   rng.standard_normal((6, 2, 1)))
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    run = lambda k: getattr(dj, fit)(k, w, dj.QSR.passive(1), num_inits=2, max_steps=2,
+                                     throw=False).final_loss
+    with pytest.raises(ValueError, match=f"`{fit}` cannot run under `jax.jit` or `jax.vmap`"
+                       + (f".*`{alternative}`" if alternative else "")):
+        jax.vmap(run)(keys)
+    gd = lambda k: dj.fit_gd(k, w, num_inits=2, max_steps=3, throw=False).final_loss
+    batched = jax.vmap(gd)(keys)
+    for i in range(2):
+        np.testing.assert_allclose(batched[i], gd(keys[i]), rtol=1e-6)

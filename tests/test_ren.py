@@ -448,6 +448,45 @@ def test_batched_check_equals_a_loop_over_controllers():
         np.testing.assert_array_equal(one.margin, batch.margin[i])
 
 
+def test_controllers_in_traces_and_batches():
+    """A REN built inside `jit` from constant matrices (its D11 check used to call `bool` on
+    a tracer); a batch of RENs called or rolled out says to vmap, naming the REN's own
+    rollout."""
+    rng = np.random.default_rng(12)
+    K = _random_ren(rng, n=2, q=3)
+    u = jnp.ones((4, 2))
+    f = jax.jit(lambda A: dj.ren_rollout(eqx.tree_at(lambda k: k.A, K, A), None, u))
+    g = jax.jit(lambda A: dj.ren_rollout(dj.RENController(A, *K.matrices[1:],
+                                                          activation="tanh"), None, u))
+    np.testing.assert_array_equal(f(K.A), g(K.A))
+    Ks = jax.tree.map(lambda a: jnp.stack([a, a]), K)
+    with pytest.raises(ValueError, match=r"`K` must be a single controller.*vmap"):
+        Ks(jnp.zeros(2), jnp.zeros(2))
+    with pytest.raises(ValueError, match=r"jax.vmap\(dj.ren_rollout"):
+        dj.ren_rollout(Ks, None, u)
+
+
+def test_fit_ren_screens_a_callable_again_on_every_call():
+    """A callable that passed the screen once and was changed since is refused: it is
+    static in the compiled trainer, and the certificate assumes its slope restriction."""
+    class Act:
+        slope = 1.0
+
+        def __call__(self, v):
+            return self.slope * jnp.tanh(v)
+
+    act = Act()
+    w = expert_windows(2, 1, 1, 1, N=6)
+    dj.fit_ren(jr.PRNGKey(0), w, SISO["passive"], width=2, num_inits=2, max_steps=2,
+               activation=act)
+    act.slope = 3.0
+    with pytest.raises(ValueError, match="`activation` is not slope-restricted"):
+        dj.fit_ren(jr.PRNGKey(0), w, SISO["passive"], width=2, num_inits=2, max_steps=2,
+                   activation=act)
+    with pytest.raises(ValueError, match="`width` must be a non-negative integer"):
+        dj.fit_ren(jr.PRNGKey(0), w, SISO["passive"], width=None)
+
+
 def test_certify_ren_checks_the_given_pair():
     """A wrong `P` shape is reported as `P`'s, a wrong multiplier as the multiplier's, and
     a non-symmetric `P` is refused as by `dj.certify`."""

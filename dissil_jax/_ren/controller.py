@@ -17,7 +17,7 @@ from jaxtyping import Array, Float
 from .._controller import LTIController
 from .._data import Windows
 from .._rollout import check_window_sizes, scan_outputs
-from .._validate import has_non_finite
+from .._validate import check_int, has_non_finite
 
 #: The activations known to be slope-restricted in $[0, 1]$ with $\sigma(0) = 0$.
 ACTIVATIONS: dict[str, Callable] = {"relu": jax.nn.relu, "tanh": jnp.tanh}
@@ -30,14 +30,15 @@ _GRID = np.concatenate([-np.logspace(-3, 3, 61)[::-1], [0.0], np.logspace(-3, 3,
 _ULPS = 8.0
 
 
-def check_activation(activation) -> str | Callable:
+def check_activation(activation, rescreen: bool = False) -> str | Callable:
     """`activation` if it is a known name or passes the sector screen, else a ValueError.
 
     A name from `ACTIVATIONS` is accepted as is. A callable is evaluated in float64 on a
     logarithmic grid of 123 points in $[-10^3, 10^3]$: it must give $\\sigma(0) = 0$ and
     difference quotients of neighbouring points in $[0, 1]$. The screen can refuse but not
     prove: the certificate assumes the slope restriction everywhere, so a callable is the
-    caller's promise, checked where it is cheap to check.
+    caller's promise, checked where it is cheap to check. A callable that passed is
+    remembered (controllers built inside a trace cannot screen), unless `rescreen`.
     """
     if isinstance(activation, str):
         if activation not in ACTIVATIONS:
@@ -51,7 +52,7 @@ def check_activation(activation) -> str | Callable:
             "`activation` is an equinox Module holding JAX arrays. The activation is a static "
             "(compile-time) part of the controller, so its constants must be Python numbers: "
             "declare them `eqx.field(static=True)` with float values, or close over floats.")
-    if _passed(activation):
+    if _passed(activation) and not rescreen:
         return activation
     # Trainers build controllers inside their compiled, differentiated loops, where the
     # screen cannot run: `fit_ren` screens first, eagerly, and this remembers the result.
@@ -223,8 +224,8 @@ class RENController(eqx.Module):
         for name, M in mats.items():
             if has_non_finite(M):
                 raise ValueError(f"`{name}` contains NaN or inf.")
-        D11 = self.D11
-        if not isinstance(D11, jax.core.Tracer) and q and bool(jnp.any(jnp.triu(D11) != 0)):
+        D11 = self.D11  # read in numpy: under `jit` a jnp op on a constant is traced too
+        if not isinstance(D11, jax.core.Tracer) and q and np.any(np.triu(np.asarray(D11)) != 0):
             raise ValueError("`D11` must be strictly lower triangular (an explicit layer: "
                              "neuron i may only see neurons j < i); pass jnp.tril(D11, -1).")
 
@@ -275,6 +276,10 @@ class RENController(eqx.Module):
         $b = C_1x + D_{12}\\hat u$, solves it in $O(q^2)$ operations (a `lax.fori_loop`
         over the rows). Its derivative is the same pass on the tangents (`_explicit_layer`).
         """
+        if self.batch_shape:
+            raise ValueError(f"`K` must be a single controller (batch shape "
+                             f"{self.batch_shape}); vmap over the batch, e.g. "
+                             "`jax.vmap(lambda k: k(x, u))(K)`.")
         b = self.C1 @ x + self.D12 @ u
         D11 = jnp.tril(self.D11, -1)  # traced D11 is not checked in __check_init__
         return b if self.width == 0 else _explicit_layer(self.sigma, D11, b)
@@ -292,9 +297,7 @@ class RENController(eqx.Module):
         matrices zero, so it computes exactly what `K` computes)."""
         if not isinstance(K, LTIController):
             raise ValueError(f"`K` must be a `dj.LTIController`, got {type(K).__name__}.")
-        if isinstance(width, bool) or np.ndim(width) != 0 or int(width) != width or width < 0:
-            raise ValueError(f"`width` must be a non-negative integer, got {width!r}.")
-        q, batch = int(width), K.batch_shape
+        q, batch = check_int("width", width, minimum=0), K.batch_shape
         z = lambda r, c: jnp.zeros(batch + (r, c), K.A.dtype)
         n, p, m = K.n_state, K.n_in, K.n_out
         return cls(K.A, z(n, q), K.B, z(q, n), z(q, q), z(q, p), K.C, z(m, q), K.D,
@@ -321,7 +324,7 @@ def ren_rollout(K: RENController, x0: Float[Array, " n"] | None, u_in: Float[Arr
 
     **Returns:** the outputs $\\hat y_0..\\hat y_{h-1}$ (`[h, m]`).
     """
-    return scan_outputs(K, x0, u_in)
+    return scan_outputs(K, x0, u_in, "dj.ren_rollout")
 
 
 def ren_predict(K: RENController, windows: Windows) -> Float[Array, "N h m"]:

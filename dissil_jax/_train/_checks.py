@@ -11,7 +11,7 @@ import optax
 from .._data import Windows
 from .._sdp.indefinite import check_feasible
 from .._supply import QSR
-from .._validate import check_int
+from .._validate import check_flag, check_int
 
 
 def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
@@ -36,6 +36,22 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
             continue
         if not np.all(np.isfinite(v)) or np.any(np.asarray(v) < 0):
             raise ValueError(f"`{name}` must be finite and non-negative, got {v!r}.")
+
+
+def check_eager(fn: str, key, windows, throw, alternative: str = "") -> None:
+    """Refuse a traced `key` or traced windows (`fn` under `jax.jit` or `jax.vmap`) and a
+    `throw` that is not a bool, naming them: the certified trainers check every controller
+    in float64 on the host, which a trace cannot do."""
+    check_flag("throw", throw)
+    data = (key,) if not isinstance(windows, Windows) else (key, windows.y, windows.u,
+                                                             windows.x0)
+    if any(isinstance(a, jax.core.Tracer) for a in data):
+        raise ValueError(
+            f"`{fn}` cannot run under `jax.jit` or `jax.vmap` (its `key` or `windows` are "
+            "traced): it checks every controller's certificate in float64 on the host. It "
+            "trains `num_inits` initialisations in one vmapped run already"
+            + (f"; for sweeps inside JAX use `{alternative}`." if alternative else
+               "; call it once per key for more."))
 
 
 def check_key(key) -> None:

@@ -44,6 +44,7 @@ import numpy as np
 
 from .._data import Windows
 from .._supply import QSR
+from .._validate import check_flag
 
 #: The ratios r of output to input size that the trainers take as they are.
 BAND = (0.2, 5.0)
@@ -79,9 +80,7 @@ def output_factor(windows: Windows) -> float:
 def balance_factor(windows: Windows, balance) -> float:
     """`output_factor(windows)` when `balance` is True, 1 when False; a `ValueError`
     naming `balance` for anything else."""
-    if not isinstance(balance, (bool, np.bool_)):
-        raise ValueError(f"`balance` must be True or False, got {balance!r}.")
-    return output_factor(windows) if balance else 1.0
+    return output_factor(windows) if check_flag("balance", balance) else 1.0
 
 
 @overload

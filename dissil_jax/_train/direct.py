@@ -20,7 +20,15 @@ from .._rollout import imitation_loss
 from .._sdp import lmi as _lmi
 from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
-from ._checks import check_fit_args, check_keep, check_key, check_n_state, check_optimizer
+from .._validate import check_flag
+from ._checks import (
+    check_eager,
+    check_fit_args,
+    check_keep,
+    check_key,
+    check_n_state,
+    check_optimizer,
+)
 from ._iterate import Method, iterate, where
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balance_factor, unbalance
@@ -200,6 +208,7 @@ def direct_run(
     ```
     """
     check_key(key)
+    check_flag("throw", throw)
     optimizer, learning_rate, init_scale, n_state, margin = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, margin=margin)
@@ -330,6 +339,7 @@ def fit_direct(
     ```
     """
     check_key(key)
+    check_eager("fit_direct", key, windows, throw, "dj.direct_run")
     optimizer, learning_rate, init_scale, n_state, margin = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, margin=margin)

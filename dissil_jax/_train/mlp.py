@@ -16,7 +16,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from .. import _outcome
 from .._data import Windows
-from .._validate import check_int
+from .._validate import check_flag, check_int
 from ._checks import check_fit_args, check_key
 from ._iterate import RTOL_MLP, Method, iterate
 from .result import FitResult, fit_timed
@@ -222,6 +222,7 @@ def fit_mlp(
     `certified` are None.
     """
     check_key(key)
+    check_flag("throw", throw)
     check_fit_args(windows, None, num_inits, max_steps, learning_rate=learning_rate, atol=atol,
                    rtol=rtol)
     hidden = check_hidden(hidden)

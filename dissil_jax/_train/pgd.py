@@ -20,7 +20,15 @@ from .._rate_scale import rate_factor, scaled_rate
 from .._rollout import imitation_loss
 from .._sdp import lmi as _lmi
 from .._supply import QSR
-from ._checks import check_fit_args, check_keep, check_key, check_n_state, check_optimizer
+from .._validate import check_flag
+from ._checks import (
+    check_eager,
+    check_fit_args,
+    check_keep,
+    check_key,
+    check_n_state,
+    check_optimizer,
+)
 from ._init import init_controllers
 from ._iterate import RTOL, Method, iterate
 from ._scale import loss_scale, scaled
@@ -193,6 +201,7 @@ def pgd_run(
     ```
     """
     check_key(key)
+    check_flag("throw", throw)
     optimizer, learning_rate, decay, n_state = _options(
         windows, qsr, num_inits, max_steps, optimizer=default_rule(
             optimizer, learning_rate, decay, windows if qsr is None else None, n_state),
@@ -209,6 +218,10 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
          balance=True):
     """`pgd_run`, compiled once per static configuration, timed and certified as a batch."""
     check_key(key)
+    if qsr is None:  # plain GD has no host check: it runs under `jax.vmap` too
+        check_flag("throw", throw)
+    else:
+        check_eager("fit_pgd", key, windows, throw, "dj.pgd_run")
     optimizer, learning_rate, decay, n_state = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, eps=eps)

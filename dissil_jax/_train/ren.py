@@ -23,7 +23,8 @@ from .._ren.controller import check_activation, ren_imitation_loss
 from .._ren.map import init_ren_params, ren_map
 from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
-from ._checks import check_fit_args, check_keep, check_key, check_n_state
+from .._validate import check_flag, check_int
+from ._checks import check_eager, check_fit_args, check_keep, check_key, check_n_state
 from ._iterate import iterate
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balance_factor, unbalance
@@ -155,9 +156,9 @@ def fit_ren(
     """
     if qsr is None:
         raise ValueError("`qsr` is required: `fit_ren` learns certified controllers.")
-    activation = check_activation(activation)
-    if isinstance(width, bool) or np.ndim(width) != 0 or int(width) != width or width < 0:
-        raise ValueError(f"`width` must be a non-negative integer (neurons), got {width!r}.")
+    # screened again on every call: a callable that passed once may have been changed since
+    activation = check_activation(activation, rescreen=True)
+    width = check_int("width", width, minimum=0)
     if optimizer is not None and learning_rate is not None:
         raise ValueError("pass either `optimizer` or `learning_rate` (Adam's step), not both.")
     if optimizer is not None and not isinstance(optimizer, optax.GradientTransformation):
@@ -165,6 +166,7 @@ def fit_ren(
                          f"{type(optimizer).__name__}.")
     given = dict(learning_rate=learning_rate, init_scale=init_scale)
     check_key(key)
+    check_eager("fit_ren", key, windows, throw)
     check_fit_args(windows, qsr, num_inits, max_steps, atol=atol, rtol=rtol,
                    **{k: v for k, v in given.items() if v is not None})
     if is_indefinite(qsr):
@@ -173,8 +175,7 @@ def fit_ren(
                          "controller with `dj.fit_pgd` / `dj.fit_ico`.")
     n_state = check_n_state(windows, n_state)
     margin = check_margin(margin)
-    if not isinstance(direct_input, bool | np.bool_):
-        raise ValueError(f"`direct_input` must be True or False, got {direct_input!r}.")
+    direct_input = check_flag("direct_input", direct_input)
     lr0, scale0 = default_hyperparameters(n_state, windows.n_in)
     learning_rate = lr0 if learning_rate is None else learning_rate
     init_scale = scale0 if init_scale is None else init_scale

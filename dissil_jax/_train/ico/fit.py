@@ -16,7 +16,7 @@ from ..._projection.project import project
 from ..._rate_scale import rate_factor, scaled_rate
 from ..._sdp import lmi as _lmi, sdp as _sdp
 from ..._supply import QSR
-from .._checks import check_fit_args, check_key
+from .._checks import check_eager, check_fit_args, check_key
 from .._init import INIT_SCALE, init_controllers
 from .._iterate import RTOL
 from .._scale import loss_scale, scaled
@@ -130,6 +130,7 @@ def _not_started(pb: ICOProblem, theta, P, outcome, max_steps):
 def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps, prox,
          window_cone, callback, throw):
     check_key(key)
+    check_eager("fit_ico" if qsr is not None else "fit_ico_nc", key, windows, throw)
     _check_args(windows, qsr, num_inits, max_steps, atol, rtol, init_scale)
     k = 1.0  # a rate far from unit size is solved divided by k, P multiplied back (exact)
     if qsr is not None:
