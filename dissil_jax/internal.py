@@ -29,7 +29,15 @@ from ._projection.project import solver_stats
 from ._ren import certify as ren_certify, controller as ren_controller, map as ren_map
 from ._sdp import lmi, sdp
 from ._sdp.indefinite import is_indefinite, static_point
-from ._sdp.lmi import ConvexifiedLMI, certified, kyp_certified, kyp_margin, kyp_scale, smat
+from ._sdp.lmi import (
+    ConvexifiedLMI,
+    certified,
+    kyp_bound_holds,
+    kyp_certified,
+    kyp_margin,
+    kyp_scale,
+    smat,
+)
 from ._sdp.sdp import single_threaded_blas
 from ._train import direct, mlp, pgd, ren as ren_train
 from ._train._checks import check_n_state
@@ -59,7 +67,7 @@ __all__ = [
     "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct", "gd_learning_rate",
     "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "ico_step", "init_controllers", "is_indefinite",
     "iterate",
-    "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",
+    "kyp_bound_holds", "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",
     "optimizer_metric", "outcome", "output_factor", "output_ratio", "pgd", "projection", "projection_admm", "projection_fo",
     "ren_certify",
     "ren_controller",

@@ -11,6 +11,7 @@ import pytest
 from helpers import dissipation_matrix, dissipation_ok, min_hermitian_part
 
 import dissil_jax as dj
+import dissil_jax.internal as dji
 from dissil_jax.internal import certify_fast, certify_sdp
 
 pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
@@ -150,6 +151,44 @@ def test_tol_is_the_relative_round_off_allowance():
     for tol in (-1e-3, np.nan, np.inf):
         with pytest.raises(ValueError, match="`rtol`"):
             dj.certify(K, qsr, rtol=tol)
+
+
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+def test_unbalanced_realisations_are_decided_by_componentwise_bounds():
+    """A certified controller in badly scaled state coordinates, x = T z with cond(T) = 1e4:
+    the same system and the same inequality (KYP(T'PT) is a congruence of KYP(P)), but the
+    terms' size swamps the margin of the relative test. The componentwise round-off bound
+    proves it; a controller that is not dissipative, in the same coordinates, stays refused
+    by both."""
+    rng = np.random.default_rng(3)
+    qsr = dj.QSR.passive(2)
+    C = rng.standard_normal((2, 3))
+    # G(z) = D + C C'/(z - 0.5): passive when D >= C C'/1.5 (z = -1); twice that, plus I
+    K = dj.LTIController(0.5 * np.eye(3), C.T, C, 2 * C @ C.T / 1.5 + np.eye(2))
+    P = dj.certify(K, qsr).P
+    U, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    V, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    T = U @ np.diag([1.0, 1e-2, 1e-4]) @ V
+    Ti = np.linalg.inv(T)
+
+    def transformed(K):
+        return dj.LTIController(Ti @ np.asarray(K.A) @ T, Ti @ np.asarray(K.B),
+                                np.asarray(K.C) @ T, np.asarray(K.D))
+
+    Kt, Pt = transformed(K), T.T @ P @ T
+    assert dj.certify(K, qsr, P=P).holds
+    A, B, C, D = (np.asarray(M) for M in (Kt.A, Kt.B, Kt.C, Kt.D))
+    # the premise: the relative test alone refuses it
+    assert dji.kyp_margin(A, B, C, D, qsr, Pt) < dji.lmi.VERIFY_RTOL * dji.kyp_scale(A, B, C, D,
+                                                                                 qsr, Pt)
+    assert dj.certify(Kt, qsr, P=Pt).holds
+    assert dji.kyp_certified(A, B, C, D, qsr, Pt)
+    assert not dj.certify(Kt, qsr, P=Pt, rtol=1e-9).holds  # a larger rtol: relative only
+    # not dissipative: D with a negative eigenvalue (Phi(D) = D + D' is not > 0)
+    bad = transformed(dj.LTIController(K.A, K.B, K.C, np.diag([3.0, -0.01])))
+    assert not dj.certify(bad, qsr, P=Pt).holds
+    assert not dji.kyp_bound_holds(*(np.asarray(M) for M in (bad.A, bad.B, bad.C, bad.D)),
+                                   qsr.Q, qsr.S, qsr.R, Pt)
 
 
 def test_given_P_is_checked_not_solved():

@@ -15,6 +15,7 @@ import pytest
 from helpers import expert_windows, supply_from_definition
 
 import dissil_jax as dj
+import dissil_jax.internal as dji
 from dissil_jax.internal import (
     MapDescent,
     direct_map as dm,
@@ -485,6 +486,37 @@ def test_fit_ren_screens_a_callable_again_on_every_call():
                    activation=act)
     with pytest.raises(ValueError, match="`width` must be a non-negative integer"):
         dj.fit_ren(jr.PRNGKey(0), w, SISO["passive"], width=None)
+
+
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+def test_unbalanced_ren_realisations_are_decided_by_componentwise_bounds():
+    """A certified REN with its states in very different units (x = T z, T = diag(1, 1e-3,
+    1e-6): the same system and a congruent inequality): the relative tests of both forms
+    refuse it, the componentwise round-off bound proves it, and a REN pushed beyond its
+    gain bound in the same units stays refused (found by a new-user audit: `fit_ren` raised
+    on a trained controller whose storage had eigenvalues 44 and 5e7)."""
+    qsr = SUPPLY_RATES["gain"]
+    theta = _random_params(jr.PRNGKey(13), 1, 3, 4, 2, 2, 0.3)
+    K, P, lam = jax.tree.map(lambda a: np.asarray(a[0]),
+                             jax.jit(jax.vmap(lambda t: rm.ren_map(t, qsr, 4)))(theta))
+    T = np.diag([1.0, 1e-3, 1e-6])
+    Ti = np.diag([1.0, 1e3, 1e6])
+
+    def transformed(K):
+        return eqx.tree_at(lambda k: (k.A, k.B1, k.B2, k.C1, k.C2), K,
+                           (Ti @ K.A @ T, Ti @ K.B1, Ti @ K.B2, K.C1 @ T, K.C2 @ T))
+
+    Kt, Pt = transformed(K), T.T @ P @ T
+    G = ren_certify.augmented_lti(Kt)
+    mats = (G.A, G.B, G.C, G.D)
+    for form, q in ((mats, ren_certify.augmented_qsr(qsr, lam)),
+                    ((lambda u: (u.A, u.B, u.C, u.D))(ren_certify._unit_multiplier(G, lam)),
+                     ren_certify.augmented_qsr(qsr, np.ones(4)))):
+        # the premise: neither relative test proves it
+        assert dji.kyp_margin(*form, q, Pt) < dji.lmi.VERIFY_RTOL * dji.kyp_scale(*form, q, Pt)
+    assert dj.certify_ren(Kt, qsr, P=Pt, multiplier=lam).holds
+    bad = transformed(eqx.tree_at(lambda k: k.D22, K, K.D22 + 2.0))  # beyond the gain 1.5
+    assert not dj.certify_ren(bad, qsr, P=Pt, multiplier=lam).holds
 
 
 def test_certify_ren_checks_the_given_pair():

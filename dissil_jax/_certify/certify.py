@@ -8,7 +8,7 @@ import numpy as np
 from .. import _outcome
 from .._controller import LTIController
 from .._outcome import Outcome
-from .._sdp.lmi import VERIFY_RTOL, kyp_margin, kyp_matrix, kyp_scale
+from .._sdp.lmi import VERIFY_RTOL, kyp_bound_holds, kyp_margin, kyp_matrix, kyp_scale
 from .._supply import QSR
 from .._validate import check_tolerance
 from . import fast as _certify_fast, sdp as _certify_sdp
@@ -129,7 +129,10 @@ def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hi
     $\\mathrm{KYP}(P)\\prec0$ beyond round-off: the re-checked margin
     $\\min(-\\lambda_{\\max}(\\mathrm{KYP}(P)), \\lambda_{\\min}(P))$ must exceed `rtol`
     times a bound on the size of the KYP terms, so nearly lossless systems with margins of
-    order $10^{-7}$ are still decided correctly. The storage is found by, in order, until
+    order $10^{-7}$ are still decided correctly; at the default `rtol`, a realisation far
+    from balanced (a storage with eigenvalues $10^1$ and $10^7$, say), whose terms' size
+    swamps its margin, is also proved by componentwise round-off bounds
+    (`internal.kyp_bound_holds`). The storage is found by, in order, until
     one proves it:
 
     1. `hint`, if given (`source` `"hint"`);
@@ -176,7 +179,8 @@ def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hi
       same for every member) or `[*K.batch_shape, n, n]`, symmetric up to round-off
       (a relative asymmetry above 1e-5 raises a ValueError); `source` is `"given"`.
     - `rtol`: relative round-off allowance of the final eigenvalue check (called `tol`
-      before).
+      before). Above the default it asks for more margin than round-off, and only the
+      relative test decides.
     - `hint`: optional storage to try first, shaped like `P`.
     - `max_margin`: skip steps 1-3 and return the maximum-margin storage.
 
@@ -271,6 +275,10 @@ def _verdict(A, B, C, D, qsr, P, tol, status) -> Certificate:
     """The eigenvalue check, vectorised over leading batch axes (scalars when unbatched)."""
     margin = _margin(A, B, C, D, qsr, P)
     holds = margin > tol * kyp_scale(A, B, C, D, qsr, P)
+    if tol <= VERIFY_RTOL and not np.all(holds):
+        # an unbalanced realisation: componentwise round-off bounds (a larger `rtol` asks
+        # for more margin than round-off, which only the relative test measures)
+        holds = holds | kyp_bound_holds(A, B, C, D, qsr.Q, qsr.S, qsr.R, P)
     codes = np.where(holds, _outcome.code("solved"), _outcome.code("not_certified"))
     if np.ndim(margin) == 0:
         return Certificate(_outcome.item(codes), P, float(margin), status)

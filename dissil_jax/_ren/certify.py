@@ -14,6 +14,7 @@ from .._rate_scale import RATE_BAND, rate_factor
 from .._sdp import sdp as _sdp
 from .._sdp.lmi import (
     VERIFY_RTOL,
+    kyp_bound_holds,
     kyp_margin,
     kyp_matrix,
     kyp_matrix_of,
@@ -190,7 +191,11 @@ def _margin_and_holds(G: LTIController, qsr: QSR, P, lam, tol):
     margin = np.minimum(np.minimum(-np.linalg.eigvalsh(M)[..., -1],
                                    np.linalg.eigvalsh(P)[..., 0]), lam.min(-1, initial=np.inf))
     holds = finite & (margin > tol * kyp_scale_of(A, B, C, D, Q, S, R, P, factor))
-    retry = finite & ~holds & (lam.shape[-1] > 0) & np.all(lam > 0, axis=-1)
+    positive = (lam.shape[-1] == 0) | np.all(lam > 0, axis=-1)
+    if tol <= VERIFY_RTOL and not np.all(holds | ~finite | ~positive):
+        # componentwise round-off bounds (as `certify`: not when `tol` asks for more)
+        holds |= finite & positive & kyp_bound_holds(A, B, C, D, Q, S, R, P)
+    retry = finite & ~holds & (lam.shape[-1] > 0) & positive
     if np.any(retry):
         unit = _unit_multiplier(LTIController(A, B, C, D), np.where(retry[..., None], lam, 1.0))
         umats = (unit.A, unit.B, unit.C, unit.D)
