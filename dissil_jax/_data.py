@@ -19,6 +19,12 @@ def _as_real_array(name: str, a) -> Array:
     except (TypeError, ValueError):
         raise ValueError(f"`{name}` must be a real floating-point array, got {a!r}.") from None
     if jnp.issubdtype(arr.dtype, jnp.floating):
+        if jnp.finfo(arr.dtype).bits < 32:
+            # the certificates and the SDPs need float32 at least (bfloat16 is not even a
+            # numpy float, and float16's 1e-3 round-off swamps every LMI margin)
+            raise ValueError(f"`{name}` has dtype {arr.dtype}; pass float32 or float64 (e.g. "
+                             f"`{name}.astype(np.float32)`): half precision is too coarse "
+                             "for the certificates.")
         return arr
     if jnp.issubdtype(arr.dtype, jnp.integer) and arr.dtype != jnp.bool_:
         out = arr.astype(jnp.result_type(float))
@@ -83,7 +89,8 @@ class Windows(eqx.Module):
     - `y`: `[N, h, p]` plant outputs (controller inputs).
     - `u`: `[N, h, m]` expert plant inputs.
 
-    **Dtypes.** Floating arrays keep their dtype. Integer arrays (e.g. logs of a quantised
+    **Dtypes.** Floating arrays keep their dtype; half precision (float16, bfloat16) is
+    refused, being too coarse for the certificates. Integer arrays (e.g. logs of a quantised
     sensor, or `[[[1]], [[2]]]` typed by hand) are converted to JAX's default float
     (float64 with `jax_enable_x64`, else float32), as `jnp.mean` or `jax.grad` would
     promote them anyway: the controllers, the loss and its gradient are real-valued, and

@@ -299,7 +299,12 @@ def closed_loop_certificate(plant_qsr: QSR, controller_qsr: QSR) -> ClosedLoopCe
     \\ast & R_1 + \\alpha Q_2 \\end{bmatrix} \\prec 0.$$
 
     $\\lambda_{\\max}(M(\\alpha))$ is convex in $\\alpha$, so it is minimised by a
-    log-spaced scan over $\\alpha\\in[10^{-8}, 10^{8}]$ followed by Brent refinement.
+    log-spaced scan over $\\alpha\\in\\alpha_0[10^{-8}, 10^{8}]$ followed by Brent
+    refinement, where $\\alpha_0$ is the ratio of the two rates' sizes (largest entries),
+    the scale at which their terms in $M(\\alpha)$ compare: a rate and its multiples admit
+    the same systems, so the answer must not depend on their scales (with the scan fixed at
+    $[10^{-8}, 10^8]$, a plant rate of size 1 against a controller rate of size $10^{11}$
+    found no multiplier where $\\alpha = 10^{-11}$ works).
 
     **Arguments:**
 
@@ -312,7 +317,10 @@ def closed_loop_certificate(plant_qsr: QSR, controller_qsr: QSR) -> ClosedLoopCe
     """
     _check_interconnection(plant_qsr, controller_qsr)
     f = lambda la: np.linalg.eigvalsh(_theorem1_matrix(plant_qsr, controller_qsr, 10**la))[-1]
-    grid = np.linspace(-8, 8, 321)
+    size = lambda q: max(float(np.abs(M).max(initial=0.0)) for M in (q.Q, q.S, q.R))
+    s1, s2 = size(plant_qsr), size(controller_qsr)
+    centre = np.log10(s1 / s2) if s1 > 0 and s2 > 0 else 0.0
+    grid = centre + np.linspace(-8, 8, 321)
     vals = np.array([f(g) for g in grid])
     i = int(np.argmin(vals))
     lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]

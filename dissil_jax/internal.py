@@ -19,6 +19,7 @@ from . import (
     _rollout as rollout,
 )
 from ._certify import fast as certify_fast, sdp as certify_sdp
+from ._certify.certify import state_scale as certify_state_scale
 from ._frequency import vanishing_supply
 from ._projection import (
     admm as projection_admm,
@@ -63,7 +64,7 @@ from .experiments._paper import FIGURES, TABLES
 
 __all__ = [
     "ConvexifiedLMI", "FIGURES", "ICOProblem", "ICOSolver", "INIT_SCALE", "Iterate",
-    "METRIC_FLOOR", "MapDescent", "Method", "OUTPUT_BAND", "TABLES", "certified", "certify_fast", "certify_sdp",
+    "METRIC_FLOOR", "MapDescent", "Method", "OUTPUT_BAND", "TABLES", "certified", "certify_fast", "certify_sdp", "certify_state_scale",
     "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct", "gd_learning_rate",
     "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "ico_step", "init_controllers", "is_indefinite",
     "iterate",

@@ -191,6 +191,34 @@ def test_unbalanced_realisations_are_decided_by_componentwise_bounds():
                                    qsr.Q, qsr.S, qsr.R, Pt)
 
 
+def test_the_storage_search_balances_the_states():
+    """States in very different units (a similarity by diag(s, 1, 1/s), or B = 1e6 with
+    C = 1e-6): the Riccati storages and the SDP used to fail (`insufficient_progress`,
+    `numerical_error`); the search runs in balanced units and maps P back. Checked with
+    the independent dissipation check; a non-dissipative controller in the same units stays
+    refused."""
+    rng = np.random.default_rng(3)
+    qsr = dj.QSR.passive(2)
+    C = rng.standard_normal((2, 3))
+    A = 0.5 * np.eye(3) + 0.1 * rng.standard_normal((3, 3))
+    for D, dissipative in ((2 * C @ C.T / 1.5 + np.eye(2), True), (np.diag([3.0, -0.01]),
+                                                                   False)):
+        for s in (1e-3, 1e-6):
+            T, Ti = np.diag([s, 1.0, 1 / s]), np.diag([1 / s, 1.0, s])
+            K = dj.LTIController(Ti @ A @ T, Ti @ C.T, C @ T, D)
+            cert = dj.certify(K, qsr)
+            assert cert.holds is dissipative
+            if dissipative:  # checked in the balanced units z = T x: storage T^-1 P T^-1
+                assert dissipation_ok(dj.LTIController(A, C.T, C, D), qsr, Ti @ cert.P @ Ti)
+    K1 = dj.LTIController([[0.5]], [[1e6]], [[1e-6]], [[1.0]])
+    cert = dj.certify(K1, dj.QSR.passive(1))
+    assert cert.holds and dissipation_ok(dj.LTIController([[0.5]], [[1.0]], [[1.0]], [[1.0]]),
+                                         dj.QSR.passive(1), 1e12 * cert.P)
+    # a realisation already in balance is left as it is (the usual case: nothing changes)
+    np.testing.assert_array_equal(dji.certify_state_scale(np.diag([0.5, 0.5]), np.ones((2, 1)),
+                                                          np.ones((1, 2))), [1.0, 1.0])
+
+
 def test_given_P_is_checked_not_solved():
     K = _first_order(0.5, 1.0, 1.0, 1.0)
     cert = dj.certify(K, dj.QSR.passive(1))

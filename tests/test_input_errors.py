@@ -262,9 +262,11 @@ def test_an_eps_beyond_the_rates_room_is_refused_naming_eps():
     K = _lti(0.5, 1.0, 1.0, 0.1)
     y = jnp.linspace(-1.0, 1.0, 6).reshape(3, 2, 1)
     W = dj.Windows(y[:, 0], y, -1e-5 * y)
+    # (balanced, the trainers would solve the outputs times 2^17, where the bound has room:
+    # `test_fit_pgd_judges_eps_on_the_balanced_rate`)
     for call in (lambda: dj.project(K, qsr),
-                 lambda: dj.fit_pgd(jr_key(), W, qsr, num_inits=1, max_steps=1),
-                 lambda: dj.fit_ico(jr_key(), W, qsr, num_inits=1, max_steps=1)):
+                 lambda: dj.fit_pgd(jr_key(), W, qsr, num_inits=1, max_steps=1, balance=False),
+                 lambda: dj.fit_ico(jr_key(), W, qsr, num_inits=1, max_steps=1, balance=False)):
         with pytest.raises(ValueError, match=r"`eps` = 1e-06 is not below the supply rate's room"):
             call()
     K_proj, P = dj.project(K, qsr, eps=1e-12)
@@ -380,3 +382,55 @@ def test_certified_trainers_under_vmap_say_why_they_cannot_be_traced(fit, altern
     batched = jax.vmap(gd)(keys)
     for i in range(2):
         np.testing.assert_allclose(batched[i], gd(keys[i]), rtol=1e-6)
+
+
+def test_decay_of_the_papers_rule_must_decay():
+    rng = np.random.default_rng(0)
+    w = dj.Windows(rng.standard_normal((6, 1)), rng.standard_normal((6, 2, 1)),
+                   rng.standard_normal((6, 2, 1)))
+    for bad in (1.5, 0.0, -0.5):  # a negative one fails the earlier non-negativity check
+        with pytest.raises(ValueError, match="`decay` must be"):
+            dj.fit_pgd(jax.random.PRNGKey(0), w, dj.QSR.passive(1), optimizer=None,
+                       learning_rate=1.0, decay=bad, num_inits=2, max_steps=2)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
+def test_half_precision_windows_are_refused(dtype):
+    """float16 ended in failed projections or non-finite losses, bfloat16 in "not
+    inexact" errors from numpy, far from the cause."""
+    y = jnp.ones((4, 2, 1), dtype)
+    with pytest.raises(ValueError, match="`y` has dtype .*float32 or float64"):
+        dj.Windows(None, y, jnp.ones((4, 2, 1), jnp.float32))
+
+
+def test_project_shares_one_reference_storage_across_a_batch():
+    """`P_ref` of shape [n, n] with a batch of targets (as `certify` takes a shared `P`)
+    used to fail inside vmap; each member is projected as it would be alone."""
+    Ks = jax.vmap(lambda k: dj.LTIController.random(k, 3, 1, 1))(
+        jax.random.split(jax.random.PRNGKey(0), 3))
+    qsr = dj.QSR.passive(1)
+    P = 2.0 * jnp.eye(3)
+    out = dj.project(Ks, qsr, P_ref=P, throw=False)
+    for i in range(3):
+        one = dj.project(jax.tree.map(lambda a: a[i], Ks), qsr, P_ref=P, throw=False)
+        np.testing.assert_array_equal(one.controller.D, out.controller.D[i])
+        np.testing.assert_array_equal(one.P, out.P[i])
+    with pytest.raises(ValueError, match=r"`P_ref` must be 3x3 \(shared by the batch\) or "
+                                         r"\(3, 3, 3\)"):
+        dj.project(Ks, qsr, P_ref=jnp.eye(2))
+
+
+def test_fit_pgd_judges_eps_on_the_balanced_rate():
+    """Outputs 1000x smaller than the inputs with the cone [0.5e-3, 1.5e-3]: in the user's
+    units the cone's room (2.5e-7) is below the default eps, but the trainer solves the
+    balanced problem (outputs times 1024, the cone [0.51, 1.54]), where it is not; the
+    same problem in balanced units always trained."""
+    rng = np.random.default_rng(0)
+    y = rng.standard_normal((8, 3, 1))
+    w = dj.Windows(None, y, -1e-3 * y)
+    res = dj.fit_pgd(jax.random.PRNGKey(0), w, dj.QSR.conic(0.5e-3, 1.5e-3, dim=1), n_state=1,
+                     num_inits=2, max_steps=5)
+    assert bool(np.all(res.certified))
+    with pytest.raises(ValueError, match="`eps`"):  # without balancing the room is too small
+        dj.fit_pgd(jax.random.PRNGKey(0), w, dj.QSR.conic(0.5e-3, 1.5e-3, dim=1), n_state=1,
+                   num_inits=2, max_steps=5, balance=False)

@@ -253,3 +253,20 @@ def test_qsr_as_static_argument_of_jit_and_filter_jit():
     # and through jax.vmap (nothing to map over in the supply rate)
     out = jax.vmap(f, in_axes=(0, None))(jnp.ones((4, 3, 2)), dj.QSR.conic(-1.0, 2.0, dim=2))
     np.testing.assert_allclose(out, np.broadcast_to(ref, (4, 3, 2)))
+
+
+def test_closed_loop_certificate_does_not_depend_on_the_rates_scales():
+    """Multiplying a rate by kappa > 0 admits the same systems, so the verdict must not
+    change: the multiplier scan is centred on the ratio of the rates' sizes (with a fixed
+    scan over [1e-8, 1e8], a controller rate of size 1e11 from `stabilising_qsr`, built to
+    satisfy the theorem at alpha = 1e-11, got no multiplier)."""
+    plant = dj.QSR(-1.0, 3.556, 29.333)
+    pairs = [(plant, dj.QSR(-29.867, 3.556, 0.601), True),
+             (dj.QSR.bounded_gain(2.0, n_in=1, n_out=1),
+              dj.QSR.bounded_gain(0.6, n_in=1, n_out=1), False)]
+    gain = dj.QSR.bounded_gain(1e-5, n_in=1, n_out=1)
+    pairs.append((gain, dj.stabilising_qsr(gain, alpha=1e-11, margins=(0.5, 1e-11)), True))
+    for p, c, expected in pairs:
+        for kappa in (1e-12, 1.0, 1e12):
+            scaled = dj.QSR(kappa * c.Q, kappa * c.S, kappa * c.R)
+            assert dj.closed_loop_certificate(p, scaled).holds is expected, (kappa, expected)

@@ -150,7 +150,10 @@ def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hi
     (`source` is the solver's: `"optimal"`, `"optimal_inaccurate"`, `"infeasible"`, ...).
     Margins are absolute; $t\\le1$ normalises the certificate (the LMI is not homogeneous in
     $P$ because of the fixed $Q,S,R$). Steps 1-3 skip the SDP but return a storage with a
-    smaller margin; `max_margin=True` always solves the SDP.
+    smaller margin; `max_margin=True` always solves the SDP. Steps 3 and 4 run on the
+    realisation with its states rescaled by powers of two (`state_scale`: each state's
+    effect and what drives it of one size) and map the storage back exactly; the verdict is
+    always on the controller as given.
 
     Before step 4 (its stability part before step 1), a cheap disproof is tried: every certified controller has
     $\\Phi(z) = G^HQG + G^HS + S^\\top G + R\\succ0$ on the unit circle and at $z=\\infty$
@@ -209,15 +212,51 @@ def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hi
                        stack("margin", np.float64), stack("source", str))
 
 
-def _candidates(A, B, C, D, qsr, hint):
-    """Cheap storages to check before the SDP, with their `status` (`fast.py`)."""
+def state_scale(A, B, C, sweeps: int = 30) -> np.ndarray:
+    """Powers of two $t$ that balance the state: in $x = \\operatorname{diag}(t)z$ each
+    state's effect (its column of $A$ off the diagonal and of $C$) and what drives it (its
+    row of $A$ and of $B$) have about one size (damped sweeps, as Osborne's balancing).
+
+    A realisation whose states are in very different units (a similarity by
+    $\\operatorname{diag}(10^{-3}, 1, 10^3)$, or $B = 10^6$, $C = 10^{-6}$) left the Riccati
+    storages and the SDP without a certificate (`insufficient_progress`,
+    `numerical_error`); the storage search runs in balanced units and maps the storage back
+    (powers of two: exactly).
+    """
+    d = np.ones(A.shape[0])
+    for _ in range(sweeps):
+        Ab = A * d[None, :] / d[:, None]
+        off = Ab - np.diag(np.diag(Ab))
+        col = np.sqrt((off**2).sum(0) + ((C * d[None, :]) ** 2).sum(0))
+        row = np.sqrt((off**2).sum(1) + ((B / d[:, None]) ** 2).sum(1))
+        ok = (col > 0) & (row > 0) & np.isfinite(col) & np.isfinite(row)
+        step = 2.0 ** np.round(np.log2(np.where(ok, row / np.where(ok, col, 1.0), 1.0)) / 2)
+        if np.all(step == 1.0):
+            break
+        d = d * step
+    return d
+
+
+def _candidates(A, B, C, D, qsr, hint, t):
+    """Cheap storages to check before the SDP, with their `status` (`fast.py`); the
+    Riccati storages are found in the balanced units `t` (`state_scale`)."""
     if hint is not None:
         yield hint, "hint"
     P = _certify_fast.cached(A, B, C, D, qsr)
     if P is not None:
         yield P, "cached"
-    for P in _certify_fast.riccati(A, B, C, D, qsr):
-        yield P, "riccati"
+    for P in _certify_fast.riccati(*_balanced(A, B, C, t), D, qsr):
+        yield _unbalanced(P, t), "riccati"
+
+
+def _balanced(A, B, C, t):
+    """The realisation in the states $z$ with $x = \\operatorname{diag}(t)z$."""
+    return A * t[None, :] / t[:, None], B / t[:, None], C * t[None, :]
+
+
+def _unbalanced(P, t):
+    """A storage of the balanced realisation in the original states."""
+    return P / (t[:, None] * t[None, :])
 
 
 def _search(A, B, C, D, qsr: QSR, tol, hint, max_margin) -> Certificate:
@@ -225,23 +264,26 @@ def _search(A, B, C, D, qsr: QSR, tol, hint, max_margin) -> Certificate:
     n = A.shape[0]
     if n == 0:
         return _static(A, B, C, D, qsr, tol)
+    t = state_scale(A, B, C)
     reason = _certify_fast.unstable(A, qsr)
     if not max_margin and reason is None:
-        for P, status in _candidates(A, B, C, D, qsr, hint):
+        for P, status in _candidates(A, B, C, D, qsr, hint, t):
             cert = _verdict(A, B, C, D, qsr, P, tol, status)
             if cert.holds:
                 return cert
     reason = reason or _certify_fast.disproof(A, B, C, D, qsr)
     if reason is not None:
         return Certificate(Outcome.infeasible, np.full((n, n), np.nan), -np.inf, reason)
-    return _solve(A, B, C, D, qsr, tol)
+    return _solve(A, B, C, D, qsr, tol, t)
 
 
-def _solve(A, B, C, D, qsr: QSR, tol) -> Certificate:
-    """The KYP SDP for one (unbatched) controller, then the eigenvalue verdict."""
+def _solve(A, B, C, D, qsr: QSR, tol, t) -> Certificate:
+    """The KYP SDP for one (unbatched) controller, solved in the balanced units `t`, then
+    the eigenvalue verdict in the controller's own."""
     n = A.shape[0]
     try:
-        P, status = _certify_sdp.solve(A, B, C, D, qsr)
+        P, status = _certify_sdp.solve(*_balanced(A, B, C, t), D, qsr)
+        P = None if P is None else _unbalanced(P, t)
     except Exception as e:  # pragma: no cover - depends on solver internals
         return Certificate(Outcome.solver_failed, np.full((n, n), np.nan), -np.inf,
                            f"solver error: {e}")

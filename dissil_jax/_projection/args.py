@@ -95,11 +95,15 @@ def check_options(K: LTIController, P_ref, active, eps, reg, refine, metric=None
     if jnp.shape(active) not in ((), K.batch_shape):
         raise ValueError(f"`active` must be a bool scalar or have the batch shape "
                          f"{K.batch_shape} of `K`, got shape {jnp.shape(active)}.")
-    if P_ref is None or isinstance(P_ref, jax.core.Tracer):
+    if P_ref is None:
+        return
+    n, shape = K.n_state, jnp.shape(P_ref)
+    if shape not in ((n, n), K.batch_shape + (n, n)):
+        raise ValueError(f"`P_ref` must be {n}x{n} (shared by the batch) or "
+                         f"{K.batch_shape + (n, n)} (one per controller), got {shape}.")
+    if isinstance(P_ref, jax.core.Tracer):
         return
     P = np.asarray(P_ref, np.float64)
-    if P.shape[-2:] != (K.n_state, K.n_state):
-        return  # reported with the expected shape below
     sym = (P + np.swapaxes(P, -1, -2)) / 2
     if not np.all(np.isfinite(P)):
         raise ValueError("`P_ref` contains NaN or inf.")

@@ -344,7 +344,8 @@ def project(
     - `K`: the target controller (may carry leading batch axes).
     - `qsr`: the supply rate (any symmetric $Q$; one with no strictly dissipative static
       controller, hence none at all, raises a `ValueError`).
-    - `P_ref`: reference storage matrix $\\tilde P\\succ0$ (`[n, n]`, batched like `K`).
+    - `P_ref`: reference storage matrix $\\tilde P\\succ0$: `[n, n]`, shared by a batch, or
+      batched like `K`.
     - `throw`: raise when a projection fails (`ValueError` eagerly, a `JaxRuntimeError`
       under `jax.jit`, an `EquinoxRuntimeError` under `eqx.filter_jit`). With `throw=False` nothing is raised and
       `result` says what happened; a failed entry then holds its *uncertified* target,
@@ -386,7 +387,9 @@ def project(
     _check_k_ref(K, K_ref)
     k = rate_factor(qsr)  # a rate far from unit size: divided by a power of two (exact)
     qsr, P_ref = scaled_rate(qsr, k), None if P_ref is None else P_ref / k
-    in_ref, in_act = None if P_ref is None else 0, 0 if jnp.ndim(active) else None
+    # a storage of shape [n, n] is shared by a batch, as `active` may be a scalar
+    in_ref = 0 if P_ref is not None and jnp.ndim(P_ref) > 2 else None
+    in_act = 0 if jnp.ndim(active) else None
     first_order = _projection_fo.use_first_order(method, K, metric is not None, qsr)
     fn = (partial(_project_fo_cold, weighted=metric is not None) if first_order else
           _project_one)

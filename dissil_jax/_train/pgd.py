@@ -6,6 +6,7 @@ from typing import Any, cast
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -172,6 +173,10 @@ def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, de
     decay = DECAY if decay is None else decay
     check_fit_args(windows, qsr, num_inits, max_steps, learning_rate=learning_rate, decay=decay,
                    atol=atol, rtol=rtol, init_scale=init_scale)
+    if optimizer is None and not isinstance(decay, jax.core.Tracer) and not 0.0 < decay <= 1.0:
+        # the paper's step decays: eta_k = eta_0 decay^k
+        raise ValueError(f"`decay` must be in (0, 1] (the step eta_0 decay^k decays), got "
+                         f"{decay!r}.")
     if qsr is not None and eps is not None:
         check_eps_room(qsr, eps)
     return optimizer, learning_rate, decay, check_n_state(windows, n_state)
@@ -224,10 +229,12 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
         check_eager("fit_pgd", key, windows, throw, "dj.pgd_run")
     optimizer, learning_rate, decay, n_state = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
-        decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, eps=eps)
+        decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state)
 
     c = balance_factor(windows, balance)  # outputs' units against inputs' (`_units.py`)
     windows, qsr = balanced(windows, qsr, c)
+    if qsr is not None:  # the margin applies to the rate as solved: after balancing
+        check_eps_room(qsr, eps)
 
     def certify(res):
         if qsr is None:
@@ -312,7 +319,7 @@ def fit_pgd(
       default, `atol` = 0 and `rtol` = 1e-6, does not depend on the data's units; it was
       chosen on the tuning half of `dissil_jax.experiments.zoo` (the largest `rtol` that
       stops within about 1 % of the full budget's loss, `benchmarks/bench_defaults.py`;
-      `fit_gd` uses 1e-7, `fit_mlp` 1e-9). The paper's
+      `fit_gd` uses 1e-8, `fit_mlp` 1e-9). The paper's
       $|\\Delta J| <$ tol is `atol` = tol, `rtol` = 0: 1e-3 linear, 1e-5 nonlinear; both
       `0.0` run every step), `init_scale` $\\sigma$ (default 0.3, `ADAM_INIT_SCALE`; the
       paper's N(0, 1) draw is `init_scale=1`, see below), `eps` (LMI strictness margin).

@@ -136,9 +136,9 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
         return dj.fit_gd(key, windows, learning_rate=spec.gd_learning_rate,
                          decay=spec.pgd_decay, init_scale=spec.init_scale, **unbalanced)
     if method == "ico":
-        return dj.fit_ico(key, windows, spec.qsr, init_scale=spec.init_scale, **common)
+        return dj.fit_ico(key, windows, spec.qsr, init_scale=spec.init_scale, **unbalanced)
     if method == "ico_nc":
-        return dj.fit_ico_nc(key, windows, init_scale=spec.init_scale, **common)
+        return dj.fit_ico_nc(key, windows, init_scale=spec.init_scale, **unbalanced)
     if method == "direct":
         return dj.fit_direct(key, windows, spec.qsr, learning_rate=spec.direct_learning_rate,
                              init_scale=spec.direct_init_scale,

@@ -20,6 +20,7 @@ from .._checks import check_eager, check_fit_args, check_key
 from .._init import INIT_SCALE, init_controllers
 from .._iterate import RTOL
 from .._scale import loss_scale, scaled
+from .._units import balance as balanced, balance_factor, unbalance
 from ..result import FitResult, raise_if_failed
 from .sdp import ICOProblem
 from .solver import ICOSolver
@@ -128,10 +129,13 @@ def _not_started(pb: ICOProblem, theta, P, outcome, max_steps):
 
 
 def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps, prox,
-         window_cone, callback, throw):
+         window_cone, callback, throw, balance):
     check_key(key)
     check_eager("fit_ico" if qsr is not None else "fit_ico_nc", key, windows, throw)
     _check_args(windows, qsr, num_inits, max_steps, atol, rtol, init_scale)
+    c = balance_factor(windows, balance)  # outputs' units against inputs' (`_units.py`)
+    windows, qsr = balanced(windows, qsr, c)
+    atol = atol / c**2
     k = 1.0  # a rate far from unit size is solved divided by k, P multiplied back (exact)
     if qsr is not None:
         check_eps_room(qsr, eps)
@@ -155,8 +159,9 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
     user_cb = None
     if callback is not None:
         def in_controller_units(i, step, theta, P, J):
-            callback(i, step, LTIController(*pb.mats(theta)), None if P is None else k * P,
-                     s2 * J)
+            A, B, C, D = pb.mats(theta)
+            callback(i, step, LTIController(A, B, c * C, c * D), None if P is None else k * P,
+                     c**2 * s2 * J)
 
         user_cb = in_controller_units
 
@@ -191,7 +196,7 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
         # Every accepted step lowers the loss (the guard above), so the last is the best.
         kept_step=jnp.asarray([r["steps"] for r in results], jnp.int32),
     )
-    return raise_if_failed(res) if throw else res
+    return unbalance(raise_if_failed(res) if throw else res, c)
 
 
 def fit_ico(
@@ -200,6 +205,7 @@ def fit_ico(
     eps: float = 1e-6,
     prox: float = 1e-4,
     window_cone: str = "stacked", callback: Callable | None = None, throw: bool = True,
+    balance: bool = True,
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers by iterative convex overbounding (paper Alg. 1).
 
@@ -329,6 +335,10 @@ def fit_ico(
     - `throw`: raise a `ValueError` when a run stopped early (an SDP failure or a refused
       step, see `FitResult.result`). With `throw=False` the result is returned; every
       run, including one that stopped early, carries its best (and last accepted) certified iterate.
+    - `balance`: as in [`fit_pgd`][dissil_jax.fit_pgd] (default True): when the outputs'
+      size is more than 5x above or below the inputs', solve on outputs rescaled by a
+      power of two and the matching supply rate, and map the result back exactly. Without
+      it, outputs 1000 times the inputs made every SDP fail after a few steps.
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult] with `P` and `certified` filled in.
 
@@ -341,14 +351,14 @@ def fit_ico(
         raise ValueError("`qsr` is None; use `dj.fit_ico_nc` for unconstrained ICO.")
     return _fit(key, windows, qsr, num_inits=num_inits, max_steps=max_steps, atol=atol,
                 rtol=rtol, init_scale=init_scale, eps=eps, prox=prox,
-                window_cone=window_cone, callback=callback, throw=throw)
+                window_cone=window_cone, callback=callback, throw=throw, balance=balance)
 
 
 def fit_ico_nc(
     key, windows: Windows, *, num_inits: int = 8, max_steps: int = 150, atol: float = 0.0,
     rtol: float = RTOL, init_scale: float = INIT_SCALE, prox: float = 1e-4,
     window_cone: str = "stacked",
-    callback: Callable | None = None, throw: bool = True,
+    callback: Callable | None = None, throw: bool = True, balance: bool = True,
 ) -> FitResult:
     """ICO without the dissipativity constraint (the paper's ICO-NC baseline).
 
@@ -356,9 +366,9 @@ def fit_ico_nc(
     projection of the random initialisation (drawn from the paper's N(0, 1) by default; its
     initial scale was not re-measured); the result carries `P = None` and
     `certified = None` (no stability guarantee). `callback` receives `P = None`; `throw`
-    as in `fit_ico`.
+    and `balance` as in `fit_ico`.
     """
     return _fit(key, windows, None, num_inits=num_inits, max_steps=max_steps, atol=atol,
                 rtol=rtol,
                 init_scale=init_scale, eps=1e-6, prox=prox, window_cone=window_cone,
-                callback=callback, throw=throw)
+                callback=callback, throw=throw, balance=balance)
