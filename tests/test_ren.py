@@ -515,6 +515,8 @@ def test_unbalanced_ren_realisations_are_decided_by_componentwise_bounds():
         # the premise: neither relative test proves it
         assert dji.kyp_margin(*form, q, Pt) < dji.lmi.VERIFY_RTOL * dji.kyp_scale(*form, q, Pt)
     assert dj.certify_ren(Kt, qsr, P=Pt, multiplier=lam).holds
+    # the SDP finds a certificate of its own too: it is solved in balanced states and neurons
+    assert dj.certify_ren(Kt, qsr).holds
     bad = transformed(eqx.tree_at(lambda k: k.D22, K, K.D22 + 2.0))  # beyond the gain 1.5
     assert not dj.certify_ren(bad, qsr, P=Pt, multiplier=lam).holds
 

@@ -245,16 +245,16 @@ def _candidates(A, B, C, D, qsr, hint, t):
     P = _certify_fast.cached(A, B, C, D, qsr)
     if P is not None:
         yield P, "cached"
-    for P in _certify_fast.riccati(*_balanced(A, B, C, t), D, qsr):
-        yield _unbalanced(P, t), "riccati"
+    for P in _certify_fast.riccati(*balanced_states(A, B, C, t), D, qsr):
+        yield unbalanced_storage(P, t), "riccati"
 
 
-def _balanced(A, B, C, t):
+def balanced_states(A, B, C, t):
     """The realisation in the states $z$ with $x = \\operatorname{diag}(t)z$."""
     return A * t[None, :] / t[:, None], B / t[:, None], C * t[None, :]
 
 
-def _unbalanced(P, t):
+def unbalanced_storage(P, t):
     """A storage of the balanced realisation in the original states."""
     return P / (t[:, None] * t[None, :])
 
@@ -282,8 +282,8 @@ def _solve(A, B, C, D, qsr: QSR, tol, t) -> Certificate:
     the eigenvalue verdict in the controller's own."""
     n = A.shape[0]
     try:
-        P, status = _certify_sdp.solve(*_balanced(A, B, C, t), D, qsr)
-        P = None if P is None else _unbalanced(P, t)
+        P, status = _certify_sdp.solve(*balanced_states(A, B, C, t), D, qsr)
+        P = None if P is None else unbalanced_storage(P, t)
     except Exception as e:  # pragma: no cover - depends on solver internals
         return Certificate(Outcome.solver_failed, np.full((n, n), np.nan), -np.inf,
                            f"solver error: {e}")

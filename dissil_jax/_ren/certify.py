@@ -8,7 +8,12 @@ import warnings
 import equinox as eqx
 import numpy as np
 
-from .._certify.certify import storage_arg
+from .._certify.certify import (
+    balanced_states,
+    state_scale,
+    storage_arg,
+    unbalanced_storage,
+)
 from .._controller import LTIController
 from .._rate_scale import RATE_BAND, rate_factor
 from .._sdp import sdp as _sdp
@@ -206,13 +211,16 @@ def _margin_and_holds(G: LTIController, qsr: QSR, P, lam, tol):
 
 def _solve(G: LTIController, qsr: QSR, q: int):
     """$\\max t$ s.t. $M(P,\\Lambda)\\preceq -tI$, $P\\succeq tI$, $\\Lambda\\succeq tI$,
-    $t\\le1$, in balanced neuron units (`_neuron_scale`), with cvxpy and Clarabel (BLAS
-    single-threaded); returns `(P, λ, status)` in the controller's own units."""
+    $t\\le1$, in balanced neuron units (`_neuron_scale`) and balanced states (`certify`'s
+    `state_scale`), with cvxpy and Clarabel (BLAS single-threaded); returns
+    `(P, λ, status)` in the controller's own units."""
     import cvxpy as cp
 
     d = _neuron_scale(G, q)
     G = _unit_multiplier(G, d)  # solved in balanced neuron units; Λ = d Λ̃ below
     A, B, C, D = (np.asarray(M, np.float64) for M in (G.A, G.B, G.C, G.D))
+    ts = state_scale(A, B, C)  # and balanced states: P = P̃ / (ts ts') below
+    A, B, C = balanced_states(A, B, C, ts)
     n = B.shape[0]
     k = n + B.shape[1]
     P = cp.Variable((n, n), symmetric=True)
@@ -247,8 +255,8 @@ def _solve(G: LTIController, qsr: QSR, q: int):
             return None, None, f"solver_error: {err}"
     if P.value is None:
         return None, None, str(prob.status)
-    return (np.asarray(P.value), d * np.asarray(lam.value if q else np.zeros(0)).reshape(q),
-            str(prob.status))
+    return (unbalanced_storage(np.asarray(P.value), ts),
+            d * np.asarray(lam.value if q else np.zeros(0)).reshape(q), str(prob.status))
 
 
 def certify_ren(K: RENController, qsr: QSR, *, P=None, multiplier=None,
