@@ -143,7 +143,10 @@ def fit_ren(
     - `width` $q\\ge0$: the number of neurons (0 gives an LTI controller, as a REN).
     - `direct_input`: train the neurons' direct input $D_{12}$ (static; default False,
       $D_{12} = 0$: the network then sees the plant output through the state only).
-    - `activation`: `"tanh"` (default), `"relu"` or a slope-restricted callable (see
+    - `activation`: `"tanh"` (default: on the problem zoo's tuning half its held-out error
+      was at most 1.31x ReLU's, ReLU's up to 22x tanh's), `"relu"` (positively homogeneous,
+      so it extrapolates in scale: the experiments' choice on the nonlinear example, whose
+      test states are 3x the training states) or a slope-restricted callable (see
       [`RENController`][dissil_jax.RENController]). Training runs on the windows divided
       by one data scale $s$ (as in the LTI trainers), so the neurons work in units where
       the data are of order one (where tanh bends); the returned controller is the same
