@@ -39,9 +39,10 @@ from ._plant_qsr import (
     sector_plant_qsr as sector_plant_qsr,
 )
 from ._train.direct import direct_run as direct_run, fit_direct as fit_direct
+from ._train.gd import fit_gd as fit_gd
 from ._train.ico.fit import fit_ico as fit_ico, fit_ico_nc as fit_ico_nc
 from ._train.mlp import MLPController as MLPController, fit_mlp as fit_mlp
-from ._train.pgd import fit_gd as fit_gd, fit_pgd as fit_pgd, pgd_run as pgd_run
+from ._train.pgd import fit_pgd as fit_pgd, pgd_run as pgd_run
 from ._train.ren import RENFitResult as RENFitResult, fit_ren as fit_ren
 from ._train.result import FitResult as FitResult
 from .systems import LinearPlant as LinearPlant, SectorPlant as SectorPlant

@@ -387,16 +387,13 @@ def project(
     _check_k_ref(K, K_ref)
     k = rate_factor(qsr)  # a rate far from unit size: divided by a power of two (exact)
     qsr, P_ref = scaled_rate(qsr, k), None if P_ref is None else P_ref / k
-    # a storage of shape [n, n] is shared by a batch, as `active` may be a scalar
-    in_ref = 0 if P_ref is not None and jnp.ndim(P_ref) > 2 else None
-    in_act = 0 if jnp.ndim(active) else None
     first_order = _projection_fo.use_first_order(method, K, metric is not None, qsr)
-    fn = (partial(_project_fo_cold, weighted=metric is not None) if first_order else
-          _project_one)
-    fn = partial(fn, qsr=qsr, eps=eps, reg=reg, refine=refine)
+    fn = partial(partial(_project_fo_cold, weighted=metric is not None) if first_order else
+                 _project_one, qsr=qsr, eps=eps, reg=reg, refine=refine)
     W = jax.tree.map(jnp.ones_like, K) if metric is None else metric
-    for _ in K.batch_shape:
-        fn = jax.vmap(fn, in_axes=(0, in_ref, 0, in_act, 0))
+    in_ref = 0 if P_ref is not None and jnp.ndim(P_ref) > 2 else None
+    for _ in K.batch_shape:  # an [n, n] P_ref and a scalar `active` are shared by the batch
+        fn = jax.vmap(fn, in_axes=(0, in_ref, 0, 0 if jnp.ndim(active) else None, 0))
     K_out, P, codes = fn(K, P_ref, W, active, K if K_ref is None else K_ref)
     if throw:
         P = _raise_on_failure(P, codes)
