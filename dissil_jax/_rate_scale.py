@@ -29,13 +29,25 @@ def rate_factor(qsr: QSR) -> float:
     """
     Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
     size = max(float(np.abs(M).max(initial=0.0)) for M in (Q, S, R))
-    if size == 0.0 or 1.0 / RATE_BAND <= size <= RATE_BAND:
+    if not out_of_band(size):
         return 1.0
     if np.linalg.eigvalsh(Q)[-1] < 0:
         room = float(np.linalg.eigvalsh(R - S.T @ np.linalg.solve(Q, S))[0])
         if 0.0 < room < size:
             size = room
-    return float(2.0 ** np.clip(np.round(np.log2(size)), -500, 500))
+    return float(nearest_power_of_two(size))
+
+
+def out_of_band(size):
+    """Whether a rate of this size (its largest entry; vectorised) is solved divided by a
+    power of two: nonzero and outside $[1/64, 64]$."""
+    size = np.asarray(size, np.float64)
+    return (size > 0) & ((size < 1.0 / RATE_BAND) | (size > RATE_BAND))
+
+
+def nearest_power_of_two(size):
+    """$2^{\\operatorname{round}(\\log_2 s)}$ for positive sizes $s$ (vectorised)."""
+    return 2.0 ** np.clip(np.round(np.log2(size)), -500, 500)
 
 
 def scaled_rate(qsr: QSR, k: float) -> QSR:

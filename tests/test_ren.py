@@ -521,6 +521,20 @@ def test_unbalanced_ren_realisations_are_decided_by_componentwise_bounds():
     assert not dj.certify_ren(bad, qsr, P=Pt, multiplier=lam).holds
 
 
+def test_batched_augmented_rates_equal_one_at_a_time():
+    """The batched check builds every member's augmented rate and its `rate_factor` at once;
+    against `augmented_qsr` and `rate_factor` per member (multipliers inside and far
+    outside the rate band)."""
+    qsr = SUPPLY_RATES["strict"]
+    lam = np.array([[0.1, 0.2, 0.3], [30.0, 40.0, 1.0], [1e5, 2e7, 3.0], [1e-4, 1e-5, 1e-6]])
+    Q, S, R, factor = ren_certify._augmented_arrays(qsr, lam)
+    for i in range(len(lam)):
+        aug = ren_certify.augmented_qsr(qsr, lam[i])
+        for a, b in ((Q[i], aug.Q), (S[i], aug.S), (R[i], aug.R)):
+            np.testing.assert_array_equal(a, b)
+        assert factor[i] == dji.rate_scale.rate_factor(aug)
+
+
 def test_certify_ren_checks_the_given_pair():
     """A wrong `P` shape is reported as `P`'s, a wrong multiplier as the multiplier's, and
     a non-symmetric `P` is refused as by `dj.certify`."""

@@ -15,7 +15,7 @@ from .._certify.certify import (
     unbalanced_storage,
 )
 from .._controller import LTIController
-from .._rate_scale import RATE_BAND, rate_factor
+from .._rate_scale import nearest_power_of_two, out_of_band, rate_factor
 from .._sdp import sdp as _sdp
 from .._sdp.lmi import (
     VERIFY_RTOL,
@@ -166,10 +166,8 @@ def _augmented_arrays(qsr: QSR, lam):
     # size is the largest entry, 2 max(lam) or the rate's own
     size = np.maximum(max(np.abs(M).max(initial=0.0) for M in (qsr.Q, qsr.S, qsr.R)),
                       2 * np.abs(lam).max(-1))
-    inside = (size == 0) | ((1 / RATE_BAND <= size) & (size <= RATE_BAND))
-    factor = np.where(inside, 1.0, 2.0 ** np.clip(np.round(np.log2(np.where(
-        size > 0, size, 1.0))), -500, 500))
-    return Q, S, R, factor
+    scaled = out_of_band(size)
+    return Q, S, R, np.where(scaled, nearest_power_of_two(np.where(scaled, size, 1.0)), 1.0)
 
 
 def _margin_and_holds(G: LTIController, qsr: QSR, P, lam, tol):
