@@ -19,10 +19,27 @@ from ..metrics import lti_spectral_radius, rule_stable
 from ..simulate import Noise, simulate_controllers
 from ._record import Problem, Report, Task, as_batch, predict_any
 
-#: Closed-loop simulation of nonlinear loops: steps, and the end-state bound of
-#: `rule_stable` per unit of the problem's data (the loop must at least halve a large
-#: initial state and settle near the origin; the simulation is noise free).
-SIM_STEPS, SIM_ABS = 200, 1e-2
+#: Closed-loop simulation of nonlinear loops: the fewest steps, the plant's half-lives the
+#: horizon spans at least (`sim_steps`), and the end-state bound of `rule_stable` per unit
+#: of the problem's data (the loop must at least halve a large initial state and settle
+#: near the origin; the simulation is noise free).
+SIM_STEPS, SIM_HALF_LIVES, SIM_ABS = 200, 20, 1e-2
+
+
+def sim_steps(problem: Problem) -> int:
+    """The simulation horizon of `stable` for `problem`: `SIM_STEPS`, or `SIM_HALF_LIVES`
+    half-lives $\\ln\\tfrac12/\\ln\\rho(A)$ of the plant's slowest mode when that is longer.
+
+    A loop around a slow plant cannot settle faster than the plant lets it: on
+    `chain12_siso_io` ($\\rho(A) = 0.994$, a half-life of 116 steps) 200 steps did not halve
+    the test states even with the zero controller, whose loop is the stable plant itself,
+    so every controller was judged unstable. Twenty half-lives shrink the plant's own
+    response by $10^{-6}$."""
+    A = np.asarray(problem.plant.matrices()[0], np.float64)
+    rho = float(np.max(np.abs(np.linalg.eigvals(A)))) if A.size else 0.0
+    if not 0.0 < rho < 1.0:
+        return SIM_STEPS
+    return max(SIM_STEPS, int(np.ceil(SIM_HALF_LIVES * np.log(0.5) / np.log(rho))))
 
 
 def task(problem: Problem, key=None) -> Task:
@@ -61,7 +78,8 @@ def stable(problem: Problem, controllers) -> np.ndarray:
     at the plant state as in the training windows).
 
     Exact for an `LTIController` on a `LinearPlant` (spectral radius of the loop below 1);
-    otherwise a noise-free simulation of `SIM_STEPS` steps from `problem.x0_test`, judged by
+    otherwise a noise-free simulation of `sim_steps(problem)` steps (at least 200, and at
+    least 20 half-lives of the plant's slowest mode) from `problem.x0_test`, judged by
     [`rule_stable`][dissil_jax.experiments.rule_stable] with the end bound scaled to the
     problem's units."""
     ok = _finite(controllers)
@@ -75,8 +93,8 @@ def stable(problem: Problem, controllers) -> np.ndarray:
         return out
     x0 = problem.x0_test
     dtype = x0.dtype
-    N, n, m = x0.shape[0], problem.plant.n_state, problem.plant.n_in
-    noise = Noise(jnp.zeros((N, SIM_STEPS, n), dtype), jnp.zeros((N, SIM_STEPS, m), dtype))
+    N, n, m, T = x0.shape[0], problem.plant.n_state, problem.plant.n_in, sim_steps(problem)
+    noise = Noise(jnp.zeros((N, T, n), dtype), jnp.zeros((N, T, m), dtype))
     xhat0 = None if problem.facts.has_state else "rest"
     if xhat0 == "rest" and not isinstance(K, LTIController):
         xhat0 = jnp.zeros((N, problem.n_state), dtype)
