@@ -14,7 +14,8 @@ steps for both). Printed:
   whole training step of the direct map for all initialisations;
 - **closed loop** (`--loop`): the protocol's record (`run_config`) for REN, direct, ICO
   and the MLP baseline on the same data: certified, % stable, median test MSE;
-- **across seeds** (`--seeds 0,3,4`): the same closed-loop record for each seed (each seed
+- **across seeds** (`--seeds 0,3,4`, with `--data sliding` for sliding windows): the same
+  closed-loop record for each seed (each seed
   draws its own demonstrations and test states), one median test MSE per method and seed,
   to tell a method's advantage from one draw's luck. With `--seeds` the speed part is
   skipped;
@@ -29,7 +30,7 @@ steps for both). Printed:
   indefinite Q skipped (the REN map needs Q <= 0).
 
 Usage: python benchmarks/bench_ren.py [--quick] [--inits 100] [--loop] [--seeds 0,3,4]
-       [--wide] [--zoo tuning]
+       [--data sliding] [--wide] [--zoo tuning]
 """
 
 import argparse
@@ -59,16 +60,17 @@ from dissil_jax.experiments.protocol import (  # noqa: E402
 METHODS = ("ren", "direct", "ico", "mlp")
 
 
-def across_seeds(seeds, inits, quick):
+def across_seeds(seeds, inits, quick, data="initial"):
     """Median test MSE (and % stable when below 100) per method and seed."""
-    print(f"nonlinear example, 25 initial segments, {inits} initialisations per seed: "
+    regime = "initial segments" if data == "initial" else "sliding windows"
+    print(f"nonlinear example, 25 {regime}, {inits} initialisations per seed: "
           "median test MSE (% stable when below 100)")
     print("| method | " + " | ".join(f"seed {s}" for s in seeds) + " | certified |")
     print("|---|" + "---:|" * len(seeds) + "---|")
     for method in METHODS:
         cells, certified = [], []
         for seed in seeds:
-            rec = run_config("nonlinear", "initial", method, 25, inits=inits, seed=seed,
+            rec = run_config("nonlinear", data, method, 25, inits=inits, seed=seed,
                              quick=quick)
             stable = rec["percent_stable"]
             cells.append(f"{rec['mse_median']:.4g}" + ("" if stable == 100 else
@@ -175,7 +177,7 @@ def defaults(split):
 
 
 def main(quick=False, inits=100, loop=False, seeds=None, wide_data=False, zoo=None,
-         defaults_split=None):
+         defaults_split=None, data="initial"):
     if defaults_split:
         return defaults(defaults_split)
     if zoo:
@@ -183,7 +185,7 @@ def main(quick=False, inits=100, loop=False, seeds=None, wide_data=False, zoo=No
     if wide_data:
         return wide(inits, quick)
     if seeds:
-        return across_seeds(seeds, inits, quick)
+        return across_seeds(seeds, inits, quick, data)
     spec = example_spec("nonlinear", quick)
     inits = min(inits, 8) if quick else inits
     _, _, windows, (k_fit, _, _) = training_data(spec, 0, 0, "initial", 25)
@@ -239,5 +241,9 @@ if __name__ == "__main__":
     parser.add_argument("--defaults", choices=("tuning", "held_out"),
                         help="fit_ren's default Adam step and initial scale on one half of the "
                              "problem zoo")
+    parser.add_argument("--data", choices=("initial", "sliding"), default="initial",
+                        help="the demonstrations of --seeds: 25 initial segments or sliding "
+                             "windows")
     args = parser.parse_args()
-    main(args.quick, args.inits, args.loop, args.seeds, args.wide, args.zoo, args.defaults)
+    main(args.quick, args.inits, args.loop, args.seeds, args.wide, args.zoo, args.defaults,
+         args.data)

@@ -39,6 +39,7 @@ from jaxtyping import Array, Float
 
 from . import _linalg
 from ._controller import LTIController
+from ._rate_scale import unit_scale
 from ._supply import QSR
 
 #: Default margin eps of the map: KYP(P) <= -eps diag(P, Phi0) and P >= eps I. The float64
@@ -80,7 +81,28 @@ def feedthrough_centre(qsr: QSR) -> tuple[np.ndarray, np.ndarray]:
     **Raises** a `ValueError` naming `qsr` when no feedthrough is strictly dissipative: then
     no LTI controller is (the KYP matrix's input block needs $\\Phi(D)\\succ B^\\top PB$).
     """
-    Q, S, R = qsr.Q, qsr.S, qsr.R
+    best = _centre_search(qsr.Q, qsr.S, qsr.R)
+    if best is None:
+        # Blocks of very different sizes (a gain bound of 1e-6: Q = -1, R = 1e-12) put the
+        # whole static set below the search's round-off floor. Search again with the blocks
+        # balanced by powers of two, y = t_y y~ and u = t_u u~ (a congruence), and map back:
+        # D = (t_y / t_u) D~ and Phi(D) = Phi~(D~) / t_u^2. Rates that pass unbalanced keep
+        # their centre.
+        t_y, t_u = unit_scale(qsr.Q), unit_scale(qsr.R)
+        best = _centre_search(t_y**2 * qsr.Q, t_y * t_u * qsr.S, t_u**2 * qsr.R)
+        if best is not None:
+            best = (t_y / t_u * best[0], best[1] / t_u**2)
+    if best is None:
+        raise ValueError(
+            "`qsr` admits no strictly dissipative controller: no feedthrough D gives "
+            "D'QD + D'S + S'D + R > 0, which the KYP inequality's input block requires. "
+            "Check the signs of S and R (e.g. R too negative for the cone).")
+    return best
+
+
+def _centre_search(Q, S, R):
+    """`feedthrough_centre`'s search over $\\mu$: `(D0, Phi0)`, or None when no score clears
+    the round-off floor."""
     m = S.shape[0]
     best, best_score = None, 0.0
     for mu in _MUS:
@@ -91,16 +113,11 @@ def feedthrough_centre(qsr: QSR) -> tuple[np.ndarray, np.ndarray]:
         if score > best_score:
             best, best_score = (D0, Phi), score
     scale = 1.0 + max(np.abs(M).max(initial=0.0) for M in (Q, S, R))
-    if best is None or best_score <= 1e-12 * scale:
-        raise ValueError(
-            "`qsr` admits no strictly dissipative controller: no feedthrough D gives "
-            "D'QD + D'S + S'D + R > 0, which the KYP inequality's input block requires. "
-            "Check the signs of S and R (e.g. R too negative for the cone).")
-    return best
+    return None if best is None or best_score <= 1e-12 * scale else best
 
 
 @functools.lru_cache(maxsize=64)
-def _constants(qsr: QSR, margin: float) -> tuple[np.ndarray, ...]:
+def map_constants(qsr: QSR, margin: float) -> tuple[np.ndarray, ...]:
     """`(D0, Phi0, G_Phi, T_u, N)` in float64 for a supply rate and margin (cached)."""
     D0, Phi0 = feedthrough_centre(qsr)
     G_phi = np.linalg.cholesky(Phi0).T  # upper: Phi0 = G_phi' G_phi
@@ -141,7 +158,7 @@ def output_map(W: Float[Array, "m n+p"], G_P: Float[Array, "n n"], qsr: QSR,
     $\\Phi(D)\\succeq\\varepsilon\\Phi_0$, which the REN map uses.
     """
     n, p, dtype = G_P.shape[0], W.shape[1] - G_P.shape[0], W.dtype
-    D0, _, G_phi, T_u, N = (jnp.asarray(M, dtype) for M in _constants(qsr, margin))
+    D0, _, G_phi, T_u, N = (jnp.asarray(M, dtype) for M in map_constants(qsr, margin))
     eye = lambda k: jnp.eye(k, dtype=dtype)
     G = jsl.block_diag(G_P, G_phi)
     # (C, D): the loop transformation, Z' N Z < I, Y = I - T'Z invertible since N >= T T'.

@@ -304,8 +304,8 @@ def input_passivity_qsr(plant, *, backoff: float = 1e-3) -> QSR:
     """Largest input-feedforward passivity index $\\nu$: $Q = 0$, $S = \\tfrac12I$, $R = -\\nu I$.
 
     $w = y^\\top u - \\nu|u|^2$. Solves $\\max\\nu$ s.t. KYP$(P)\\preceq0$, $P\\succeq0$
-    (paper Lemma 2 with the plant's $Q,S,R$), then returns $\\nu^\\star - $ `backoff`
-    $|\\nu^\\star|$ (more if needed) so that [`certify`][dissil_jax.certify] holds strictly.
+    (paper Lemma 2 with the plant's $Q,S,R$), then returns $\\nu^\\star -$ `backoff` $\\cdot|\\nu^\\star|$
+    (more if needed) so that [`certify`][dissil_jax.certify] holds strictly.
     A Tustin mass-spring chain with $D_c = \\varphi I$ has $\\nu^\\star = \\varphi$.
 
     **Arguments:** `plant` (`dj.LinearPlant`, an `LTIController`, a discrete

@@ -50,6 +50,14 @@ def nearest_power_of_two(size):
     return 2.0 ** np.clip(np.round(np.log2(size)), -500, 500)
 
 
+def unit_scale(M) -> float:
+    """The power of two $t$ that brings a block to unit size: $t^2\\max_{ij}|M_{ij}|$ within a
+    factor 2 of 1 (1 for $M = 0$). Congruences by such factors (y = t_y y~, u = t_u u~)
+    balance a supply rate's $Q$ and $R$ blocks exactly."""
+    size = float(np.abs(np.asarray(M, np.float64)).max(initial=0.0))
+    return 1.0 if size == 0.0 else float(nearest_power_of_two(size ** -0.5))
+
+
 def scaled_rate(qsr: QSR, k: float) -> QSR:
     """The supply rate $(Q, S, R)/\\kappa$ (`qsr` itself when $\\kappa = 1$)."""
     return qsr if k == 1.0 else QSR(qsr.Q / k, qsr.S / k, qsr.R / k)

@@ -6,7 +6,8 @@ Theorem 1), this script trains on the same 25 initial segments
 
 - LTI controllers with `dj.fit_direct` (the paper's controller class), and
 - REN controllers with `dj.fit_ren` (an LTI system in feedback with `width` ReLU neurons,
-  the experiments' settings),
+  the experiments' settings: odd, since the expert is, so each REN is two copies of a
+  network, the second driven by -y and started at -x0),
 
 checks every REN's certificate twice (the float64 check of the trainer's (P, Lambda), and
 a fresh SDP with `dj.certify_ren`), and tests all controllers in closed loop against the
@@ -24,7 +25,7 @@ import numpy as np
 
 import dissil_jax as dj
 from dissil_jax.experiments import equilibrium_horizon, evaluate
-from dissil_jax.experiments.protocol import example_spec, fit, training_data
+from dissil_jax.experiments.protocol import controller_start, example_spec, fit, training_data
 
 
 def main(quick=False, inits=10, width=16, seed=0):
@@ -52,7 +53,8 @@ def main(quick=False, inits=10, width=16, seed=0):
         certified = np.array(res.certified, bool)
         if method == "ren":  # an independent certificate: the SDP in (P, Lambda)
             certified &= np.asarray(dj.certify_ren(res.controllers, spec.qsr).holds, bool)
-        ev = evaluate(k_noise, plant, expert, res.controllers, x0, steps)
+        ev = evaluate(k_noise, plant, expert, res.controllers, x0, steps,
+                      xhat0=controller_start(spec, method, x0))
         print(f"| {method} | {train:.1f} | {float(np.median(res.final_loss)):.4g} "
               f"| {100 * certified.mean():.0f} | {100 * np.mean(ev.stable):.0f} "
               f"| {float(np.median(ev.mse)):.4g} |")

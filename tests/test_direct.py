@@ -75,7 +75,7 @@ def test_map_is_well_conditioned_near_q_zero():
     np.testing.assert_allclose(D0_passive, I3, rtol=0.2)
     for delta in (1e-4, 1e-8):
         qsr = dj.QSR(-delta * I3, I3 / 2, 0 * I3)
-        D0, Phi0, G_phi, T_u, N = dm._constants(qsr, dm.MARGIN)
+        D0, Phi0, G_phi, T_u, N = dm.map_constants(qsr, dm.MARGIN)
         assert np.linalg.norm(D0, 2) < 2.0 and np.linalg.cond(Phi0) < 10
         assert np.linalg.norm(D0 - D0_passive) < 100 * delta
         K, P = jax.jit(jax.vmap(lambda t: dm.direct_map(t, qsr)))(th)

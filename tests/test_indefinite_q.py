@@ -229,3 +229,21 @@ def test_bad_input():
         dj.fit_direct(jax.random.PRNGKey(0), w, good)
     with pytest.raises(ValueError, match="`K_ref.A`"):
         dj.project(K, good, K_ref=dj.LTIController.random(jax.random.PRNGKey(0), 1, 2, 2))
+
+
+@pytest.mark.parametrize("gamma", [1e-6, 1e-8])
+def test_small_gain_bounds_are_feasible(gamma):
+    """Phi = diag(-1, gamma^2): one positive eigenvalue, far below Q's size. The count is
+    taken after balancing the blocks by a congruence (which keeps the inertia); compared
+    with the largest eigenvalue, gamma^2 looked like round-off and the rate was refused."""
+    qsr = dj.QSR.bounded_gain(gamma, n_in=1, n_out=1)
+    w = random_windows(jax.random.PRNGKey(1), N=6, n=2, p=1, m=1)
+    res = dj.fit_direct(jax.random.PRNGKey(0), w, qsr, num_inits=2, max_steps=3)
+    for i in range(2):  # independently of the trainer's storage
+        assert dj.certify(index(res.controllers, i), qsr).holds
+    # PGD's margin eps is absolute: the rate's room (gamma^2) is named, not "infeasible"
+    with pytest.raises(ValueError, match="`eps` = 1e-06 is not below the supply rate's room"):
+        dj.fit_pgd(jax.random.PRNGKey(0), w, qsr, num_inits=2, max_steps=3)
+    # a tiny negative R is still infeasible (inertia (0, 2)), whatever its size
+    with pytest.raises(ValueError, match="`qsr` is infeasible"):
+        dj.fit_direct(jax.random.PRNGKey(0), w, dj.QSR(-1.0, 0.0, -gamma**2))

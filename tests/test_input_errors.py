@@ -382,6 +382,14 @@ def test_certified_trainers_under_vmap_say_why_they_cannot_be_traced(fit, altern
     batched = jax.vmap(gd)(keys)
     for i in range(2):
         np.testing.assert_allclose(batched[i], gd(keys[i]), rtol=1e-6)
+    np.testing.assert_allclose(jax.jit(gd)(keys[1]), gd(keys[1]), rtol=1e-6)
+    # over traced windows the outputs' units cannot be chosen on the host: said by name
+    arrays = [jnp.stack([a, 2 * a]) for a in (w.x0, w.y, w.u)]
+    over = lambda bal: jax.vmap(lambda x, y, u: dj.fit_gd(
+        keys[0], dj.Windows(x, y, u), num_inits=2, max_steps=3, balance=bal).final_loss)
+    with pytest.raises(ValueError, match="`balance=True`.*pass `balance=False`"):
+        over(True)(*arrays)
+    assert over(False)(*arrays).shape == (2, 2)
 
 
 def test_decay_of_the_papers_rule_must_decay():

@@ -25,8 +25,11 @@ class Certificate(eqx.Module):
       batched).
     - `P`: the storage matrix ($V(x) = x^\\top P x$), float64; all NaN when no storage
       was found (`infeasible` or `solver_failed`), so that batched fields stack.
-    - `margin`: $\\min(-\\lambda_{\\max}(\\mathrm{KYP}(P)), \\lambda_{\\min}(P))$; negative when
-      no certificate was found.
+    - `margin`: $\\min(-\\lambda_{\\max}(\\mathrm{KYP}(P)), \\lambda_{\\min}(P))$ in the
+      given coordinates. Negative when no certificate was found, but also, by round-off
+      (e.g. -1e-10), for some certified controllers with badly scaled states: `holds` then
+      rests on the componentwise bound of the diagonally scaled KYP matrix. Filter on
+      `holds`, not on the sign of `margin`.
     - `source`: where `P` came from: `"given"` (supplied), `"hint"`, `"cached"` (a recent
       projection's), `"riccati"`, `"static"` (a controller without state, $\\hat n = 0$:
       `P` is 0x0), or the SDP solver's status (`"optimal"`, ...); or, with

@@ -324,7 +324,7 @@ def project(
     Frobenius ($W = 1$) unless a `metric` gives each entry its own weight,
     $\\lVert X\\rVert_W^2 = \\sum_{ij} W_{ij} X_{ij}^2$ over the four matrices.
 
-    - `P_ref` given: $\\tilde P = $ `P_ref`; a target already certified by `P_ref` comes
+    - `P_ref` given: $\\tilde P$ is `P_ref`; a target already certified by `P_ref` comes
       back unchanged without a solve (`result` is `Outcome.unchanged`), so a certified
       controller projects onto itself. A projection that fails at `P_ref` is retried from
       $\\tilde P = \\frac{\\operatorname{tr}P_{\\text{ref}}}{\\hat n} I$ with `refine` rounds

@@ -303,6 +303,30 @@ class RENController(eqx.Module):
         return cls(K.A, z(n, q), K.B, z(q, n), z(q, q), z(q, p), K.C, z(m, q), K.D,
                    activation=activation)
 
+    def odd_part(self) -> RENController:
+        """The odd part of this REN: the REN of twice the order and width that computes
+        $\\tfrac12\\bigl(K(x_1, \\hat u) - K(x_2, -\\hat u)\\bigr)$ with two copies of $K$,
+        the second driven by $-\\hat u$, on the state $(x_1, x_2)$.
+
+        Started at $(\\hat x_0, -\\hat x_0)$ (or at rest) it is odd, $\\hat y(-\\hat x_0,
+        -\\hat u) = -\\hat y(\\hat x_0, \\hat u)$, as an expert is whenever the plant is odd
+        and the cost even (every LTI plant with a quadratic cost, and the paper's nonlinear
+        example). Its matrices are block diagonal ($A$, $B_1$, $C_1$, $D_{11}$), stacked
+        ($[B_2; -B_2]$, $[D_{12}; -D_{12}]$) or halved ($\\tfrac12[C_2\\ -C_2]$,
+        $\\tfrac12[D_{21}\\ -D_{21}]$), with the same $D_{22}$. For $Q\\preceq0$ it is
+        $(Q,S,R)$-dissipative whenever $K$ is: with $K$'s certificate $(P, \\Lambda)$,
+        $(\\tfrac12\\operatorname{diag}(P, P), \\tfrac12\\operatorname{diag}(\\Lambda,
+        \\Lambda))$ certifies it with the same margin, because the supply is concave in the
+        output: $s(\\hat u, \\tfrac{a + b}2)\\ge\\tfrac12 s(\\hat u, a) + \\tfrac12 s(\\hat u, b)$,
+        and $s(-\\hat u, \\hat y) = s(\\hat u, -\\hat y)$. Leading batch axes are kept.
+        """
+        two = lambda M: jnp.concatenate([M, -M], axis=-2)
+        half = lambda M: 0.5 * jnp.concatenate([M, -M], axis=-1)
+        return RENController(block_diag2(self.A), block_diag2(self.B1), two(self.B2),
+                             block_diag2(self.C1), block_diag2(self.D11), two(self.D12),
+                             half(self.C2), half(self.D21), self.D22,
+                             activation=self.activation)
+
     def to_lti(self) -> LTIController:
         """The LTI controller $(A, B_2, C_2, D_{22})$ of a width-0 REN.
 
@@ -314,6 +338,12 @@ class RENController(eqx.Module):
             raise ValueError(f"`K` has width {self.width}: only a width-0 REN is an LTI "
                              "controller; certify it with `dj.certify_ren` instead.")
         return LTIController(self.A, self.B2, self.C2, self.D22)
+
+
+def block_diag2(M: Array) -> Array:
+    """$\\operatorname{diag}(M, M)$ over the last two axes (leading batch axes kept)."""
+    z = jnp.zeros_like(M)
+    return jnp.concatenate([jnp.concatenate([M, z], -1), jnp.concatenate([z, M], -1)], -2)
 
 
 def ren_rollout(K: RENController, x0: Float[Array, " n"] | None, u_in: Float[Array, "h p"]
@@ -341,9 +371,28 @@ def ren_predict(K: RENController, windows: Windows) -> Float[Array, "N h m"]:
     return jax.vmap(ren_rollout, in_axes=(None, 0, 0))(K, windows.x0, windows.y)
 
 
+def mirrored(windows: Windows) -> Windows:
+    """The windows with $\\hat x_0$, $y$ and $u$ negated (what an odd expert does from
+    $-\\hat x_0$)."""
+    x0 = None if windows.x0 is None else -windows.x0
+    return Windows(x0, -windows.y, -windows.u)
+
+
 def ren_imitation_loss(K: RENController, windows: Windows) -> Float[Array, ""]:
     """The paper's imitation loss (paper eq. 16) of a REN: the twin of
     [`imitation_loss`][dissil_jax.imitation_loss],
     $J = \\frac1N\\sum_i\\sum_k\\lVert\\hat y^{(i)}_k + u^{(i)}_k\\rVert^2$."""
     err = ren_predict(K, windows) - windows.target
     return jnp.mean(jnp.sum(err**2, axis=(-2, -1)))
+
+
+def ren_odd_loss(K: RENController, windows: Windows) -> Float[Array, ""]:
+    """The imitation loss of `K.odd_part()` started at $(\\hat x_0, -\\hat x_0)$, computed
+    as two copies of `K` side by side: $\\hat y = \\tfrac12\\bigl(K(\\hat x_0, y) -
+    K(-\\hat x_0, -y)\\bigr)$ on every window (what `fit_ren(odd=True)` minimises)."""
+    # one rollout over the windows and their mirror images, stacked: the layer's sequential
+    # pass then runs once per time step for both copies (two rollouts ran it twice)
+    both = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), windows, mirrored(windows))
+    plus, minus = jnp.split(ren_predict(K, both), 2)
+    pred = 0.5 * (plus - minus)
+    return jnp.mean(jnp.sum((pred - windows.target) ** 2, axis=(-2, -1)))

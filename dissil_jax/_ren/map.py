@@ -47,17 +47,14 @@ are covered. The factorisations are of order $\\hat n$ ($E$, $\\mathcal P$) and 
 
 from __future__ import annotations
 
-import functools
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
-import numpy as np
 from jaxtyping import Array, Float
 
 from .. import _linalg
-from .._direct_map import MARGIN, feedthrough_centre, output_map
+from .._direct_map import MARGIN, map_constants, output_map
 from .._supply import QSR
 from .controller import RENController
 
@@ -84,11 +81,6 @@ class RENParams(eqx.Module):
     Xi: Float[Array, "q p"]
 
 
-@functools.lru_cache(maxsize=64)
-def _phi0(qsr: QSR) -> np.ndarray:
-    return feedthrough_centre(qsr)[1]
-
-
 def ren_map(theta: RENParams, qsr: QSR, width: int, activation="tanh",
             margin: float = MARGIN, direct_input: bool = False):
     """The REN controller and certificate of one parameter $\\theta$ (unbatched; vmap for
@@ -107,7 +99,8 @@ def ren_map(theta: RENParams, qsr: QSR, width: int, activation="tanh",
     q, n = int(width), theta.Y.shape[0]
     X, C2, D21, B = theta.X, theta.C2, theta.D21, theta.B
     dtype = X.dtype
-    Q, S, R, Phi0 = (jnp.asarray(M, dtype) for M in (qsr.Q, qsr.S, qsr.R, _phi0(qsr)))
+    Phi0 = map_constants(qsr, margin)[1]  # cached with the LTI map's constants
+    Q, S, R, Phi0 = (jnp.asarray(M, dtype) for M in (qsr.Q, qsr.S, qsr.R, Phi0))
     # 1. the feedthrough: Phi(D22) >= eps Phi0
     _, D22, _ = output_map(theta.W, jnp.zeros((0, 0), dtype), qsr, margin)
     Phi = R + S.T @ D22 + D22.T @ S + D22.T @ Q @ D22

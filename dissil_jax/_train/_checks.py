@@ -48,7 +48,8 @@ def check_eager(fn: str, key, windows, throw, alternative: str = "") -> None:
     if any(isinstance(a, jax.core.Tracer) for a in data):
         raise ValueError(
             f"`{fn}` cannot run under `jax.jit` or `jax.vmap` (its `key` or `windows` are "
-            "traced): it checks every controller's certificate in float64 on the host. It "
+            "traced): it solves convex programs or checks certificates in float64 on the "
+            "host. It "
             "trains `num_inits` initialisations in one vmapped run already"
             + (f"; for sweeps inside JAX use `{alternative}`." if alternative else
                "; call it once per key for more."))

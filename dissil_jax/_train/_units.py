@@ -40,6 +40,8 @@ from __future__ import annotations
 from typing import overload
 
 import equinox as eqx
+import jax
+import jax.core
 import numpy as np
 
 from .._data import Windows
@@ -79,8 +81,16 @@ def output_factor(windows: Windows) -> float:
 
 def balance_factor(windows: Windows, balance) -> float:
     """`output_factor(windows)` when `balance` is True, 1 when False; a `ValueError`
-    naming `balance` for anything else."""
-    return output_factor(windows) if check_flag("balance", balance) else 1.0
+    naming `balance` for anything else, or for traced windows (`fit_gd` under `jax.jit` or
+    `jax.vmap` over the windows): the factor is a power of two chosen from the data on the
+    host."""
+    if not check_flag("balance", balance):
+        return 1.0
+    if any(isinstance(a, jax.core.Tracer) for a in (windows.x0, windows.y, windows.u)):
+        raise ValueError("`balance=True` chooses the outputs' units from the data on the host, "
+                         "which traced `windows` (a trainer under `jax.jit` or `jax.vmap` over "
+                         "its windows) do not allow: pass `balance=False` there.")
+    return output_factor(windows)
 
 
 @overload

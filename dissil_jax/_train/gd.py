@@ -49,6 +49,13 @@ def fit_gd(
     that rule (the other then takes its default). To change Adam's step instead, pass
     `optimizer=optax.adam(step)`. With `throw=True` a diverging run (`non_finite`)
     raises.
+
+    **Under `jax.jit` and `jax.vmap`.** Having no certificate, `fit_gd` checks nothing on
+    the host, so it runs inside both, e.g. `jax.vmap(lambda k: dj.fit_gd(k, windows))(keys)`
+    (tested equal to a loop over the keys). `throw=True` then raises at run time through
+    `equinox.error_if` (an `EquinoxRuntimeError`) rather than a `ValueError`. The certified
+    trainers cannot be traced (their float64 end check runs on the host); their vmappable
+    cores are [`direct_run`][dissil_jax.direct_run] and [`pgd_run`][dissil_jax.pgd_run].
     """
     return _fit(key, windows, None,
                 optimizer=default_rule(optimizer, learning_rate, decay, windows, n_state),

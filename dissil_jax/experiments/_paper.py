@@ -1,5 +1,5 @@
 # ruff: noqa: E501
-"""The paper's own numbers (Tables 1-4 and the data behind Figures 1-6), for side-by-side reports.
+"""The paper's own numbers (Tables 2-5 and the data behind Figures 1-6), for side-by-side reports.
 
 Transcribed from the paper's LaTeX source (tables) and its pgfplots figure files (figure
 data). Methods use our names: `ico`, `ico_nc`, `pgd`, `gd`, `mlp` (the paper's GD+NN).

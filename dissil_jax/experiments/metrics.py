@@ -1,4 +1,4 @@
-"""Closed-loop evaluation of learned controllers against the expert (paper Tables 1-4, Figs 1-6).
+"""Closed-loop evaluation of learned controllers against the expert (paper Tables 2-5, Figs 1-6).
 
 For each learned controller the test protocol simulates the expert and the controller from
 the same test initial states with the same noise realisation and reports

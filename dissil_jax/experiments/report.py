@@ -119,7 +119,7 @@ def _fmt(x, kind: str) -> str:
 
 
 def tables_markdown(records: list[dict]) -> str:
-    """The paper's Tables 1-4 layout, one table per (example, data) present in `records`.
+    """The paper's Tables 2-5 layout, one table per (example, data) present in `records`.
 
     Each cell reads `ours (paper)`; the paper's numbers come from its LaTeX source. A
     second table per configuration gives the test-MSE statistics of Figures 1-6, with the
@@ -220,7 +220,8 @@ def plot_figures(records: list[dict], out_dir: pathlib.Path) -> list[pathlib.Pat
                  if any(r["example"] == example and r["data"] == d for r in records)]
         for stat, title in (("median", "Median"), ("max", "Worst"),
                             ("quartiles", "Quartiles (q1-median-q3)")):
-            fig, axes = plt.subplots(1, len(datas), figsize=(6.5 * len(datas), 4.6),
+            # at least 9 inches wide: one panel's width clipped the figure's title
+            fig, axes = plt.subplots(1, len(datas), figsize=(max(9.0, 6.5 * len(datas)), 4.6),
                                      squeeze=False)
             for ax, data in zip(axes[0], datas):
                 rows = [r for r in records if r["example"] == example and r["data"] == data]
