@@ -199,7 +199,8 @@ class RENController(eqx.Module):
     D22: Float[Array, "*batch m p"]
     activation: str | Callable = eqx.field(static=True, default="relu")
 
-    def __init__(self, A, B1, B2, C1, D11, D12, C2, D21, D22, activation="relu"):
+    def __init__(self, A, B1, B2, C1, D11, D12, C2, D21, D22,
+                 activation: str | Callable = "relu"):
         (self.A, self.B1, self.B2, self.C1, self.D11, self.D12, self.C2, self.D21,
          self.D22) = (_as_array(n, M) for n, M in zip(_NAMES, (A, B1, B2, C1, D11, D12, C2,
                                                                 D21, D22)))
