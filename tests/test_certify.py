@@ -465,3 +465,19 @@ def test_disproof_skips_the_sdp_at_order_48(monkeypatch):
     pair = dj.certify(jax.tree.map(lambda M: jnp.stack([M, M]), active), qsr)
     assert "P_ref" not in cert.message and pair.message == [cert.message] * 2
     assert min_hermitian_part(A, 0.1 * B, 0.1 * C, -np.eye(2)) < 0  # independent: He G < 0
+
+
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+@pytest.mark.parametrize("s", [1e5, 1e6, 1e7])
+def test_high_gain_controllers_against_their_gain_bound(s):
+    """G(z) = s (1/(z - 0.5) + 1/(z - 0.9) + 0.5) has H-infinity norm 12.5 s (at z = 1: all
+    three terms positive there, and no larger anywhere on the circle). Against a bound 1 %
+    above it, Q = -1 and R ~ 1.6e12 s^2 made the KYP terms swamp the margin, and the
+    dissipative controller was refused; 1 % below it, it must stay refused."""
+    A, B, C, D = np.diag([0.5, 0.9]), s * np.ones((2, 1)), np.ones((1, 2)), np.array([[0.5 * s]])
+    z = np.exp(1j * np.linspace(0, np.pi, 2001))
+    gains = np.abs(C @ np.linalg.solve(z[:, None, None] * np.eye(2) - A, B)[..., 0].T + D)
+    assert gains.max() == pytest.approx(12.5 * s, rel=1e-12)  # the reference, on a grid
+    K = dj.LTIController(A, B, C, D)
+    assert dj.certify(K, dj.QSR.bounded_gain(1.01 * 12.5 * s, n_in=1, n_out=1)).holds
+    assert not dj.certify(K, dj.QSR.bounded_gain(0.99 * 12.5 * s, n_in=1, n_out=1)).holds

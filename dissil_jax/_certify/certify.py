@@ -8,6 +8,7 @@ import numpy as np
 from .. import _outcome
 from .._controller import LTIController
 from .._outcome import Outcome
+from .._rate_scale import unit_scale
 from .._sdp.lmi import VERIFY_RTOL, kyp_bound_holds, kyp_margin, kyp_matrix, kyp_scale
 from .._supply import QSR
 from .._validate import check_tolerance
@@ -262,8 +263,47 @@ def unbalanced_storage(P, t):
     return P / (t[:, None] * t[None, :])
 
 
+#: Blocks of the supply rate whose sizes differ by more than 2**12 are also searched with
+#: the controller's input and output in balanced units (`_io_scale`).
+_IO_BAND = 12
+
+
+def _io_scale(qsr: QSR) -> tuple[float, float] | None:
+    """Powers of two $(t_y, t_u)$ that bring $Q$ and $R$ to unit size (`unit_scale`), when
+    their sizes differ by more than $2^{12}$; else None."""
+    t_y, t_u = unit_scale(qsr.Q), unit_scale(qsr.R)
+    return (t_y, t_u) if abs(np.log2(t_y / t_u)) > _IO_BAND / 2 else None
+
+
 def _search(A, B, C, D, qsr: QSR, tol, hint, max_margin) -> Certificate:
-    """One (unbatched) controller: the first candidate that proves it, else the SDP."""
+    """One (unbatched) controller: `_search_units`, and when that finds no certificate for
+    a rate whose $Q$ and $R$ blocks differ in size by more than $2^{12}$, the same search
+    with the controller's output and input in units $\\hat y = t_y\\tilde y$,
+    $\\hat u = t_u\\tilde u$ that balance them, $(A, Bt_u, C/t_y, Dt_u/t_y)$ against
+    $(t_y^2Q, t_yt_uS, t_u^2R)$: the same dissipation inequality with the same storage.
+
+    A controller with gain $1.25\\cdot10^{6}$ against a gain bound 1 % above it ($Q = -1$,
+    $R\\approx1.6\\cdot10^{12}$) was refused (`not_certified`, `solver_failed` from
+    $10^7$): the KYP matrix's terms of size $10^{12}$ swamped margins of size 1. Its storage,
+    found in balanced units, passes the check in the given ones. The verdict is always on
+    the controller as given."""
+    cert = _search_units(A, B, C, D, qsr, tol, hint, max_margin)
+    io = _io_scale(qsr)
+    if cert.holds or io is None or str(cert.source).startswith("disproved"):
+        return cert
+    t_y, t_u = io
+    balanced = QSR(t_y**2 * qsr.Q, t_y * t_u * qsr.S, t_u**2 * qsr.R)
+    found = _search_units(A, B * t_u, C / t_y, D * (t_u / t_y), balanced, tol, None,
+                          max_margin)
+    if not np.all(np.isfinite(found.P)):
+        return cert
+    retry = _verdict(A, B, C, D, qsr, found.P, tol, found.source)
+    return retry if retry.holds else cert
+
+
+def _search_units(A, B, C, D, qsr: QSR, tol, hint, max_margin) -> Certificate:
+    """One (unbatched) controller in the given input and output units: the first candidate
+    that proves it, else the SDP."""
     n = A.shape[0]
     if n == 0:
         return _static(A, B, C, D, qsr, tol)
