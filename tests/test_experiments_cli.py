@@ -163,6 +163,8 @@ def test_tables_markdown_formats_infinity_and_merges():
     md = tables_markdown(merged)
     assert "∞" in md and "Sliding window".lower() in md
     assert "**50** (32)" in md  # ours vs the paper's GD, sliding window, N = 25
+    assert "Quick run" not in md
+    assert "Quick run" in tables_markdown([dict(r, quick=True) for r in merged])
 
 
 def test_summary_json_is_strict_json_and_reads_back(tmp_path, monkeypatch):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import pathlib
 from typing import Any
 
@@ -128,10 +129,14 @@ def tables_markdown(records: list[dict]) -> str:
     out = ["# Results", "",
            "Each cell: **ours** (paper). Percent stable counts controllers whose closed loop "
            "is stable in testing; percent change in cost is the mean relative change of the "
-           "training loss; training time is wall seconds per controller (ours: 2 CPU cores, "
-           "all initialisations of a configuration trained together). Test MSE: plant-state "
-           "MSE against the expert from the same test states and noise; unstable controllers "
-           "count as ∞.", ""]
+           "training loss; training time is wall seconds per controller (ours: "
+           f"{os.cpu_count()} CPU cores, all initialisations of a configuration trained "
+           "together). Test MSE: plant-state MSE against the expert from the same test states "
+           "and noise; unstable controllers count as ∞.", ""]
+    if any(r.get("quick") for r in records):
+        out += ["**Quick run** (`--quick`): fewer plants, test states and training steps "
+                "than the paper's protocol, so the numbers are not comparable with the "
+                "paper's.", ""]
     groups = sorted({(r["example"], r["data"]) for r in records},
                     key=lambda k: (k[0] != "linear", k[1] != "initial"))
     for example, data in groups:
