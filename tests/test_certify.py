@@ -481,3 +481,9 @@ def test_high_gain_controllers_against_their_gain_bound(s):
     K = dj.LTIController(A, B, C, D)
     assert dj.certify(K, dj.QSR.bounded_gain(1.01 * 12.5 * s, n_in=1, n_out=1)).holds
     assert not dj.certify(K, dj.QSR.bounded_gain(0.99 * 12.5 * s, n_in=1, n_out=1)).holds
+
+
+def test_certify_under_a_trace_says_why():
+    K = dj.LTIController(0.5 * np.eye(1), np.ones((1, 1)), np.ones((1, 1)), np.ones((1, 1)))
+    with pytest.raises(ValueError, match="`certify` cannot run under `jax.jit`"):
+        jax.jit(lambda k: dj.certify(k, dj.QSR.passive(1)).margin)(K)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import equinox as eqx
+import jax
+import jax.core
 import numpy as np
 
 from .. import _outcome
@@ -98,6 +100,11 @@ def _controller_arrays(K: LTIController, qsr: QSR):
     if not isinstance(qsr, QSR):
         raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
     qsr.check_sizes(K.n_in, K.n_out)
+    if any(isinstance(M, jax.core.Tracer) for M in (K.A, K.B, K.C, K.D)):
+        raise ValueError("`certify` cannot run under `jax.jit` or `jax.vmap` (`K` is traced): "
+                         "it checks the certificate in float64 on the host. Call it on the "
+                         "result, outside the transformation (a batched `K` is certified "
+                         "member by member).")
     return tuple(np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
 
 
