@@ -71,8 +71,9 @@ def _run(key, windows, qsr, learning_rate, init_scale, *, width, activation, opt
     # The driver loop of every gradient trainer, with the LTI direct map's method and the
     # REN map's loss in place of the LTI one.
     ren = lambda theta: ren_map(theta, qsr, width, activation, margin, direct_input)
+    loss_fn = ren_odd_loss if odd else ren_imitation_loss
     (_, _, (K, P, lam), _), hist, loss, steps, reason, kept = iterate(
-        MapDescent(theta0, data, opt, map_loss(ren, ren_odd_loss if odd else ren_imitation_loss)),
+        MapDescent(theta0, data, opt, map_loss(ren, loss_fn)),
         max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
     K, lam = to_user_units(K, lam, s2**0.5)
     if odd:  # the trained REN is the odd part of K (`RENController.odd_part`)
@@ -112,7 +113,8 @@ def fit_ren(
     optimizer=None, learning_rate: float | None = None, init_scale: float | None = None,
     num_inits: int = 8, n_state: int | None = None, max_steps: int = MAX_STEPS,
     atol: float = 0.0, rtol: float = RTOL_DIRECT, margin: float = MARGIN,
-    direct_input: bool = False, odd: bool = False, throw: bool = True, keep: str = "best", balance: bool = True,
+    direct_input: bool = False, odd: bool = False, throw: bool = True, keep: str = "best",
+    balance: bool = True,
 ) -> RENFitResult:
     """Learn $(Q,S,R)$-dissipative REN controllers (nonlinear, dynamic) from demonstrations.
 
@@ -156,9 +158,9 @@ def fit_ren(
       sliding windows (N = 25, seeds 1 and 2, 20 initialisations) it tested 1.02x and
       0.094x the median error of the REN without it ([REN controllers](ren.md)); on the
       linear example's tuning plants, at that example's settings, it tested 2.9x worse,
-      so measure it on your problem. The
-      certificate is $(\\tfrac12\\operatorname{diag}(P, P),
-      \\tfrac12\\operatorname{diag}(\\Lambda, \\Lambda))$, checked like any other.
+      so measure it on your problem. The certificate is
+      $(\\tfrac12\\operatorname{diag}(P, P), \\tfrac12\\operatorname{diag}(\\Lambda,
+      \\Lambda))$, checked like any other.
     - `activation`: `"tanh"` (default: on the problem zoo's tuning half its held-out error
       was at most 1.31x ReLU's, ReLU's up to 22x tanh's), `"relu"` (positively homogeneous,
       so it extrapolates in scale: the experiments' choice on the nonlinear example, whose
