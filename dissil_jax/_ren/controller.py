@@ -180,8 +180,9 @@ class RENController(eqx.Module):
     [`to_lti`][dissil_jax.RENController.to_lti]. Leading batch axes are allowed on all
     nine matrices; `__call__` handles one controller (vmap for batches).
 
-    **Arguments:** the nine matrices, and `activation`: `"relu"`, `"tanh"` or a callable
-    that passes `check_activation`'s screen (static).
+    **Arguments:** the nine matrices, and `activation`: `"relu"` (default), `"tanh"` or a
+    callable that passes `check_activation`'s screen (static). (`fit_ren` defaults to
+    `"tanh"`, chosen on the problem zoo.)
 
     **Raises** a `ValueError` for shapes that do not match, a $D_{11}$ with a nonzero entry
     on or above the diagonal, non-finite entries, or an activation that is not
