@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import equinox as eqx
+import jax
+import jax.core
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
@@ -133,10 +135,10 @@ class LTIController(eqx.Module):
         **Arguments:**
 
         - `key`: a JAX PRNG key (first, as in the trainers and `jax.random`).
-        - `n_state`: state size $\\hat n$.
+        - `n_state`: state size $\\hat n$ (0: a static controller, $\\hat y = D\\hat u$).
         - `n_in`: input size $p$ (plant outputs).
         - `n_out`: output size $m$ (plant inputs).
-        - `scale`: standard deviation of the entries.
+        - `scale`: standard deviation of the entries ($\\ge 0$; may be traced).
         - `dtype`: floating dtype (default: JAX's default float).
 
         **Returns:** an unbatched `LTIController`; `jax.vmap` over keys for a batch:
@@ -146,8 +148,12 @@ class LTIController(eqx.Module):
         Ks = jax.vmap(lambda k: dj.LTIController.random(k, 2, 1, 1))(keys)
         ```
         """
-        n, n_in, n_out = (check_int(name, d) for name, d in
-                          (("n_state", n_state), ("n_in", n_in), ("n_out", n_out)))
+        n = check_int("n_state", n_state, minimum=0)
+        n_in, n_out = (check_int(name, d) for name, d in (("n_in", n_in), ("n_out", n_out)))
+        if not isinstance(scale, jax.core.Tracer) and not (np.ndim(scale) == 0
+                                                            and 0 <= float(scale) < np.inf):
+            raise ValueError(f"`scale` must be a finite number >= 0 (a standard deviation), "
+                             f"got {scale!r}.")
         dtype = dtype or jnp.result_type(float)
         kA, kB, kC, kD = jr.split(key, 4)
         shapes = ((n, n), (n, n_in), (n_out, n), (n_out, n_in))

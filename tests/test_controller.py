@@ -60,7 +60,7 @@ def test_shape_errors_name_the_argument():
     with pytest.raises(ValueError, match="`A`"):
         dj.LTIController(np.full((2, 2), np.nan), np.ones((2, 1)), np.ones((1, 2)), np.ones((1, 1)))
     with pytest.raises(ValueError, match="`n_state`"):
-        dj.LTIController.random(jax.random.PRNGKey(0), 0, 1, 1)
+        dj.LTIController.random(jax.random.PRNGKey(0), 1.5, 1, 1)
 
 
 def test_batched_controllers_via_vmap(getkey):
@@ -159,3 +159,17 @@ def test_dtype_is_kept_and_cast(getkey):
     assert tree_allclose(K64, K, rtol=0, atol=0)  # float32 -> float64 is exact
     sys = K.to_statespace()
     assert sys.A.dtype == np.float64 and sys.dt is True
+
+
+def test_random_static_controllers_and_bad_scales():
+    K = dj.LTIController.random(jax.random.PRNGKey(0), 0, 2, 3, scale=0.5)
+    assert (K.n_state, K.n_in, K.n_out) == (0, 2, 3) and K.D.shape == (3, 2)
+    assert dj.certify(K, dj.QSR.bounded_gain(100.0, n_in=2, n_out=3)).holds  # static: Phi(D)
+    for bad in (-1.0, float("nan"), float("inf"), np.ones(2)):
+        with pytest.raises(ValueError, match="`scale`"):
+            dj.LTIController.random(jax.random.PRNGKey(0), 1, 1, 1, scale=bad)
+    with pytest.raises(ValueError, match="`n_state`"):
+        dj.LTIController.random(jax.random.PRNGKey(0), -1, 1, 1)
+    # a traced scale (a sweep over initial scales) still draws
+    draw = jax.vmap(lambda s: dj.LTIController.random(jax.random.PRNGKey(0), 1, 1, 1, scale=s).A)
+    np.testing.assert_allclose(draw(jnp.array([1.0, 2.0]))[1], 2 * draw(jnp.array([1.0, 2.0]))[0])
