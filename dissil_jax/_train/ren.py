@@ -18,8 +18,9 @@ from .. import _outcome
 from .._data import Windows
 from .._direct_map import MARGIN, check_margin
 from .._rate_scale import rate_factor, scaled_rate
+from .._ren.activation import check_activation
 from .._ren.certify import certified_batch, certify_ren
-from .._ren.controller import block_diag2, check_activation, ren_imitation_loss, ren_odd_loss
+from .._ren.controller import block_diag2, ren_imitation_loss, ren_odd_loss
 from .._ren.map import init_ren_params, ren_map
 from .._sdp.indefinite import is_indefinite
 from .._supply import QSR

@@ -1,0 +1,105 @@
+"""The activation of a REN: the known names, and the screen of a user's callable (slope
+restricted in $[0, 1]$ with $\\sigma(0) = 0$, the sector condition the certificate uses)."""
+
+from __future__ import annotations
+
+import weakref
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+#: The activations known to be slope-restricted in $[0, 1]$ with $\sigma(0) = 0$.
+ACTIVATIONS: dict[str, Callable] = {"relu": jax.nn.relu, "tanh": jnp.tanh}
+
+# The screen of a user-supplied activation: difference quotients on this grid (and at 0).
+_GRID = np.concatenate([-np.logspace(-3, 3, 61)[::-1], [0.0], np.logspace(-3, 3, 61)])
+# Round-off allowance of the screen, in units of the evaluation's machine epsilon per
+# rounded value: each quotient (s(a) - s(b)) / (a - b) is allowed 8 eps (|s(a)| + |s(b)|)
+# / |a - b|, room for a correctly rounded s and a few ulps of a library's tanh.
+_ULPS = 8.0
+
+
+def check_activation(activation, rescreen: bool = False) -> str | Callable:
+    """`activation` if it is a known name or passes the sector screen, else a ValueError.
+
+    A name from `ACTIVATIONS` is accepted as is. A callable is evaluated in float64 on a
+    logarithmic grid of 123 points in $[-10^3, 10^3]$: it must give $\\sigma(0) = 0$ and
+    difference quotients of neighbouring points in $[0, 1]$. The screen can refuse but not
+    prove: the certificate assumes the slope restriction everywhere, so a callable is the
+    caller's promise, checked where it is cheap to check. A callable that passed is
+    remembered (controllers built inside a trace cannot screen), unless `rescreen`.
+    """
+    if isinstance(activation, str):
+        if activation not in ACTIVATIONS:
+            raise ValueError(f"`activation` must be one of {sorted(ACTIVATIONS)} or a callable "
+                             f"slope-restricted in [0, 1] with sigma(0) = 0, got {activation!r}.")
+        return activation
+    if not callable(activation):
+        raise ValueError(f"`activation` must be a name or a callable, got {activation!r}.")
+    if _holds_arrays(activation):
+        raise ValueError(
+            "`activation` is an equinox Module holding JAX arrays. The activation is a static "
+            "(compile-time) part of the controller, so its constants must be Python numbers: "
+            "declare them `eqx.field(static=True)` with float values, or close over floats.")
+    if _passed(activation) and not rescreen:
+        return activation
+    # Trainers build controllers inside their compiled, differentiated loops, where the
+    # screen cannot run: `fit_ren` screens first, eagerly, and this remembers the result.
+    try:
+        with jax.ensure_compile_time_eval():
+            grid = jnp.asarray(_GRID)  # float32 without x64: the points it rounds to are used
+            out = jax.vmap(activation)(grid)
+            dtype = jnp.result_type(out)
+            vals = np.asarray(out, np.float64)
+            points = np.asarray(grid, np.float64)
+    except jax.errors.TracerArrayConversionError:
+        raise ValueError(
+            "`activation` (a callable) must be screened once outside any JAX transformation "
+            "before a RENController is built inside one: build one RENController with it "
+            "eagerly first (`dj.fit_ren` does this for you).") from None
+    if vals.shape != _GRID.shape or not np.all(np.isfinite(vals)):
+        raise ValueError("`activation` must map scalars to finite scalars elementwise.")
+    # Round-off allowance per quotient, in the evaluation's precision (float32 without x64):
+    # a slope of 1 + 1e-2 in float32 is refused, as in float64.
+    eps = float(jnp.finfo(dtype).eps) if jnp.issubdtype(dtype, jnp.floating) else 0.0
+    step = np.diff(points)
+    slopes = np.diff(vals) / step
+    tol = _ULPS * eps * (np.abs(vals[1:]) + np.abs(vals[:-1])) / step
+    mid = len(_GRID) // 2
+    zero = vals[mid]
+    zero_tol = _ULPS * eps * max(abs(vals[mid - 1]), abs(vals[mid + 1]))
+    if abs(zero) > zero_tol or np.any(slopes < -tol) or np.any(slopes > 1 + tol):
+        raise ValueError(
+            "`activation` is not slope-restricted in [0, 1] with sigma(0) = 0 (found sigma(0) "
+            f"= {zero:.3g}, difference quotients in [{slopes.min():.6g}, {slopes.max():.6g}] "
+            "on a grid in [-1e3, 1e3]); the certificate's sector condition w (v - w) >= 0 "
+            "needs it. Rescale it (e.g. sigma(v)/L for slopes in [0, L]) or use 'relu'/'tanh'.")
+    _remember(activation)
+    return activation
+
+
+def _holds_arrays(fn) -> bool:
+    """An equinox Module with JAX array leaves (which cannot be a static field)."""
+    return isinstance(fn, eqx.Module) and bool(jax.tree.leaves(eqx.filter(fn, eqx.is_array)))
+
+
+# Callables that passed the screen (weakly held; by id for those that take no weak ref).
+_SCREENED: weakref.WeakSet = weakref.WeakSet()
+_SCREENED_IDS: dict[int, Callable] = {}
+
+
+def _passed(fn) -> bool:
+    try:
+        return fn in _SCREENED
+    except TypeError:
+        return _SCREENED_IDS.get(id(fn)) is fn
+
+
+def _remember(fn) -> None:
+    try:
+        _SCREENED.add(fn)
+    except TypeError:
+        _SCREENED_IDS[id(fn)] = fn
