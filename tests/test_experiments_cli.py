@@ -242,3 +242,11 @@ def test_entry_point_with_jobs_gives_the_serial_records(tmp_path):
     assert "Direct (ours)" in (tmp_path / "serial" / "tables.md").read_text()
     default_methods = {m for _, m, _ in cli._configs(cli._parser().parse_args(["linear"]))}
     assert "direct" not in default_methods  # not a paper method
+
+
+def test_quick_runs_default_to_ten_initialisations():
+    parse = lambda argv: cli._parser().parse_args(argv)  # noqa: E731
+    assert cli._inits(parse(["nonlinear"])) == 100
+    assert cli._inits(parse(["nonlinear", "--quick"])) == 10
+    assert cli._inits(parse(["nonlinear", "--quick", "--inits", "3"])) == 3
+    assert cli._inits(parse(["linear"])) == 10

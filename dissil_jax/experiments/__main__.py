@@ -32,7 +32,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--segments", nargs="+", type=int, default=None,
                    help="numbers of training segments N (default: the paper's)")
     p.add_argument("--inits", type=int, default=None,
-                   help="random initialisations per plant (default: 10 linear, 100 nonlinear)")
+                   help="random initialisations per plant (default: 10 linear, 100 nonlinear; "
+                        "10 with --quick)")
     p.add_argument("--methods", nargs="+", choices=METHODS, default=None,
                    help=f"default: the paper's methods ({' '.join(PAPER_METHODS)}); `direct` "
                         "(dj.fit_direct) and `ren` (dj.fit_ren, certified REN controllers) "
@@ -45,7 +46,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="random seed of the linear example's plants, the training data, the "
                         "initialisations and the test states (default: %(default)s)")
     p.add_argument("--quick", action="store_true",
-                   help="small sizes (at most 2 plants, 50 test states, 30 training steps)")
+                   help="small sizes (at most 2 plants, 50 test states, 30 training steps, "
+                        "10 initialisations unless --inits)")
     p.add_argument("--jobs", type=int, default=1,
                    help="worker processes sharing the configurations (each gets cores/jobs "
                         "solver threads); the records do not depend on it")
@@ -151,7 +153,9 @@ def _unique(values) -> list:
 
 
 def _inits(args) -> int:
-    return args.inits or (10 if args.example == "linear" else 100)
+    """`--inits`, else the paper's 10 per plant (linear) or 100 (nonlinear); 10 with
+    `--quick`."""
+    return args.inits or (10 if args.example == "linear" or args.quick else 100)
 
 
 def _configs(args) -> list[tuple]:
