@@ -39,7 +39,7 @@ from jaxtyping import Array, Float
 
 from . import _linalg
 from ._controller import LTIController
-from ._rate_scale import unit_scale
+from ._rate_scale import balanced_blocks
 from ._supply import QSR
 
 #: Default margin eps of the map: KYP(P) <= -eps diag(P, Phi0) and P >= eps I. The float64
@@ -88,8 +88,8 @@ def feedthrough_centre(qsr: QSR) -> tuple[np.ndarray, np.ndarray]:
         # balanced by powers of two, y = t_y y~ and u = t_u u~ (a congruence), and map back:
         # D = (t_y / t_u) D~ and Phi(D) = Phi~(D~) / t_u^2. Rates that pass unbalanced keep
         # their centre.
-        t_y, t_u = unit_scale(qsr.Q), unit_scale(qsr.R)
-        best = _centre_search(t_y**2 * qsr.Q, t_y * t_u * qsr.S, t_u**2 * qsr.R)
+        t_y, t_u, balanced = balanced_blocks(qsr)
+        best = _centre_search(balanced.Q, balanced.S, balanced.R)
         if best is not None:
             best = (t_y / t_u * best[0], best[1] / t_u**2)
     if best is None:

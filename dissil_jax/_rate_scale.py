@@ -58,6 +58,15 @@ def unit_scale(M) -> float:
     return 1.0 if size == 0.0 else float(nearest_power_of_two(size ** -0.5))
 
 
+def balanced_blocks(qsr: QSR) -> tuple[float, float, QSR]:
+    """`(t_y, t_u, rate)`: the powers of two `unit_scale(Q)`, `unit_scale(R)` and the rate
+    in the output and input units $y = t_y\\tilde y$, $u = t_u\\tilde u$,
+    $(t_y^2Q, t_yt_uS, t_u^2R)$: a congruence, so the same inertia and, for a controller
+    $(A, Bt_u, C/t_y, Dt_u/t_y)$, the same dissipation inequality with the same storage."""
+    t_y, t_u = unit_scale(qsr.Q), unit_scale(qsr.R)
+    return t_y, t_u, QSR(t_y**2 * qsr.Q, t_y * t_u * qsr.S, t_u**2 * qsr.R)
+
+
 def scaled_rate(qsr: QSR, k: float) -> QSR:
     """The supply rate $(Q, S, R)/\\kappa$ (`qsr` itself when $\\kappa = 1$)."""
     return qsr if k == 1.0 else QSR(qsr.Q / k, qsr.S / k, qsr.R / k)

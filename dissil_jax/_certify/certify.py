@@ -10,7 +10,7 @@ import numpy as np
 from .. import _outcome
 from .._controller import LTIController
 from .._outcome import Outcome
-from .._rate_scale import unit_scale
+from .._rate_scale import balanced_blocks
 from .._sdp.lmi import VERIFY_RTOL, kyp_bound_holds, kyp_margin, kyp_matrix, kyp_scale
 from .._supply import QSR
 from .._validate import check_tolerance
@@ -275,11 +275,11 @@ def unbalanced_storage(P, t):
 _IO_BAND = 12
 
 
-def _io_scale(qsr: QSR) -> tuple[float, float] | None:
-    """Powers of two $(t_y, t_u)$ that bring $Q$ and $R$ to unit size (`unit_scale`), when
-    their sizes differ by more than $2^{12}$; else None."""
-    t_y, t_u = unit_scale(qsr.Q), unit_scale(qsr.R)
-    return (t_y, t_u) if abs(np.log2(t_y / t_u)) > _IO_BAND / 2 else None
+def _io_scale(qsr: QSR) -> tuple[float, float, QSR] | None:
+    """`balanced_blocks(qsr)` when the sizes of $Q$ and $R$ differ by more than $2^{12}$;
+    else None."""
+    t_y, t_u, balanced = balanced_blocks(qsr)
+    return (t_y, t_u, balanced) if abs(np.log2(t_y / t_u)) > _IO_BAND / 2 else None
 
 
 def _search(A, B, C, D, qsr: QSR, tol, hint, max_margin) -> Certificate:
@@ -298,8 +298,7 @@ def _search(A, B, C, D, qsr: QSR, tol, hint, max_margin) -> Certificate:
     io = _io_scale(qsr)
     if cert.holds or io is None or str(cert.source).startswith("disproved"):
         return cert
-    t_y, t_u = io
-    balanced = QSR(t_y**2 * qsr.Q, t_y * t_u * qsr.S, t_u**2 * qsr.R)
+    t_y, t_u, balanced = io
     found = _search_units(A, B * t_u, C / t_y, D * (t_u / t_y), balanced, tol, None,
                           max_margin)
     if not np.all(np.isfinite(found.P)):

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._rate_scale import rate_factor, scaled_rate, unit_scale
+from .._rate_scale import balanced_blocks, rate_factor, scaled_rate
 from .._supply import QSR
 
 _TOL = 1e-10
@@ -56,8 +56,7 @@ def check_feasible(qsr: QSR) -> None:
     # The count is an inertia, which a congruence keeps (Sylvester): the blocks are scaled to
     # unit size by powers of two first, so that a small R beside a large Q (a gain bound of
     # 1e-6: eigenvalues -1 and 1e-12) is not taken for round-off.
-    t = np.concatenate([np.full(qsr.n_out, unit_scale(qsr.Q)), np.full(p, unit_scale(qsr.R))])
-    w = np.linalg.eigvalsh(t[:, None] * _supply_matrix(qsr) * t[None, :])
+    w = np.linalg.eigvalsh(_supply_matrix(balanced_blocks(qsr)[2]))
     scale = max(1.0, float(np.abs(w).max(initial=0.0)))
     n_pos = int(np.sum(w > _TOL * scale))
     if n_pos < p:
