@@ -99,3 +99,29 @@ def test_odd_must_be_a_bool():
     with pytest.raises(ValueError, match="`odd`"):
         dj.fit_ren(jr.PRNGKey(0), w, dj.QSR.passive(1), width=2, num_inits=2, max_steps=2,
                    odd="yes")
+
+
+@pytest.mark.parametrize("activation", ["relu", "tanh"])
+def test_odd_relu_ren_applies_a_linear_first_control(activation):
+    """Started at the plant state, an odd ReLU REN's first control in the loop is linear in
+    x0, even on the paper's nonlinear plant (y = x - 2u): the loop's algebraic equation
+    u0 = -K(x0, x0 - 2 u0) is positively homogeneous and odd. tanh is not (the control)."""
+    from dissil_jax.experiments import Noise, simulate_controllers
+    from dissil_jax.systems import paper_nonlinear_plant
+
+    plant = paper_nonlinear_plant()
+    rng = np.random.default_rng(4)
+    K = _random_ren(rng, n=1, q=4, p=1, m=1, activation=activation, scale=0.6).odd_part()
+    Ks = jax.tree.map(lambda a: a[None], K)
+    x0 = jnp.array([[1.0], [-3.0], [0.5], [2.0], [7.0]])
+    zeros = lambda d: jnp.zeros((5, 1, d))
+    traj = simulate_controllers(plant, Ks, x0, Noise(zeros(1), zeros(1)),
+                                jnp.concatenate([x0, -x0], -1))
+    u0 = np.asarray(traj.u)[0, :, 0, 0]
+    gain = u0 / np.asarray(x0[:, 0])
+    assert abs(gain[0]) > 1e-3  # the controller acts
+    if activation == "relu":
+        # one Newton solve of the loop per point (tolerance 1e-6, `simulate_controllers`)
+        np.testing.assert_allclose(gain, gain[0], rtol=1e-6, atol=1e-9)
+    else:
+        assert np.ptp(gain) > 1e-3
