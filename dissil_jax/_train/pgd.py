@@ -351,6 +351,17 @@ def fit_pgd(
     3.7). Much smaller scales start every run near the zero controller, which is already
     dissipative, so the constraint would rarely bind.
 
+    **Tight gain bounds.** `converged` means only that the stop rule fired, not that the
+    constrained minimum was found. On a rate with $|Q| \\gg R$ (a controller gain bound
+    $\\gamma = \\sqrt{R/|Q|}$ far below the outputs' size, e.g. `stabilising_qsr` of a
+    plant with a large $H_\\infty$ gain) the steepest direction is the feedthrough: the
+    steps set $|D| = \\gamma$, which uses up the whole bound, and the projection then
+    keeps $C \\approx 0$. The run stops at the best static gain, a stationary point of the
+    projected steps, from every start (measured on two random SISO plants with
+    $|Q|/R \\approx 10^6$: $0.85\\,J(0)$ and $0.99\\,J(0)$, against $0.38\\,J(0)$ and
+    $0.79\\,J(0)$ for [`fit_direct`][dissil_jax.fit_direct]; `rtol=0`, other `P_ref`s
+    and `init_scale=0.01` stop at the same loss). Use `fit_direct` for such rates.
+
     **Returns:** a [`FitResult`][dissil_jax.FitResult]; every controller carries a `P`
     that passes the exact float64 KYP check (`certified`).
 
