@@ -8,7 +8,8 @@ nonlinear example's initial segments (tuning seeds 1 and 2; a prototype outside 
 - **activations** (`--activations`): odd RENs through `dj.fit_ren` with tanh and with
   0.75 ReLU + 0.25 tanh (bounded parts; the experiments' settings otherwise);
 - **errors** (`--errors`): for the median controller of REN, MLP and ICO on seed 1, the
-  share of the test error in the first step, and by the size of the test state $|x_0|$.
+  share of the test error at $x_1$ (the first control's effect), at $x_2$ (the second's) and
+  later, and by the size of the test state $|x_0|$.
 
 Usage: python benchmarks/bench_ren_shifts.py [--inits 20] [--activations | --errors]
 """
@@ -66,7 +67,8 @@ def _odd_loss(C, W):
     return jnp.mean(jnp.sum((0.5 * (plus - minus) - W.target) ** 2, axis=(-2, -1)))
 
 
-def train(key, W, inits, lr, beta_scale, beta_train, width=16, steps=150, init_scale=0.5):
+def train(key, W, inits, lr, beta_scale, beta_train, width=16, steps=150, init_scale=0.5,
+          direct_input=False):
     """Odd shifted RENs as `fit_ren(odd=True)` trains them (normalised units, Adam)."""
     s2 = loss_scale(W)
     data, qsr = scaled(W, s2), SPEC.qsr
@@ -76,7 +78,7 @@ def train(key, W, inits, lr, beta_scale, beta_train, width=16, steps=150, init_s
     params, opt = (theta, beta), optax.adam(lr)
 
     def loss(p):
-        K = ren_map(p[0], qsr, width, "relu", MARGIN)[0]
+        K = ren_map(p[0], qsr, width, "relu", MARGIN, direct_input)[0]
         return _odd_loss(ShiftedREN(K, p[1] if beta_train else jax.lax.stop_gradient(p[1])),
                          data)
 
@@ -91,22 +93,29 @@ def train(key, W, inits, lr, beta_scale, beta_train, width=16, steps=150, init_s
     state = jax.vmap(opt.init)(params)
     for _ in range(steps):
         params, state, J = step(params, state)
-    K, _, lam = jax.vmap(lambda t: ren_map(t, qsr, width, "relu", MARGIN))(params[0])
+    K, _, lam = jax.vmap(lambda t: ren_map(t, qsr, width, "relu", MARGIN, direct_input))(
+        params[0])
     K = to_user_units(K, lam, s2**0.5)[0].odd_part()
     return ShiftedREN(K, jnp.concatenate([params[1], params[1]], -1)), J
 
 
 def shifts(inits):
     print("| odd REN, width 16 | seed 1 | seed 2 |\n|---|---:|---:|")
-    for name, lr, scale, trained in [("no shifts", 0.1, 0.0, False),
-                                     ("shifts trained from 0", 0.1, 0.0, True),
-                                     ("fixed shifts N(0, 0.5^2)", 0.1, 0.5, False),
-                                     ("fixed shifts N(0, 2^2)", 0.1, 2.0, False),
-                                     ("trained from N(0, 0.5^2), step 0.03", 0.03, 0.5, True)]:
+    runs = [("no shifts", 0.1, 0.0, False, {}),
+            ("shifts trained from 0", 0.1, 0.0, True, {}),
+            ("fixed shifts N(0, 0.5^2)", 0.1, 0.5, False, {}),
+            ("fixed shifts N(0, 2^2)", 0.1, 2.0, False, {}),
+            ("trained from N(0, 0.5^2), step 0.03", 0.03, 0.5, True, {}),
+            ("trained from 0, 30 steps", 0.1, 0.0, True, dict(steps=30)),
+            ("trained from 0, direct input", 0.1, 0.0, True, dict(direct_input=True)),
+            ("trained from 0, width 4, step 0.03", 0.03, 0.0, True, dict(width=4)),
+            ("trained from 0, width 4, 40 steps, direct input", 0.1, 0.0, True,
+             dict(width=4, steps=40, direct_input=True))]
+    for name, lr, scale, trained, extra in runs:
         cells = []
         for seed in (1, 2):
             plant, expert, W, (k_fit, _, k_noise) = training_data(SPEC, 0, seed, "initial", 25)
-            C, J = train(k_fit, W, inits, lr, scale, trained)
+            C, J = train(k_fit, W, inits, lr, scale, trained, **extra)
             x0, _, steps = evaluation_setup(SPEC, 0, seed)
             ev = evaluate(k_noise, plant, expert, C, x0, steps,
                           xhat0=jnp.concatenate([x0, -x0], -1))
@@ -140,9 +149,9 @@ def errors(inits, seed=1):
     size = np.abs(np.asarray(x0[:, 0]))
     edges = [0, 5, 10, 20, 30, np.inf]
     print(f"seed {seed}, median controller of {inits}: share of the test error")
-    print("| method | first step | " + " | ".join(
+    print("| method | at x1 | at x2 | later | " + " | ".join(
         f"|x0| in [{a:g}, {b:g})" for a, b in zip(edges, edges[1:])) + " |")
-    print("|---|---:|" + "---:|" * (len(edges) - 1))
+    print("|---|---:|---:|---:|" + "---:|" * (len(edges) - 1))
     for method in ("ren", "mlp", "ico"):
         res = fit(method, k_fit, W, SPEC, inits)
         ev = evaluate(k_noise, plant, expert, res.controllers, x0, steps,
@@ -153,7 +162,8 @@ def errors(inits, seed=1):
         per_state = d.sum(1)
         share = [per_state[(size >= a) & (size < b)].sum() / per_state.sum()
                  for a, b in zip(edges, edges[1:])]
-        print(f"| {method} | {d[:, 0].sum() / d.sum():.2f} | "
+        at = d.sum(0) / d.sum()
+        print(f"| {method} | {at[0]:.2f} | {at[1]:.2f} | {at[2:].sum():.2f} | "
               + " | ".join(f"{s:.3f}" for s in share) + " |", flush=True)
     print("test states per bin:", [int(((size >= a) & (size < b)).sum())
                                    for a, b in zip(edges, edges[1:])])
