@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import pytest
-from helpers import dissipation_ok, expert_windows, index
+from helpers import dissipation_ok, expert_windows, freq_response, index
 
 import dissil_jax as dj
 from dissil_jax.experiments.protocol import example_spec, training_data
@@ -100,6 +100,55 @@ def test_defaults_on_a_realisable_passive_target_do_not_raise():
     _assert_certified_and_monotone(res, qsr)
 
 
+def _drss_lqr_problem(seed, n, p, m, rate, N=25):
+    """A random stable plant (python-control `drss` from numpy's global seed `seed`), an
+    LQR expert with input and process noise on 50 trajectories, the first two steps of
+    `N` of them, and the controller rate `stabilising_qsr` of the plant's gain bound 1.01
+    times its H-infinity norm (`rate="gain"`) or of its cone (`"cone"`)."""
+    import control
+    import scipy.linalg as sla
+
+    state = np.random.get_state()
+    np.random.seed(seed)
+    plant = control.drss(n, p, m)
+    np.random.set_state(state)
+    A, B, C = (np.asarray(M, np.float64) for M in (plant.A, plant.B, plant.C))
+    D = np.zeros((p, m))
+    X = sla.solve_discrete_are(A, B, C.T @ C + 1e-2 * np.eye(n), 0.1 * np.eye(m))
+    K = np.linalg.solve(0.1 * np.eye(m) + B.T @ X @ B, B.T @ X @ A)
+    rng = np.random.default_rng(seed)
+    x = [rng.standard_normal((50, n))]
+    u = []
+    for _ in range(2):
+        u.append(-x[-1] @ K.T + 0.02 * rng.standard_normal((50, m)))
+        x.append(x[-1] @ A.T + u[-1] @ B.T + 0.04 * rng.standard_normal((50, n)))
+    y = np.stack([x[0] @ C.T, x[1] @ C.T], 1)
+    windows = dj.Windows(jnp.asarray(x[0][:N]), jnp.asarray(y[:N]),
+                         jnp.asarray(np.stack(u, 1)[:N]))
+    if rate == "gain":
+        G = freq_response(A, B, C, D, np.linspace(0.0, np.pi, 4000))
+        gain = np.linalg.svd(G, compute_uv=False).max()
+        plant_qsr = dj.QSR.bounded_gain(1.01 * gain, n_in=m, n_out=p)
+    else:
+        plant_qsr = dj.lti_cone_qsr(dj.LinearPlant(A, B, C, D))
+    return windows, dj.stabilising_qsr(plant_qsr)
+
+
+@pytest.mark.parametrize("seed, n, p, m, rate", [(0, 3, 1, 1, "gain"), (22, 3, 2, 2, "cone")])
+def test_defaults_on_a_drss_plant_with_an_lqr_expert_do_not_raise(seed, n, p, m, rate):
+    """Before, one of the 8 default runs ended `solver_failed` (so `throw=True` raised):
+
+    - SISO, gain bound: a run whose D met the gain bound with B far from 0 crept along that
+      edge, where every certificate has P ~ 0 along B; at cond(P~) ~ 3e8 Clarabel stopped
+      on `NumericalError` (now: a shorter step, `ico_step._SHORT_PROX`);
+    - 2x2, cone: a run froze A and B and its Young weight fell to 6e-5, whose 1/w~^2 in the
+      Young LMI stopped Clarabel at its first iteration (now balanced, `YoungLMI`)."""
+    windows, qsr = _drss_lqr_problem(seed, n, p, m, rate)
+    res = dj.fit_ico(jr.PRNGKey(seed), windows, qsr)  # all defaults: raises on a failed run
+    assert set(res.result_names()) <= {"converged", "max_steps"}, Counter(res.result_names())
+    _assert_certified_and_monotone(res, qsr)
+
+
 def test_uncertifiable_step_is_shortened_not_refused(monkeypatch):
     """A step whose P fails the float64 check (here: P shifted off positive definiteness) is
     shortened towards the certified iterate instead of ending the run."""
@@ -149,13 +198,17 @@ def test_failed_solve_is_retried_with_a_new_solver(monkeypatch):
 @pytest.mark.parametrize("P_c_margin", ["smaller", "larger"])
 def test_recentring_only_on_a_larger_margin(monkeypatch, P_c_margin):
     """The fallback re-centres on the maximum-margin certificate only if that P has more
-    of the SDP's margin than the iterate's (near the optimum it had 1e4 times less)."""
+    of the SDP's margin than the iterate's (near the optimum it had 1e4 times less); the
+    shorter steps come last, around the iterate's own P."""
     windows, qsr = _realisable_windows(seed=3, n=2, p=1, m=1), dj.QSR.passive(1)
-    seen = []
+    seen, short = [], []
     margin = ico.ICOProblem.kyp_margin
 
-    def fail(self, theta0, P_tilde, *args, **kwargs):
-        seen.append(np.asarray(P_tilde))
+    def fail(self, theta0, P_tilde, w_tilde, eps=None, rel=0.0, prox=None):
+        if prox is None:
+            seen.append(np.asarray(P_tilde))
+        else:
+            short.append((np.asarray(P_tilde), prox))
         return None, None, None, _outcome.code("solver_failed"), 0.0
 
     def fake_margin(self, theta, P):  # rescale the margin of the re-centred P only
@@ -169,6 +222,9 @@ def test_recentring_only_on_a_larger_margin(monkeypatch, P_c_margin):
     res = dj.fit_ico(jr.PRNGKey(2), windows, qsr, num_inits=1, max_steps=4, throw=False)
     assert res.result_names() == ["solver_failed"] and int(res.steps[0]) == 0
     assert len(seen) == (2 if P_c_margin == "smaller" else 3)  # update, new solver, re-centred
+    pb_prox = 1e-4  # fit_ico's default `prox`
+    assert [mu for _, mu in short] == [f * pb_prox for f in ico_step._SHORT_PROX]
+    assert all(np.array_equal(P, seen[0]) for P, _ in short)
     assert res.certified is not None and bool(res.certified[0])
 
 

@@ -185,7 +185,18 @@ class DeltaZCone(ConeBlock):
 
 class YoungLMI(ConeBlock):
     """$[[Y, \\delta C], [\\delta C^\\top, \\phi(w) I]] \\succeq 0$ with the tangent
-    $\\phi(w) = 2/\\tilde w - w/\\tilde w^2 \\le 1/w$ (one PSD cone of size $m + n$)."""
+    $\\phi(w) = 2/\\tilde w - w/\\tilde w^2 \\le 1/w$ (one PSD cone of size $m + n$),
+    balanced by the congruence $\\mathrm{diag}(I_m, \\tilde w^{1/2} I_n)$:
+
+    $$\\begin{bmatrix} Y & \\tilde w^{1/2}\\delta C \\\\ \\tilde w^{1/2}\\delta C^\\top &
+    (2 - w/\\tilde w) I\\end{bmatrix} \\succeq 0,$$
+
+    the same constraint. Unbalanced, its entries $2/\\tilde w$ and $1/\\tilde w^2$ sat in
+    one cone with $Y$'s, which Clarabel's equilibration scales uniformly (a cone's rows
+    share one factor): when a run froze $A$ and $B$ and $\\tilde w$ fell by 4x a step to
+    $6\\cdot10^{-5}$, $1/\\tilde w^2\\approx 3\\cdot10^8$ and Clarabel stopped on
+    `NumericalError` at its first iteration.
+    """
 
     def __init__(self, layout: VariableLayout):
         import clarabel
@@ -200,10 +211,12 @@ class YoungLMI(ConeBlock):
         self._w_rows = svec_pos(m + np.arange(n), m + np.arange(n))  # the phi(w) I block
         self._rows = np.concatenate([svec_pos(yi, yj), svec_pos(aa, m + jn), self._w_rows])
         self._cols = np.concatenate([ycol, layout.colC[aa, jn], np.full(n, layout.ow)])
-        self._fixed = np.concatenate([-yw, np.full(m * n, -SQRT2)])
+        self._Y = -yw
+        self._dC = np.full(m * n, -SQRT2)
         self._n = n
 
     def fill(self, it):
         b = np.zeros(self.rows)
-        b[self._w_rows] = 2.0 / it.w
-        return np.concatenate([self._fixed, np.full(self._n, 1.0 / it.w**2)]), b
+        b[self._w_rows] = 2.0
+        return np.concatenate([self._Y, np.sqrt(it.w) * self._dC,
+                               np.full(self._n, 1.0 / it.w)]), b

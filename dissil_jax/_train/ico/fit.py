@@ -264,7 +264,9 @@ def fit_ico(
     $z = A\\hat x_0 + B\\hat u_0$ by the same relative amount,
     $\\tilde w_0 = \\lVert z\\rVert/(\\lVert C\\rVert\\lVert e\\rVert)$; afterwards $\\tilde w$ is
     the previous optimal $w$, clipped to $[\\tilde w/4, 2\\tilde w]$ and to $10^{\\pm4}\\tilde w_0$
-    (so it cannot collapse when one step happens not to move $A, B$).
+    (so it cannot collapse when one step happens not to move $A, B$). The Young LMI is
+    solved balanced by $\\mathrm{diag}(I, \\tilde w^{1/2}I)$, so a small $\\tilde w$ does
+    not ill-condition it.
 
     **Units do not matter.** The SDP is built on the windows divided by
     $s = \\sqrt{J(0)}$, the root of the zero controller's loss (`J(0)` of the data as
@@ -299,7 +301,10 @@ def fit_ico(
     arithmetic, and it is accepted only if it passes both float64 checks. A failed SDP is
     solved again by a new Clarabel solver (an updated one keeps the equilibration of the
     iterate it was built at, which goes stale as the data drift), then once more around the
-    maximum-margin certificate of the iterate if that has more of the SDP's margin.
+    maximum-margin certificate of the iterate if that has more of the SDP's margin, then
+    with $\\mu$ raised $10^2$ and $10^4$ times: a shorter step, still certified and
+    monotone ($\\delta\\theta = 0$ stays feasible), that Clarabel solves where the
+    certificates are ill-conditioned (`dissil_jax/_train/ico/step.py`).
     Otherwise the previous, certified iterate is kept and that run stops (`result` names
     the reason). A shortened step counts as a step in the stopping rule. A step that
     raises the loss by less than the stopping rule's tolerance is not taken and the run

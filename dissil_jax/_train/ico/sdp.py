@@ -28,7 +28,8 @@ on its last two blocks, with the pieces lifted into a few small cones:
 
 - one shared LMI $[[Y, \delta C], [\delta C^\top, \phi(w) I]] \succeq 0$ with
   $\phi(w) = 2/\tilde w - w/\tilde w^2 \le 1/w$ (the paper's overbound
-  $W^{-1} \succeq 2\tilde W - \tilde W W\tilde W$ for the scalar weight);
+  $W^{-1} \succeq 2\tilde W - \tilde W W\tilde W$ for the scalar weight), balanced by
+  the congruence $\mathrm{diag}(I, \tilde w^{1/2}I)$ (`YoungLMI`);
 - with $Y = yI$ ($y \ge w\lVert\delta C\rVert_2^2$, identical bound when $m = 1$), the
   rotated SOC $\lVert\bar e\rVert^2 \le \sigma (1 - y)$ for the stacked residual
   $\bar e = (\bar e_1, \dots, \bar e_N)$, compressed by a QR factorisation of its Jacobian to
@@ -124,7 +125,7 @@ class ICOProblem(TwoStepData):
             blk for blk in (self.kyp, DeltaZCone(self, lay), YoungLMI(lay), self.window_block)
             if blk is not None]
         self._assemble()
-        self.H = self._hessian()
+        self.H = self.hessian(self.prox)
         self.q_fixed = np.zeros(lay.nx)
         self.q_fixed[lay.otau] = self.c  # (1/N) (tau + sum_k sigma_k)
         self.q_fixed[lay.col_sig] = self.c
@@ -150,8 +151,10 @@ class ICOProblem(TwoStepData):
         self.indptr = np.concatenate([[0], np.cumsum(np.bincount(cs, minlength=self.nx))])
         self.nnz = len(rs)
 
-    def _hessian(self):
-        """Upper triangle of $H$ in the objective $\\frac12 x^\\top Hx + q^\\top x + $ const."""
+    def hessian(self, prox: float):
+        """Upper triangle of $H$ in the objective $\\frac12 x^\\top Hx + q^\\top x + $ const,
+        with the proximal weight $\\mu$ = `prox` (`self.H` has `self.prox`; a larger one is
+        the shorter step of `step.step_with_fallbacks`)."""
         lay = self.layout
         H = sp.lil_matrix((lay.nx, lay.nx))
         Gc = 2 * self.c * self.G
@@ -160,7 +163,7 @@ class ICOProblem(TwoStepData):
             H[np.ix_(idx, idx)] = Gc
         H = H.tocsr()
         diag = np.zeros(lay.nx)
-        diag[:lay.ntheta] = self.prox
+        diag[:lay.ntheta] = prox
         diag[lay.colP] = self.reg
         H = H + sp.diags(diag)
         return sp.triu(H).tocsc()

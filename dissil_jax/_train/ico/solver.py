@@ -28,22 +28,28 @@ class ICOSolver:
         """
         self.solver = None
 
-    def solve(self, theta0, P_tilde, w_tilde, eps=None, rel=0.0):
+    def solve(self, theta0, P_tilde, w_tilde, eps=None, rel=0.0, prox=None):
         """One ICO step with the KYP margin `eps` $+$ `rel` $\\operatorname{tr}P$ (`KYPBlock`):
         `(dtheta, P, w, outcome, solve_time)`; None fields on failure.
 
-        `outcome` is an `Outcome` code: `solved`, `infeasible` or `solver_failed`.
+        `outcome` is an `Outcome` code: `solved`, `infeasible` or `solver_failed`. A `prox`
+        other than the problem's is solved by a one-off solver (the shorter step of
+        `step.step_with_fallbacks`); the run's own solver is left as it was.
         """
         import clarabel
 
         pb = self.problem
         q, vals, b, _, ps = pb.data(theta0, P_tilde, w_tilde, eps, rel)
-        if self.solver is None:
-            self.solver = clarabel.DefaultSolver(pb.H, q, pb.matrix(vals), b, pb.cones,
-                                                 _sdp.clarabel_settings(**self.settings))
+        if prox is not None or self.solver is None:
+            H = pb.H if prox is None else pb.hessian(prox)
+            solver = clarabel.DefaultSolver(H, q, pb.matrix(vals), b, pb.cones,
+                                            _sdp.clarabel_settings(**self.settings))
+            if prox is None:
+                self.solver = solver
         else:
-            self.solver.update(q=q, A=vals, b=b)
-        sol = self.solver.solve()
+            solver = self.solver
+            solver.update(q=q, A=vals, b=b)
+        sol = solver.solve()
         outcome = _sdp.clarabel_outcome(str(sol.status))
         self.obj_val = float(sol.obj_val)
         if outcome != _outcome.code("solved"):

@@ -2,7 +2,8 @@
 
 `step` solves the convexified SDP around the current iterate with a KYP margin that the
 iterate itself has (`margins`); `step_with_fallbacks` solves a failed SDP again with a new
-Clarabel solver, then once around the maximum-margin certificate if that has more margin;
+Clarabel solver, then once around the maximum-margin certificate if that has more margin,
+then with a larger proximal weight (a shorter step);
 `shortened` halves a step that lowers the loss but fails the float64 check. Each keeps
 the paper's guarantees: every accepted iterate is certified and the loss never rises.
 """
@@ -22,6 +23,9 @@ from .solver import ICOSolver
 _REL_MARGIN = 100 * _lmi.VERIFY_RTOL
 # Halvings of a step that fails the float64 check before the run stops (`shortened`).
 _BACKTRACK = 8
+# The proximal weights, relative to the problem's, of the last tries of a failed SDP
+# (`step_with_fallbacks`): shorter steps, whose KKT systems Clarabel can still factor.
+_SHORT_PROX = (1e2, 1e4)
 
 
 def margins(pb: ICOProblem, theta, P) -> tuple[float, float]:
@@ -42,17 +46,29 @@ def margins(pb: ICOProblem, theta, P) -> tuple[float, float]:
     return min(pb.eps, budget - rel * tr), rel
 
 
-def step(pb: ICOProblem, solver: ICOSolver, theta, P, w_tilde):
-    """One ICO SDP around (theta, P): `(dtheta, P_new, w_new, outcome)`, None on failure."""
+def step(pb: ICOProblem, solver: ICOSolver, theta, P, w_tilde, prox=None):
+    """One ICO SDP around (theta, P): `(dtheta, P_new, w_new, outcome)`, None on failure
+    (`prox`: the proximal weight, the problem's by default)."""
     eps, rel = (None, 0.0) if pb.qsr is None else margins(pb, theta, P)
-    dtheta, P_new, w_new, status, _ = solver.solve(theta, P, w_tilde, eps, rel)
+    dtheta, P_new, w_new, status, _ = solver.solve(theta, P, w_tilde, eps, rel, prox)
     return dtheta, P_new, w_new, status
 
 
 def step_with_fallbacks(pb: ICOProblem, solver: ICOSolver, theta, P, w_tilde):
-    """`step`, and when its SDP fails, two more tries: `(dtheta, P_new, w_new, outcome, P)`
+    """`step`, and when its SDP fails, more tries: `(dtheta, P_new, w_new, outcome, P)`
     with `P` the linearisation point of the step returned (the given one or its
-    re-centred replacement, certified either way)."""
+    re-centred replacement, certified either way).
+
+    The last tries take a shorter step: the same SDP with the proximal weight $\\mu$ raised
+    by `_SHORT_PROX`. Along an edge where every certificate of the iterate is
+    ill-conditioned (a gain bound met by $D$ alone forces $B^\\top PB$, hence $P$ along
+    $B$, towards 0), the balanced KYP LMI's coefficients of $\\delta A$ grow like
+    $\\kappa(\\tilde P)^{1/2}$ ($\\tilde P^{-1/2}\\delta A^\\top\\tilde P^{1/2}$), and Clarabel
+    stopped on `NumericalError` at $\\kappa(\\tilde P)\\approx 10^8$; a larger $\\mu$ adds
+    to the diagonal of its KKT system and it solves. The step is a valid ICO step:
+    $\\delta = 0$ is still feasible, so its overbound is at most $J(\\theta_i)$ (paper
+    Theorem 2), and it passes the same float64 checks.
+    """
     dtheta, P_new, w_new, status = step(pb, solver, theta, P, w_tilde)
     if dtheta is not None or pb.qsr is None:
         return dtheta, P_new, w_new, status, P
@@ -72,7 +88,12 @@ def step_with_fallbacks(pb: ICOProblem, solver: ICOSolver, theta, P, w_tilde):
         P_c = np.asarray(cert.P, np.float64)
         if pb.kyp_margin(theta, P_c) > pb.kyp_margin(theta, P):
             dtheta, P_new, w_new, status = step(pb, solver, theta, P_c, w_tilde)
-            return dtheta, P_new, w_new, status, P_c
+            if dtheta is not None:
+                return dtheta, P_new, w_new, status, P_c
+    for factor in _SHORT_PROX:
+        dtheta, P_new, w_new, status = step(pb, solver, theta, P, w_tilde, factor * pb.prox)
+        if dtheta is not None:
+            break
     return dtheta, P_new, w_new, status, P
 
 
