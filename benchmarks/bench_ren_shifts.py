@@ -27,11 +27,7 @@ import optax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
-from dissil_jax._direct_map import MARGIN  # noqa: E402
-from dissil_jax._ren.controller import RENController  # noqa: E402
-from dissil_jax._ren.map import init_ren_params, ren_map  # noqa: E402
-from dissil_jax._train._scale import loss_scale, scaled  # noqa: E402
-from dissil_jax._train.ren import to_user_units  # noqa: E402
+import dissil_jax as dj  # noqa: E402
 from dissil_jax.experiments.metrics import evaluate  # noqa: E402
 from dissil_jax.experiments.protocol import (  # noqa: E402
     controller_start,
@@ -40,14 +36,16 @@ from dissil_jax.experiments.protocol import (  # noqa: E402
     fit,
     training_data,
 )
+from dissil_jax.internal import direct_map, loss_scale, ren_map, ren_train, scaled  # noqa: E402
 
 SPEC = example_spec("nonlinear")
+MARGIN = direct_map.MARGIN
 
 
 class ShiftedREN(eqx.Module):
     """A REN whose neuron $i$ computes $\\sigma(v_i + \\beta_i) - \\sigma(\\beta_i)$ (ReLU)."""
 
-    K: RENController
+    K: dj.RENController
     beta: jax.Array
 
     def __call__(self, x, u):
@@ -72,13 +70,13 @@ def train(key, W, inits, lr, beta_scale, beta_train, width=16, steps=150, init_s
     """Odd shifted RENs as `fit_ren(odd=True)` trains them (normalised units, Adam)."""
     s2 = loss_scale(W)
     data, qsr = scaled(W, s2), SPEC.qsr
-    theta = init_ren_params(key, inits, W.n_state, width, W.n_in, W.n_out, init_scale,
+    theta = ren_map.init_ren_params(key, inits, W.n_state, width, W.n_in, W.n_out, init_scale,
                             W.y.dtype)
     beta = beta_scale * jax.random.normal(jax.random.fold_in(key, 9), (inits, width))
     params, opt = (theta, beta), optax.adam(lr)
 
     def loss(p):
-        K = ren_map(p[0], qsr, width, "relu", MARGIN, direct_input)[0]
+        K = ren_map.ren_map(p[0], qsr, width, "relu", MARGIN, direct_input)[0]
         return _odd_loss(ShiftedREN(K, p[1] if beta_train else jax.lax.stop_gradient(p[1])),
                          data)
 
@@ -93,9 +91,9 @@ def train(key, W, inits, lr, beta_scale, beta_train, width=16, steps=150, init_s
     state = jax.vmap(opt.init)(params)
     for _ in range(steps):
         params, state, J = step(params, state)
-    K, _, lam = jax.vmap(lambda t: ren_map(t, qsr, width, "relu", MARGIN, direct_input))(
+    K, _, lam = jax.vmap(lambda t: ren_map.ren_map(t, qsr, width, "relu", MARGIN, direct_input))(
         params[0])
-    K = to_user_units(K, lam, s2**0.5)[0].odd_part()
+    K = ren_train.to_user_units(K, lam, s2**0.5)[0].odd_part()
     return ShiftedREN(K, jnp.concatenate([params[1], params[1]], -1)), J
 
 
