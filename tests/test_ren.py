@@ -638,3 +638,21 @@ print("OK")
 
     with pytest.raises(ValueError, match="holding JAX arrays"):
         ren_controller.check_activation(Scaled(jnp.asarray(0.5)))
+
+
+def test_ill_conditioned_storages_are_named_when_the_end_check_fails():
+    """A gain bound of 1e-6 with windows that start at a state: the runs buy imitation with
+    storage (condition numbers ~1e12), the end check cannot verify them, and the error says
+    why; with `throw=False` they are returned flagged, never as certified."""
+    key = jr.PRNGKey(0)
+    y = jr.normal(key, (25, 2, 1))
+    u = -0.5 * y + 0.1 * jr.normal(jr.fold_in(key, 1), (25, 2, 1))
+    W = dj.Windows(jr.normal(jr.fold_in(key, 2), (25, 2)), y, u)
+    qsr = dj.QSR.bounded_gain(1e-6, n_out=1, n_in=1)
+    res = dj.fit_ren(key, W, qsr, width=4, num_inits=2, throw=False)
+    bad = ~np.asarray(res.certified)
+    assert bad.any()
+    assert all(r == "not_certified" for r, b in zip(res.result_names(), bad) if b)
+    assert max(np.linalg.cond(np.asarray(P)) for P in np.asarray(res.P)[bad]) > 1e8
+    with pytest.raises(ValueError, match="condition number .* beyond what float64"):
+        dj.fit_ren(key, W, qsr, width=4, num_inits=2)

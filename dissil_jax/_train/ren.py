@@ -109,6 +109,30 @@ def _certify_all(res: RENFitResult, qsr: QSR) -> RENFitResult:
                         _outcome.item(reason)), is_leaf=lambda x: x is None)
 
 
+def _uncertified_message(res: RENFitResult, num_inits: int) -> str:
+    """`fit_ren`'s error for runs that failed the end check, naming ill-conditioned storages."""
+    bad = ~np.asarray(res.certified)
+    P = np.asarray(res.P, np.float64)[bad]
+    cond = float(np.max(np.linalg.cond(P))) if P.size else 0.0
+    msg = (f"{int(bad.sum())} of {num_inits} REN controllers failed the float64 certificate "
+           "check and its SDP fallback; pass `throw=False` to inspect them (`certified`, "
+           "`result`)")
+    if cond > _ILL_CONDITIONED:
+        return msg + (
+            f". Their storages P reached condition number {cond:.1e}, beyond what float64 "
+            "can verify. This happens with supply rates whose Q is far larger than R (tight "
+            "gain bounds), where the REN map's storage can grow without bound while the loss "
+            "falls. Try `dj.fit_direct` (LTI controllers, whose map kept such storages "
+            "verifiable in our tests), fewer `max_steps`, or a looser rate.")
+    return msg + ", or raise `margin`."
+
+
+# Storages beyond this condition number are named when the end check fails: the REN check's
+# margin in P's small directions is then below its round-off in the large ones (measured:
+# gain bounds of 1e-4 to 1e-6 failed at condition numbers 1e9 to 1e13).
+_ILL_CONDITIONED = 1e8
+
+
 def fit_ren(
     key, windows: Windows, qsr: QSR, *, width: int = 16, activation="tanh",
     optimizer=None, learning_rate: float | None = None, init_scale: float | None = None,
@@ -135,7 +159,11 @@ def fit_ren(
     **Certified at the end:** each returned `(K, P, multiplier)` is checked in float64 by
     eigenvalues ([`certify_ren`][dissil_jax.certify_ren] with the pair given); a pair that
     fails gets the SDP's certificate instead, and a controller with neither is marked
-    `not_certified` (`throw=True` then raises).
+    `not_certified` (`throw=True` then raises). On supply rates whose $Q$ is far larger
+    than $R$ (tight gain bounds), and windows that start at a state, the runs can buy
+    imitation with storage until $P$'s condition number passes what float64 verifies
+    ($10^9$-$10^{13}$ at gain bounds of $10^{-4}$-$10^{-6}$); the error then names the
+    condition number, and `fit_direct` is the tool for such rates.
 
     **Arguments:**
 
@@ -217,8 +245,5 @@ def fit_ren(
     res = eqx.tree_at(lambda r: r.wall_time, res, jnp.asarray(time.perf_counter() - start,
                                                               dtype))
     if throw and not bool(np.all(res.certified)):
-        raise ValueError(f"{int((~np.asarray(res.certified)).sum())} of {num_inits} REN "
-                         "controllers failed the float64 certificate check and its SDP "
-                         "fallback; pass `throw=False` to inspect them (`certified`, "
-                         "`result`), or raise `margin`.")
+        raise ValueError(_uncertified_message(res, num_inits))
     return unbalance(raise_if_failed(res) if throw else res, c)
