@@ -8,6 +8,8 @@ steps for both). Printed:
   `fit_direct` for the same number of initialisations, each the second of two identical
   calls (JIT compilation excluded), and the first calls (compilation included), with
   their ratios;
+- **the map's own cost**: the REN map's forward pass and gradient alone for the same steps,
+  against `fit_direct`'s whole training;
 - **why a direct map, not a projection**: the wall time of one certificate SDP of a
   trained REN (`dj.certify_ren`, cvxpy + Clarabel: the LMI in (P, Lambda) alone, which is
   smaller than a projection onto a convexified REN LMI would be) against the time of one
@@ -56,6 +58,7 @@ from dissil_jax.experiments.protocol import (  # noqa: E402
     run_config,
     training_data,
 )
+from dissil_jax.internal import ren_map  # noqa: E402
 
 METHODS = ("ren", "direct", "ico", "mlp")
 
@@ -176,6 +179,26 @@ def defaults(split):
     print("| **worst** | " + " | ".join(f"{worst[k]:.3g}" for k in CANDIDATES) + " |")
 
 
+def map_time(spec, inits, steps):
+    """Wall time of `steps` compiled evaluations of the REN map and its gradient, batched
+    over `inits` initialisations (no loss, no layer: the map's own cost)."""
+    width = spec.ren_width
+    theta = ren_map.init_ren_params(jax.random.PRNGKey(0), inits, 1, width, 1, 1, 0.5,
+                                    jax.numpy.float64)
+
+    def value(t):
+        K, P, lam = ren_map.ren_map(t, spec.qsr, width, spec.ren_activation)
+        return sum(jax.numpy.sum(M**2) for M in K.matrices) + jax.numpy.sum(P)
+
+    grad = jax.jit(jax.vmap(jax.value_and_grad(value)))
+    jax.block_until_ready(grad(theta))
+    t = time.perf_counter()
+    for _ in range(steps):
+        out = grad(theta)
+    jax.block_until_ready(out)
+    return time.perf_counter() - t
+
+
 def main(quick=False, inits=100, loop=False, seeds=None, wide_data=False, zoo=None,
          defaults_split=None, data="initial"):
     if defaults_split:
@@ -206,6 +229,10 @@ def main(quick=False, inits=100, loop=False, seeds=None, wide_data=False, zoo=No
         print(f"| {name} | {t:.3f} | {t / t_lti:.1f} | {t1:.2f} | {t1 / first['direct']:.2f} "
               f"| {float(np.median(res.final_loss)):.4g} "
               f"| {100 * float(np.mean(np.asarray(res.certified))):.0f} |")
+    t_map = map_time(spec, inits, steps=spec.max_steps)
+    print(f"\nthe REN map alone (forward and gradient, width {spec.ren_width}, {inits} "
+          f"initialisations) for {spec.max_steps} steps: {t_map:.3f} s, "
+          f"{t_map / t_lti:.1f}x fit_direct's whole training")
     one = jax.tree.map(lambda a: a[0], ren.controllers)
     sdp = []
     for _ in range(3 if quick else 5):
