@@ -29,9 +29,11 @@ class Outcome(eqx.Enumeration):
     converged = "converged: |ΔJ| < atol + rtol |J_0|"
     max_steps = "stopped at max_steps"
     non_finite = (
-        "the loss became NaN or infinite: the steps were too large for this problem; pass "
-        "a smaller `learning_rate` (or an `optimizer` with a bounded step, such as "
-        "`optax.adam`) or a smaller `init_scale`"
+        "the loss became NaN or infinite: the steps were too large for this problem, or "
+        "float32 arithmetic did not suffice for it; pass a smaller "
+        "`learning_rate` (or an `optimizer` with a bounded step, such as `optax.adam`) or a "
+        "smaller `init_scale`, or train in float64 (`jax.config.update(\"jax_enable_x64\", "
+        "True)`); the certified trainers keep their best certified iterate"
     )
     solver_failed = (
         "Clarabel failed to solve the SDP (max iterations or numerical trouble), usually for "
