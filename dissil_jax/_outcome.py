@@ -148,7 +148,8 @@ _CERTIFY_MESSAGES = {
         "the exact float64 KYP check failed at the storage P: min(-lambda_max(KYP(P)), "
         "lambda_min(P)) is not above the round-off allowance `rtol` times the size of the KYP "
         "terms. With `P` given, that P does not prove the certificate (omit it to search); "
-        "otherwise the best storage found (the maximum-margin SDP's) does not, so the "
+        "otherwise the best storage found (the maximum-margin SDP's, solved to the solver's "
+        "tolerance, also in states balanced by an approximate storage) does not, so the "
         "controller is at best marginally dissipative for `qsr` (its margin is of the order "
         "of round-off): loosen the supply rate slightly, or move the controller inside the "
         "dissipative set with `dj.project`"),

@@ -19,7 +19,7 @@ from . import (
     _rollout as rollout,
 )
 from ._certify import fast as certify_fast, sdp as certify_sdp
-from ._certify.certify import state_scale as certify_state_scale
+from ._certify.coordinates import state_scale as certify_state_scale
 from ._frequency import vanishing_supply
 from ._projection import (
     admm as projection_admm,

@@ -8,7 +8,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import dissipation_matrix, dissipation_ok, min_hermitian_part
+from helpers import (
+    dissipation_matrix,
+    dissipation_ok,
+    freq_response,
+    frequency_supply_min,
+    min_hermitian_part,
+)
 
 import dissil_jax as dj
 import dissil_jax.internal as dji
@@ -217,6 +223,63 @@ def test_the_storage_search_balances_the_states():
     # a realisation already in balance is left as it is (the usual case: nothing changes)
     np.testing.assert_array_equal(dji.certify_state_scale(np.diag([0.5, 0.5]), np.ones((2, 1)),
                                                           np.ones((1, 2))), [1.0, 1.0])
+
+
+def _kyp_eigenvalues(K, qsr, P):
+    """lambda_max of the KYP matrix and lambda_min of P, written out here (no library code)."""
+    A, B, C, D = (np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
+    Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
+    M11 = A.T @ P @ A - P - C.T @ Q @ C
+    M12 = A.T @ P @ B - C.T @ (S + Q @ D)
+    M22 = B.T @ P @ B - D.T @ Q @ D - D.T @ S - S.T @ D - R
+    M = np.block([[M11, M12], [M12.T, M22]])
+    return np.linalg.eigvalsh((M + M.T) / 2)[-1], np.linalg.eigvalsh((P + P.T) / 2)[0]
+
+
+@pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+@pytest.mark.parametrize("n, seed, spread", [(4, 2, 1.4), (4, 3, 1.5), (6, 8, 1.5)])
+def test_the_sdp_is_resolved_in_states_balanced_by_a_storage(n, seed, spread):
+    """A controller against a gain bound 1 % above its gain, in states x = Tz with
+    T = U diag(10^-s .. 10^s) V (rotations: no diagonal scaling undoes it). A storage exists
+    that passes the float64 check in these states (the original's, carried over), yet the
+    Riccati storages and the SDP found none (`optimal_inaccurate` with an indefinite P; a
+    fit_direct controller with Q = -3.4e4 I, R = 0.99 I was refused so, against the
+    trainer's certificate). Solved again in states balanced by an approximate storage, the
+    storage passes an independent check; 1 % below the gain, it stays refused."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(n, n))
+    A *= 0.9 / max(abs(np.linalg.eigvals(A)))
+    B, C, D = rng.normal(size=(n, 2)), rng.normal(size=(2, n)), 0.1 * rng.normal(size=(2, 2))
+    gain = np.linalg.svd(freq_response(A, B, C, D, np.linspace(0, np.pi, 4001)),
+                         compute_uv=False).max()
+    qsr = dj.QSR.bounded_gain(1.01 * gain, n_in=2, n_out=2)
+    U, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    V, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    T = U @ np.diag(np.logspace(-spread, spread, n)) @ V
+    Ti = np.linalg.inv(T)
+    K = dj.LTIController(Ti @ A @ T, Ti @ B, C @ T, D)
+    # the premise: a certificate exists in these states
+    P0 = dj.certify(dj.LTIController(A, B, C, D), qsr, max_margin=True).P
+    assert dji.kyp_certified(*(np.asarray(M) for M in (K.A, K.B, K.C, K.D)), qsr, T.T @ P0 @ T)
+    for max_margin in (False, True):
+        cert = dj.certify(K, qsr, max_margin=max_margin)
+        assert cert.holds, (cert.source, cert.margin)
+        lam_kyp, lam_P = _kyp_eigenvalues(K, qsr, cert.P)
+        assert lam_kyp < 0 < lam_P
+        assert dj.certify(K, qsr, P=cert.P).holds
+    bad = dj.QSR.bounded_gain(0.99 * gain, n_in=2, n_out=2)
+    assert frequency_supply_min(A, B, C, D, bad) < 0  # independent: the gain exceeds it
+    assert not dj.certify(K, bad).holds and not dj.certify(K, bad, max_margin=True).holds
+
+
+def test_an_inaccurate_solver_is_reported_as_undecided():
+    """A storage the SDP solver returned `optimal_inaccurate` that fails the check proves
+    nothing either way: the message must not call the controller marginal."""
+    cert = dj.Certificate(dj.Outcome.not_certified, np.eye(1), -1.0, "optimal_inaccurate")
+    assert "undecided" in cert.message and "`P`" in cert.message
+    assert "marginally" not in cert.message
+    assert "marginally" in dj.Certificate(dj.Outcome.not_certified, np.eye(1), -1e-12,
+                                          "optimal").message
 
 
 def test_given_P_is_checked_not_solved():

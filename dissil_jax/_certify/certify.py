@@ -14,7 +14,8 @@ from .._rate_scale import balanced_blocks
 from .._sdp.lmi import VERIFY_RTOL, kyp_bound_holds, kyp_margin, kyp_matrix, kyp_scale
 from .._supply import QSR
 from .._validate import check_tolerance
-from . import fast as _certify_fast, sdp as _certify_sdp
+from . import coordinates as _coordinates, fast as _certify_fast, sdp as _certify_sdp
+from .coordinates import balanced_states, state_scale, unbalanced_storage
 
 
 class Certificate(eqx.Module):
@@ -35,7 +36,8 @@ class Certificate(eqx.Module):
       `holds`, not on the sign of `margin`.
     - `source`: where `P` came from: `"given"` (supplied), `"hint"`, `"cached"` (a recent
       projection's), `"riccati"`, `"static"` (a controller without state, $\\hat n = 0$:
-      `P` is 0x0), or the SDP solver's status (`"optimal"`, ...); or, with
+      `P` is 0x0), or the SDP solver's status (`"optimal"`, ..., prefixed `"rebalanced: "`
+      when solved in states balanced by an approximate storage); or, with
       `result` `infeasible` and `P` all NaN, the cheap disproof that skipped the SDP
       (`"disproved: ..."`); see
       [`certify`][dissil_jax.certify]. (Called `status` before; that name remains a
@@ -86,7 +88,18 @@ def _message(code, source) -> str:
                 f"{str(source)[len(_DISPROOF):]}), so the controller is not strictly "
                 "dissipative for `qsr`; the SDP was skipped and `P` is NaN. `dj.project` "
                 "finds the nearest controller that is")
+    if _outcome.NAMES[int(code)] == "not_certified" and str(source) in _INACCURATE:
+        return (f"undecided: the SDP solver stopped at `{source}` and found no storage that "
+                "passes the exact float64 KYP check (nor in states balanced by an "
+                "approximate storage, where one was found). That does not show that none "
+                "exists: the controller may well be dissipative. Pass a storage known to prove it as `P` or `hint` (a "
+                "trainer's `res.P[i]`, a projection's), or certify a better conditioned "
+                "realisation (a change of state coordinates)")
     return _outcome.message(_outcome.NAMES[int(code)], caller="certify")
+
+
+#: SDP statuses whose storage is only approximate: a failed check then decides nothing.
+_INACCURATE = ("optimal_inaccurate", "max_iterations")
 
 
 def _outcome_of_sdp(status: str) -> Outcome:
@@ -163,8 +176,12 @@ def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hi
     $P$ because of the fixed $Q,S,R$). Steps 1-3 skip the SDP but return a storage with a
     smaller margin; `max_margin=True` always solves the SDP. Steps 3 and 4 run on the
     realisation with its states rescaled by powers of two (`state_scale`: each state's
-    effect and what drives it of one size) and map the storage back exactly; the verdict is
-    always on the controller as given.
+    effect and what drives it of one size) and map the storage back exactly. When step 4's
+    storage fails the check (and the SDP did not prove infeasibility), the SDP is solved
+    again in states in which the best approximate storage found is the identity, a
+    non-diagonal similarity (`source` `"rebalanced: optimal"`, ...); its storage, mapped
+    back, is checked in the given coordinates. The verdict is always on the controller as
+    given.
 
     Before step 4 (its stability part before step 1), a cheap disproof is tried: every certified controller has
     $\\Phi(z) = G^HQG + G^HS + S^\\top G + R\\succ0$ on the unit circle and at $z=\\infty$
@@ -223,31 +240,6 @@ def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hi
                        stack("margin", np.float64), stack("source", str))
 
 
-def state_scale(A, B, C, sweeps: int = 30) -> np.ndarray:
-    """Powers of two $t$ that balance the state: in $x = \\operatorname{diag}(t)z$ each
-    state's effect (its column of $A$ off the diagonal and of $C$) and what drives it (its
-    row of $A$ and of $B$) have about one size (damped sweeps, as Osborne's balancing).
-
-    A realisation whose states are in very different units (a similarity by
-    $\\operatorname{diag}(10^{-3}, 1, 10^3)$, or $B = 10^6$, $C = 10^{-6}$) left the Riccati
-    storages and the SDP without a certificate (`insufficient_progress`,
-    `numerical_error`); the storage search runs in balanced units and maps the storage back
-    (powers of two: exactly).
-    """
-    d = np.ones(A.shape[0])
-    for _ in range(sweeps):
-        Ab = A * d[None, :] / d[:, None]
-        off = Ab - np.diag(np.diag(Ab))
-        col = np.sqrt((off**2).sum(0) + ((C * d[None, :]) ** 2).sum(0))
-        row = np.sqrt((off**2).sum(1) + ((B / d[:, None]) ** 2).sum(1))
-        ok = (col > 0) & (row > 0) & np.isfinite(col) & np.isfinite(row)
-        step = 2.0 ** np.round(np.log2(np.where(ok, row / np.where(ok, col, 1.0), 1.0)) / 2)
-        if np.all(step == 1.0):
-            break
-        d = d * step
-    return d
-
-
 def _candidates(A, B, C, D, qsr, hint, t):
     """Cheap storages to check before the SDP, with their `status` (`fast.py`); the
     Riccati storages are found in the balanced units `t` (`state_scale`)."""
@@ -258,16 +250,6 @@ def _candidates(A, B, C, D, qsr, hint, t):
         yield P, "cached"
     for P in _certify_fast.riccati(*balanced_states(A, B, C, t), D, qsr):
         yield unbalanced_storage(P, t), "riccati"
-
-
-def balanced_states(A, B, C, t):
-    """The realisation in the states $z$ with $x = \\operatorname{diag}(t)z$."""
-    return A * t[None, :] / t[:, None], B / t[:, None], C * t[None, :]
-
-
-def unbalanced_storage(P, t):
-    """A storage of the balanced realisation in the original states."""
-    return P / (t[:, None] * t[None, :])
 
 
 #: Blocks of the supply rate whose sizes differ by more than 2**12 are also searched with
@@ -293,18 +275,34 @@ def _search(A, B, C, D, qsr: QSR, tol, hint, max_margin) -> Certificate:
     $R\\approx1.6\\cdot10^{12}$) was refused (`not_certified`, `solver_failed` from
     $10^7$): the KYP matrix's terms of size $10^{12}$ swamped margins of size 1. Its storage,
     found in balanced units, passes the check in the given ones. The verdict is always on
-    the controller as given."""
+    the controller as given.
+
+    When both fail (and the SDP did not prove infeasibility), the SDP is re-solved in states
+    balanced by the best approximate storage (`coordinates.py`: a non-diagonal similarity,
+    which `state_scale` cannot give), and the storage mapped back is checked in the given
+    coordinates."""
     cert = _search_units(A, B, C, D, qsr, tol, hint, max_margin)
-    io = _io_scale(qsr)
-    if cert.holds or io is None or str(cert.source).startswith("disproved"):
+    if cert.holds or str(cert.source).startswith("disproved"):
         return cert
-    t_y, t_u, balanced = io
-    found = _search_units(A, B * t_u, C / t_y, D * (t_u / t_y), balanced, tol, None,
-                          max_margin)
-    if not np.all(np.isfinite(found.P)):
+    io, found = _io_scale(qsr), [cert.P]
+    units = [(A, B, C, D, qsr)]
+    if io is not None:
+        t_y, t_u, balanced = io
+        units.append((A, B * t_u, C / t_y, D * (t_u / t_y), balanced))
+        other = _search_units(*units[1], tol, None, max_margin)
+        if np.all(np.isfinite(other.P)):
+            retry = _verdict(A, B, C, D, qsr, other.P, tol, other.source)
+            if retry.holds:
+                return retry
+            found.append(other.P)
+    if A.shape[0] == 0 or cert.source == "infeasible":  # static, or a proof of infeasibility
         return cert
-    retry = _verdict(A, B, C, D, qsr, found.P, tol, found.source)
-    return retry if retry.holds else cert
+    units = [(*u, state_scale(*u[:3])) for u in units]
+
+    def check(P, source):
+        return _verdict(A, B, C, D, qsr, P, tol, source)
+
+    return _coordinates.search(A, B, C, D, qsr, found, io, units, check) or cert
 
 
 def _search_units(A, B, C, D, qsr: QSR, tol, hint, max_margin) -> Certificate:

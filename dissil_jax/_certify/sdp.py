@@ -30,8 +30,11 @@ _STATUS = {"Solved": "optimal", "AlmostSolved": "optimal_inaccurate",
            "NumericalError": "numerical_error", "InsufficientProgress": "insufficient_progress"}
 
 
-def solve(A, B, C, D, qsr: QSR):
-    """Solve the certificate SDP for one controller; returns `(P or None, status string)`."""
+def solve(A, B, C, D, qsr: QSR, weights=None):
+    """Solve the certificate SDP for one controller; returns `(P or None, status string)`.
+
+    `weights = (W1, W2)`, positive definite, measure the margin in other units:
+    $\\mathrm{KYP}(P)\\preceq -tW_1$, $P\\succeq tW_2$ (the identities by default)."""
     import clarabel
 
     n, p = B.shape
@@ -49,8 +52,9 @@ def solve(A, B, C, D, qsr: QSR):
     idx = svec_indices(k)
     L2 = n * (n + 1) // 2
     K0 = kyp_matrix(np.zeros((n, n)), np.zeros((n, p)), C, D, qsr, np.zeros((n, n)))
-    eye1, eye2 = svec(np.eye(k), idx), np.zeros(L2)
-    eye2[svec_pos(np.arange(n), np.arange(n))] = 1.0
+    W1, W2 = (np.eye(k), np.eye(n)) if weights is None else weights
+    eye1, eye2 = svec(W1, idx), np.zeros(L2)
+    eye2[svec_pos(rows, cols)] = W2[rows, cols] * np.where(rows == cols, 1.0, np.sqrt(2.0))
     # s = b - A x: cone 1 svec(-KYP(P) - tI), cone 2 svec(P - tI), cone 3 1 - t
     A1 = np.concatenate([svec(G, idx).T, eye1[:, None]], axis=1)  # [L1, nP + 1]
     w = np.where(rows == cols, 1.0, np.sqrt(2.0))
