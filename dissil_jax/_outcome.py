@@ -33,7 +33,7 @@ class Outcome(eqx.Enumeration):
         "float32 arithmetic did not suffice for it; pass a smaller "
         "`learning_rate` (or an `optimizer` with a bounded step, such as `optax.adam`) or a "
         "smaller `init_scale`, or train in float64 (`jax.config.update(\"jax_enable_x64\", "
-        "True)`); the certified trainers keep their best certified iterate"
+        "True)`)"
     )
     solver_failed = (
         "Clarabel failed to solve the SDP (max iterations or numerical trouble), usually for "

@@ -92,9 +92,9 @@ def _message(code, source) -> str:
         return (f"undecided: the SDP solver stopped at `{source}` and found no storage that "
                 "passes the exact float64 KYP check (nor in states balanced by an "
                 "approximate storage, where one was found). That does not show that none "
-                "exists: the controller may well be dissipative. Pass a storage known to prove it as `P` or `hint` (a "
-                "trainer's `res.P[i]`, a projection's), or certify a better conditioned "
-                "realisation (a change of state coordinates)")
+                "exists: the controller may well be dissipative. Pass a storage known to "
+                "prove it as `P` or `hint` (a trainer's `res.P[i]`, a projection's), or "
+                "certify a better conditioned realisation (a change of state coordinates)")
     return _outcome.message(_outcome.NAMES[int(code)], caller="certify")
 
 
