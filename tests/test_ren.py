@@ -283,7 +283,19 @@ def test_a_non_dissipative_ren_is_rejected():
     assert not cert.holds and cert.margin < 0
     assert _worst_dissipation(K, qsr, np.eye(2)) > 0.1
     # a given (P, Lambda) that does not certify is refused by the eigenvalue check
-    assert not dj.certify_ren(K, qsr, P=np.eye(2), multiplier=np.ones(3)).holds
+    given = dj.certify_ren(K, qsr, P=np.eye(2), multiplier=np.ones(3))
+    assert not given.holds
+    # the messages say which verdict was reached, one per controller when batched
+    assert given.message.startswith("the given (P, multiplier) does not prove")
+    assert cert.message.startswith(("no storage", "undecided"))
+    assert str(cert.status) in cert.message
+    theta = jax.tree.map(lambda a: a[0], rm.init_ren_params(jr.PRNGKey(0), 1, 2, 3, 2, 2, 0.5,
+                                                             jnp.float64))
+    good = rm.ren_map(theta, dj.QSR.passive(2), 3, "relu")[0]
+    both = jax.tree.map(lambda a, b: jnp.stack([a, b]), good, K)
+    batch = dj.certify_ren(both, dj.QSR.passive(2))
+    assert list(batch.holds) == [True, False]
+    assert batch.message[0].startswith("certified") and not batch.message[1].startswith("cert")
 
 
 # -- the direct map ------------------------------------------------------------------------

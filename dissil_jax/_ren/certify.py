@@ -39,7 +39,8 @@ class RENCertificate(eqx.Module):
     - `P`: the storage ($V(x) = x^\\top Px$), float64.
     - `multiplier`: the diagonal of $\\Lambda$ (`[q]`).
     - `margin`: $\\min(-\\lambda_{\\max}(M), \\lambda_{\\min}(P), \\min_i\\Lambda_{ii})$.
-    - `status`: `"given"` or the SDP solver's status.
+    - `status`: `"given"` or the SDP solver's status; `message` says what the verdict
+      means.
 
     For a batch of controllers each field gains the batch axes in front (numpy arrays).
     """
@@ -49,6 +50,32 @@ class RENCertificate(eqx.Module):
     multiplier: np.ndarray
     margin: float | np.ndarray
     status: str | np.ndarray = "given"
+
+    @property
+    def message(self) -> str | list:
+        """What the verdict means, as a sentence (a nested list of them when batched), as
+        [`Certificate.message`][dissil_jax.Certificate] says it for `certify`."""
+        holds = np.asarray(self.holds, bool)
+        status = np.broadcast_to(np.asarray(self.status, dtype=object), holds.shape)
+        text = np.vectorize(_ren_message, otypes=[object])(holds, status)
+        return str(text[()]) if holds.ndim == 0 else text.tolist()
+
+
+def _ren_message(holds, status) -> str:
+    """`RENCertificate.message` for one controller."""
+    if holds:
+        return ("certified: the storage P and the multiplier prove the REN's dissipation "
+                "inequality beyond float64 round-off")
+    if status == "given":
+        return ("the given (P, multiplier) does not prove the certificate beyond float64 "
+                "round-off; call `dj.certify_ren` without them to search by SDP")
+    if str(status).startswith("infeasible"):
+        return ("no storage and diagonal multiplier satisfy the REN certificate (the solver "
+                f"reported `{status}`): the controller is not certifiably dissipative by this "
+                "sector certificate, which is sufficient, not necessary")
+    return (f"undecided: the SDP solver stopped at `{status}` and its storage does not pass "
+            "the float64 check; that does not show that none exists (an ill-conditioned "
+            "storage may be beyond float64: pass a known pair as `P` and `multiplier`)")
 
 
 def augmented_lti(K: RENController) -> LTIController:
