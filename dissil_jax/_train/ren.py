@@ -121,15 +121,17 @@ def _uncertified_message(res: RENFitResult, num_inits: int) -> str:
         return msg + (
             f". Their storages P reached condition number {cond:.1e}, beyond what float64 "
             "can verify. This happens with supply rates whose Q is far larger than R (tight "
-            "gain bounds), where the REN map's storage can grow without bound while the loss "
-            "falls. Try `dj.fit_direct` (LTI controllers, whose map kept such storages "
-            "verifiable in our tests), fewer `max_steps`, or a looser rate.")
+            "gain bounds), where training can buy imitation with storage; the conditioning "
+            "varies along training, so another `max_steps` (more or fewer) may pass. Or try "
+            "`dj.fit_direct` (LTI controllers, whose map kept such storages verifiable in our "
+            "tests) or a looser rate.")
     return msg + ", or raise `margin`."
 
 
 # Storages beyond this condition number are named when the end check fails: the REN check's
-# margin in P's small directions is then below its round-off in the large ones (measured:
-# gain bounds of 1e-4 to 1e-6 failed at condition numbers 1e9 to 1e13).
+# margin in P's small directions is then below its round-off in the large ones (measured
+# before the map's input units: gain bounds of 1e-4 to 1e-6 failed at condition numbers 1e9
+# to 1e13; with them, |Q|/R ~ 1e6 at 1e11).
 _ILL_CONDITIONED = 1e8
 
 
@@ -159,11 +161,13 @@ def fit_ren(
     **Certified at the end:** each returned `(K, P, multiplier)` is checked in float64 by
     eigenvalues ([`certify_ren`][dissil_jax.certify_ren] with the pair given); a pair that
     fails gets the SDP's certificate instead, and a controller with neither is marked
-    `not_certified` (`throw=True` then raises). On supply rates whose $Q$ is far larger
-    than $R$ (tight gain bounds), and windows that start at a state, the runs can buy
-    imitation with storage until $P$'s condition number passes what float64 verifies
-    ($10^9$-$10^{13}$ at gain bounds of $10^{-4}$-$10^{-6}$); the error then names the
-    condition number, and `fit_direct` is the tool for such rates.
+    `not_certified` (`throw=True` then raises). Tight gain bounds with windows that start
+    at a state let the runs buy imitation with storage, and $P$'s condition number can pass
+    what float64 verifies; the error then names it. A small $R$ does not (the
+    map takes its input matrix in units of $\\sqrt{\\Phi_0}$: SISO gain bounds down to
+    $10^{-6}$ train storages of condition 24-850), but a large $Q$ still can for a while:
+    on 4×3 plants with $|Q|/R\\approx10^6$, 0-2 runs in 8 failed after 600 steps and none
+    after 2,000 ([REN controllers](ren.md)).
 
     **Arguments:**
 
