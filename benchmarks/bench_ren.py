@@ -31,8 +31,12 @@ steps for both). Printed:
   (median final loss, median steps, wall time of a compiled call), problems with an
   indefinite Q skipped (the REN map needs Q <= 0).
 
+- **the default activation** (`--activations tuning|held_out`): `fit_ren` with all its
+  defaults but the activation, tanh or ReLU, judged by the zoo (`zoo.evaluate`: median
+  imitation error on the held-out windows, % stable).
+
 Usage: python benchmarks/bench_ren.py [--quick] [--inits 100] [--loop] [--seeds 0,3,4]
-       [--data sliding] [--wide] [--zoo tuning]
+       [--data sliding] [--wide] [--zoo tuning] [--defaults tuning] [--activations tuning]
 """
 
 import argparse
@@ -134,9 +138,10 @@ def zoo_budget(split):
 
 
 #: Candidate defaults of `fit_ren`'s Adam step and initial scale (`--defaults`): the LTI
-#: rule of `default_hyperparameters` at order n + q or at order n, and fixed grid points.
-CANDIDATES = {"rule(n+q)": "n+q", "rule(n)": "n", **{f"({lr}, {sc})": (lr, sc)
-              for lr in (0.1, 0.03, 0.01) for sc in (0.1, 0.3)}}
+#: rule of `default_hyperparameters` at order n + q or at order n, the same rule capped at
+#: 0.1 (`fit_ren`'s default, `default_ren_hyperparameters`), and fixed grid points.
+CANDIDATES = {"rule(n+q)": "n+q", "rule(n)": "n", "capped rule(n)": "capped",
+              **{f"({lr}, {sc})": (lr, sc) for lr in (0.1, 0.03, 0.01) for sc in (0.1, 0.3)}}
 
 
 def defaults(split):
@@ -144,7 +149,9 @@ def defaults(split):
     step, initial scale) on one half of the zoo: median final loss over the best
     candidate's per problem, and the worst such ratio per candidate."""
     from dissil_jax.experiments import zoo
-    from dissil_jax.internal import default_hyperparameters, is_indefinite
+    from dissil_jax.internal import default_hyperparameters, is_indefinite, ren_train
+
+    default_ren_hyperparameters = ren_train.default_ren_hyperparameters
 
     names = [n for n in (zoo.TUNING if split == "tuning" else zoo.HELD_OUT)
              if not is_indefinite(zoo.task(zoo.problem(n)).qsr)]
@@ -156,7 +163,9 @@ def defaults(split):
                   **({} if t.windows.x0 is not None else {"n_state": t.n_state}))
         row = {}
         for label, cand in CANDIDATES.items():
-            if isinstance(cand, str):
+            if cand == "capped":
+                lr, sc = default_ren_hyperparameters(n_state, t.windows.n_in)
+            elif isinstance(cand, str):
                 order = n_state + 4 if cand == "n+q" else n_state
                 lr, sc = default_hyperparameters(order, t.windows.n_in)
             else:
@@ -177,6 +186,37 @@ def defaults(split):
     worst = {k: max(row[k][0] / min(v[0] for v in row.values()) for row in table.values())
              for k in CANDIDATES}
     print("| **worst** | " + " | ".join(f"{worst[k]:.3g}" for k in CANDIDATES) + " |")
+
+
+def activations(split):
+    """`fit_ren` with all its defaults but the activation (tanh, ReLU) on one half of the zoo,
+    judged by the zoo (`zoo.evaluate`): median held-out imitation error and % stable."""
+    from dissil_jax.experiments import zoo
+    from dissil_jax.internal import is_indefinite
+
+    print(f"fit_ren defaults, zoo {split}: median held-out imitation error (% stable), "
+          "and the ratio of each to the better of the two")
+    print("| problem | tanh | ReLU | tanh / best | ReLU / best |")
+    print("|---|---:|---:|---:|---:|")
+    worst = {"tanh": 0.0, "relu": 0.0}
+    for name in zoo.TUNING if split == "tuning" else zoo.HELD_OUT:
+        problem = zoo.problem(name)
+        if is_indefinite(problem.qsr):
+            continue
+        err, stab = {}, {}
+        for act in ("tanh", "relu"):
+            rep = zoo.evaluate(problem, lambda t: dj.fit_ren(
+                t.key, t.windows, t.qsr, activation=act, throw=False,
+                **({} if t.windows.x0 is not None else {"n_state": t.n_state})))
+            err[act] = float(np.median(rep.imitation_error))
+            stab[act] = 100 * float(np.mean(rep.stable))
+        best = min(err.values())
+        for act in err:
+            worst[act] = max(worst[act], err[act] / best)
+        print(f"| {name} | {err['tanh']:.3g} ({stab['tanh']:.0f}) | {err['relu']:.3g} "
+              f"({stab['relu']:.0f}) | {err['tanh'] / best:.3g} | {err['relu'] / best:.3g} |",
+              flush=True)
+    print(f"| **worst** | | | {worst['tanh']:.3g} | {worst['relu']:.3g} |")
 
 
 def map_time(spec, inits, steps):
@@ -200,7 +240,9 @@ def map_time(spec, inits, steps):
 
 
 def main(quick=False, inits=100, loop=False, seeds=None, wide_data=False, zoo=None,
-         defaults_split=None, data="initial"):
+         defaults_split=None, data="initial", activation_split=None):
+    if activation_split:
+        return activations(activation_split)
     if defaults_split:
         return defaults(defaults_split)
     if zoo:
@@ -271,6 +313,9 @@ if __name__ == "__main__":
     parser.add_argument("--data", choices=("initial", "sliding"), default="initial",
                         help="the demonstrations of --seeds: 25 initial segments or sliding "
                              "windows")
+    parser.add_argument("--activations", choices=("tuning", "held_out"),
+                        help="fit_ren's default activation (tanh against ReLU) on one half of "
+                             "the problem zoo")
     args = parser.parse_args()
     main(args.quick, args.inits, args.loop, args.seeds, args.wide, args.zoo, args.defaults,
-         args.data)
+         args.data, args.activations)

@@ -691,10 +691,31 @@ def test_ill_conditioned_storages_are_named_when_the_end_check_fails(monkeypatch
     monkeypatch.setattr(rm, "input_units", lambda qsr, margin=None: np.ones(qsr.R.shape[0]))
     # width 3: static arguments of its own, so the patched map is traced afresh rather than
     # taken from the compiled loop of the test above
-    res = dj.fit_ren(key, W, qsr, width=3, num_inits=2, throw=False)
+    # the step and scale of that measurement (`fit_ren`'s defaults then)
+    hyper = dict(learning_rate=0.3, init_scale=0.5)
+    res = dj.fit_ren(key, W, qsr, width=3, num_inits=2, throw=False, **hyper)
     bad = ~np.asarray(res.certified)
     assert bad.any()
     assert all(r == "not_certified" for r, b in zip(res.result_names(), bad) if b)
     assert max(np.linalg.cond(np.asarray(P)) for P in np.asarray(res.P)[bad]) > 1e8
     with pytest.raises(ValueError, match="condition number .* beyond what float64"):
-        dj.fit_ren(key, W, qsr, width=3, num_inits=2)
+        dj.fit_ren(key, W, qsr, width=3, num_inits=2, **hyper)
+
+
+def test_default_step_and_scale_are_the_capped_rule():
+    """`fit_ren`'s defaults: `fit_direct`'s rule at order n, each capped at 0.1; a call with
+    them spelled out trains the same controllers."""
+    from dissil_jax.internal import direct
+
+    assert ren_train.default_ren_hyperparameters(1, 1) == (0.1, 0.1)
+    lr, scale = ren_train.default_ren_hyperparameters(48, 6)  # width 54: the rule's step
+    assert lr == direct.default_hyperparameters(48, 6)[0] < 0.1 and scale == 0.1
+    w = expert_windows(2, 1, 1, 1, N=6)
+    qsr = SISO["passive"]
+    a = dj.fit_ren(jr.PRNGKey(8), w, qsr, width=2, num_inits=2, max_steps=5)
+    b = dj.fit_ren(jr.PRNGKey(8), w, qsr, width=2, num_inits=2, max_steps=5,
+                   learning_rate=0.1, init_scale=0.1)
+    c = dj.fit_ren(jr.PRNGKey(8), w, qsr, width=2, num_inits=2, max_steps=5,
+                   learning_rate=0.3, init_scale=0.5)
+    np.testing.assert_array_equal(a.final_loss, b.final_loss)
+    assert not np.array_equal(a.final_loss, c.final_loss)
