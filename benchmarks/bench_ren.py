@@ -35,8 +35,15 @@ steps for both). Printed:
   defaults but the activation, tanh or ReLU, judged by the zoo (`zoo.evaluate`: median
   imitation error on the held-out windows, % stable).
 
+- **tight gain bounds** (`--tight`): `fit_ren` on gain bounds of 1e-1 to 1e-6 (SISO and 4
+  outputs x 3 inputs, windows from a state) and on Theorem 1's rates for three random 4x3
+  plants of gain near 1e3 (|Q| ~ 1e6): the storages' largest condition number, certified
+  runs and the median training loss, against `fit_direct`'s (`--tight --no-units`: the
+  same without the REN map's input units).
+
 Usage: python benchmarks/bench_ren.py [--quick] [--inits 100] [--loop] [--seeds 0,3,4]
        [--data sliding] [--wide] [--zoo tuning] [--defaults tuning] [--activations tuning]
+       [--tight [--no-units]]
 """
 
 import argparse
@@ -219,6 +226,74 @@ def activations(split):
     print(f"| **worst** | | | {worst['tanh']:.3g} | {worst['relu']:.3g} |")
 
 
+def _gain_windows(key, n_in, n_out, n):
+    """25 five-step windows from a state: outputs N(0, 1), an expert of gain about 0.5."""
+    import jax.random as jr
+
+    y = jr.normal(key, (25, 5, n_in))
+    G = jr.normal(jr.fold_in(key, 5), (n_in, n_out))
+    u = -0.5 * y @ G + 0.1 * jr.normal(jr.fold_in(key, 1), (25, 5, n_out))
+    return dj.Windows(jr.normal(jr.fold_in(key, 2), (25, n)), y, u)
+
+
+def _plant_windows(seed, radius):
+    """A random 4x3 plant (4 outputs) near instability, LQR expert, 25 five-step windows from
+    N(0, I) states, and Theorem 1's controller rate for its bounded gain."""
+    from dissil_jax.experiments.zoo._build import (
+        bounded_gain_qsr,
+        controller_supply,
+        dlqr,
+        random_stable_plant,
+    )
+
+    plant = random_stable_plant(seed, 4, 3, 4, radius=radius)
+    A, B, C, D = (np.asarray(M) for M in plant.matrices())
+    K = dlqr(A, B)
+    x0 = np.random.default_rng(seed).standard_normal((25, 4))
+    ys, us = np.zeros((25, 5, 4)), np.zeros((25, 5, 3))
+    for i, x in enumerate(x0):
+        for k in range(5):
+            us[i, k] = -K @ x
+            ys[i, k] = C @ x + D @ us[i, k]
+            x = A @ x + B @ us[i, k]
+    return dj.Windows(x0, ys, us), controller_supply(bounded_gain_qsr(plant))
+
+
+def tight(no_units=False):
+    """`fit_ren` (width 4, 4 or 8 initialisations, defaults otherwise) on tight gain bounds
+    with windows from a state: storages' condition numbers, certified runs, median training
+    loss, against `fit_direct` on the same data. `no_units`: the REN map without its input
+    units (all 1, the map as it was before them), for comparison."""
+    from dissil_jax.internal import ren_map
+
+    if no_units:  # before any call compiles the map
+        ren_map.input_units = lambda qsr, margin=None: np.ones(qsr.R.shape[0])
+    key = jax.random.PRNGKey(0)
+    print("| rate | step, initial scale | input units | cond(P) max | certified | median loss "
+          "| fit_direct's |")
+    print("|---|---|---:|---:|---:|---:|---:|")
+    cases = [(f"gain {g:g}, {p}x{m}", _gain_windows(key, p, m, n),
+              dj.QSR.bounded_gain(g, n_out=m, n_in=p), 4)
+             for g in (1e-1, 1e-3, 1e-6) for p, m, n in ((1, 1, 2), (3, 4, 3))]
+    cases += [(f"4x3 plant {seed}, |Q| = {{:.1e}}", *_plant_windows(seed, radius), 8)
+              for seed, radius in ((2, 0.999), (3, 0.999), (4, 0.998))]
+    # the gain bounds at the defaults and at fit_ren's earlier defaults (0.3, 0.5)
+    runs = [(case, steps, hyper) for case in cases
+            for steps in ((600,) if "gain" in case[0] else (600, 2000))
+            for hyper in (((None, None), (0.3, 0.5)) if "gain" in case[0] else ((None, None),))]
+    for (label, W, qsr, inits), steps, (lr, scale) in runs:
+        units = ren_map.input_units(qsr)
+        r = dj.fit_ren(key, W, qsr, width=4, num_inits=inits, throw=False, max_steps=steps,
+                       learning_rate=lr, init_scale=scale)
+        d = dj.fit_direct(key, W, qsr, num_inits=inits, throw=False)
+        cond = max(np.linalg.cond(P) for P in np.asarray(r.P))
+        ok = np.asarray(r.certified)
+        hyper = "defaults" if lr is None else f"({lr}, {scale})"
+        print(f"| {label.format(abs(qsr.Q[0, 0]))}, {steps} steps | {hyper} | {units.min():g} "
+              f"| {cond:.2g} | {ok.sum()}/{ok.size} | {np.median(r.final_loss):.4g} "
+              f"| {np.median(d.final_loss):.4g} |", flush=True)
+
+
 def map_time(spec, inits, steps):
     """Wall time of `steps` compiled evaluations of the REN map and its gradient, batched
     over `inits` initialisations (no loss, no layer: the map's own cost)."""
@@ -240,9 +315,11 @@ def map_time(spec, inits, steps):
 
 
 def main(quick=False, inits=100, loop=False, seeds=None, wide_data=False, zoo=None,
-         defaults_split=None, data="initial", activation_split=None):
+         defaults_split=None, data="initial", activation_split=None, tight_bounds=False):
     if activation_split:
         return activations(activation_split)
+    if tight_bounds:
+        return tight(tight_bounds == "no_units")
     if defaults_split:
         return defaults(defaults_split)
     if zoo:
@@ -316,6 +393,10 @@ if __name__ == "__main__":
     parser.add_argument("--activations", choices=("tuning", "held_out"),
                         help="fit_ren's default activation (tanh against ReLU) on one half of "
                              "the problem zoo")
+    parser.add_argument("--tight", action="store_true",
+                        help="tight gain bounds: storages' conditioning and certified runs")
+    parser.add_argument("--no-units", action="store_true",
+                        help="with --tight: the REN map without its input units")
     args = parser.parse_args()
     main(args.quick, args.inits, args.loop, args.seeds, args.wide, args.zoo, args.defaults,
-         args.data, args.activations)
+         args.data, args.activations, "no_units" if args.tight and args.no_units else args.tight)

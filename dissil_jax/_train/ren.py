@@ -183,9 +183,9 @@ def fit_ren(
     `not_certified` (`throw=True` then raises). Tight gain bounds with windows that start
     at a state let the runs buy imitation with storage, and $P$'s condition number can pass
     what float64 verifies; the error then names it. A small $R$ does not (the
-    map takes its input matrix in units of $\\sqrt{\\Phi_0}$: SISO gain bounds down to
-    $10^{-6}$ train storages of condition 24-850), but a large $Q$ still can for a while:
-    on 4×3 plants with $|Q|/R\\approx10^6$, 0-2 runs in 8 failed after 600 steps and none
+    map takes its input matrix in units of $\\sqrt{\\Phi_0}$: gain bounds down to
+    $10^{-6}$ train storages of condition at most $3\\cdot10^3$), but a large $Q$ still can for a while:
+    on 4×3 plants with $|Q|/R\\approx10^6$, 1-2 runs in 8 failed after 600 steps and none
     after 2,000 ([REN controllers](ren.md)).
 
     **Arguments:**
