@@ -405,10 +405,17 @@ def test_batched_training_equals_python_loop():
 
 
 def test_failed_end_check_gets_an_sdp_certificate(monkeypatch):
-    """Force the eigenvalue check to fail: the SDP fallback certifies the controller."""
+    """Force the eigenvalue check of the map's pairs to fail: the SDP fallback certifies the
+    controller (its pair checked by the real check)."""
     qsr = SISO["passive"]
     w = expert_windows(3, 1, 1, 1, N=6)
-    monkeypatch.setattr(ren_train, "certified_batch", lambda K, q, P, lam: np.zeros(2, bool))
+    real, calls = ren_train.certified_batch, []
+
+    def certified_batch(K, q, P, lam):
+        calls.append(1)
+        return np.zeros(2, bool) if len(calls) == 1 else real(K, q, P, lam)
+
+    monkeypatch.setattr(ren_train, "certified_batch", certified_batch)
     res = dj.fit_ren(jr.PRNGKey(6), w, qsr, width=2, num_inits=2, max_steps=3)
     assert res.certified.all()
     assert dj.certify_ren(res.controllers, qsr, P=res.P, multiplier=res.multiplier).holds.all()
@@ -721,3 +728,33 @@ def test_default_step_and_scale_are_the_capped_rule():
                    learning_rate=0.3, init_scale=0.5)
     np.testing.assert_array_equal(a.final_loss, b.final_loss)
     assert not np.array_equal(a.final_loss, c.final_loss)
+
+
+def test_sdp_fallback_is_checked_as_rounded_to_the_result_dtype(monkeypatch):
+    """In float32 the end check's SDP pair is rounded before it is checked again: the pair
+    checked is the pair returned, and a pair that fails once rounded is not certified."""
+    qsr = SISO["passive"]
+    w = expert_windows(3, 2, 1, 1, N=6)
+    w = dj.Windows(*(jnp.asarray(a, jnp.float32) for a in (w.x0, w.y, w.u)))
+    seen = []
+
+    def check(verdict_after_rounding):
+        def certified_batch(K, q, P, lam):
+            seen.append(np.array(P))
+            if len(seen) == 1:  # the map's own pairs: force the SDP fallback
+                return np.zeros(np.shape(P)[0], bool)
+            return np.full(np.shape(P)[0], verdict_after_rounding)
+        return certified_batch
+
+    monkeypatch.setattr(ren_train, "certified_batch", check(True))
+    res = dj.fit_ren(jr.PRNGKey(6), w, qsr, width=2, num_inits=2, max_steps=3)
+    assert res.P.dtype == jnp.float32 and res.certified.all()
+    for i, P_checked in enumerate(seen[1:]):
+        np.testing.assert_array_equal(P_checked[0], np.asarray(res.P[i], np.float64))
+    # the real SDP pair, rounded, is also proved by the library's check
+    assert dj.certify_ren(res.controllers, qsr, P=res.P, multiplier=res.multiplier).holds.all()
+    seen.clear()
+    monkeypatch.setattr(ren_train, "certified_batch", check(False))
+    res = dj.fit_ren(jr.PRNGKey(6), w, qsr, width=2, num_inits=2, max_steps=3, throw=False)
+    assert not res.certified.any()
+    assert res.result_names() == ["not_certified"] * 2

@@ -91,19 +91,28 @@ _run_jit = eqx.filter_jit(_run)
 
 def _certify_all(res: RENFitResult, qsr: QSR) -> RENFitResult:
     """The float64 end check of every `(K, P, Λ)`; a failing pair gets a fresh certificate
-    from the SDP of [`certify_ren`][dissil_jax.certify_ren], or is marked `not_certified`."""
+    from the SDP of [`certify_ren`][dissil_jax.certify_ren], or is marked `not_certified`.
+
+    The SDP's pair is rounded to the result's dtype (float32 unless x64 is enabled) and
+    checked again as rounded, so the pair returned is the pair proved."""
     assert res.P is not None  # the REN map returns a storage with every controller
+    dtype = res.P.dtype
     K, P, lam = res.controllers, np.array(res.P, np.float64), np.array(res.multiplier,
                                                                           np.float64)
     ok = certified_batch(K, qsr, P, lam)
     reason = np.asarray(_outcome.codes(res.result)).copy()
+    as_returned = lambda a: np.asarray(np.asarray(a, dtype), np.float64)
     for i in np.nonzero(~ok)[0]:
-        cert = certify_ren(jax.tree.map(lambda a: a[i], K), qsr)
+        K_i = jax.tree.map(lambda a: a[i], K)
+        cert = certify_ren(K_i, qsr)
         if cert.holds:
-            P[i], lam[i], ok[i] = cert.P, cert.multiplier, True
-        else:
+            P_i, lam_i = as_returned(cert.P), as_returned(cert.multiplier)
+            ok[i] = bool(certified_batch(jax.tree.map(lambda a: a[None], K_i), qsr, P_i[None],
+                                         lam_i[None])[0])
+            if ok[i]:
+                P[i], lam[i] = P_i, lam_i
+        if not ok[i]:
             reason[i] = _NOT_CERTIFIED
-    dtype = res.P.dtype
     return eqx.tree_at(lambda r: (r.P, r.multiplier, r.certified, r.result), res,
                        (jnp.asarray(P, dtype), jnp.asarray(lam, dtype), jnp.asarray(ok),
                         _outcome.item(reason)), is_leaf=lambda x: x is None)
