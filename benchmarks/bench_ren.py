@@ -239,16 +239,11 @@ def _gain_windows(key, n_in, n_out, n):
 def _plant_windows(seed, radius):
     """A random 4x3 plant (4 outputs) near instability, LQR expert, 25 five-step windows from
     N(0, I) states, and Theorem 1's controller rate for its bounded gain."""
-    from dissil_jax.experiments.zoo._build import (
-        bounded_gain_qsr,
-        controller_supply,
-        dlqr,
-        random_stable_plant,
-    )
+    from dissil_jax.internal import zoo_build
 
-    plant = random_stable_plant(seed, 4, 3, 4, radius=radius)
+    plant = zoo_build.random_stable_plant(seed, 4, 3, 4, radius=radius)
     A, B, C, D = (np.asarray(M) for M in plant.matrices())
-    K = dlqr(A, B)
+    K = zoo_build.dlqr(A, B)
     x0 = np.random.default_rng(seed).standard_normal((25, 4))
     ys, us = np.zeros((25, 5, 4)), np.zeros((25, 5, 3))
     for i, x in enumerate(x0):
@@ -256,7 +251,8 @@ def _plant_windows(seed, radius):
             us[i, k] = -K @ x
             ys[i, k] = C @ x + D @ us[i, k]
             x = A @ x + B @ us[i, k]
-    return dj.Windows(x0, ys, us), controller_supply(bounded_gain_qsr(plant))
+    qsr = zoo_build.controller_supply(zoo_build.bounded_gain_qsr(plant))
+    return dj.Windows(x0, ys, us), qsr
 
 
 def tight(no_units=False):

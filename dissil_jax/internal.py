@@ -7,7 +7,7 @@ layout can change behind this one list (as lineax's `internal`).
 Modules, for monkeypatching in tests and for benchmarks that time one layer alone:
 `certify_fast`, `certify_sdp`, `direct`, `direct_map`, `ico`, `ico_sdp`, `linalg`, `lmi`, `mlp`, `outcome`,
 `pgd`, `projection`, `projection_admm`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `rollout`,
-`rate_scale`, `sdp`; and the functions and constants in
+`rate_scale`, `sdp`, `zoo_build` (the problem zoo's plants, experts and rates); and the functions and constants in
 `__all__`.
 """
 
@@ -61,6 +61,7 @@ from ._train.ico.windows import stacked_factor
 from ._train.mlp import demonstration_pairs
 from ._train.steps import METRIC_FLOOR, gd_learning_rate, optimizer_metric
 from .experiments._paper import FIGURES, TABLES
+from .experiments.zoo import _build as zoo_build
 
 __all__ = [
     "ConvexifiedLMI", "FIGURES", "ICOProblem", "ICOSolver", "INIT_SCALE", "Iterate",
@@ -74,4 +75,5 @@ __all__ = [
     "ren_controller",
     "ren_map", "ren_train", "rollout", "rate_scale", "scaled", "sdp", "single_threaded_blas", "smat",
     "solver_stats", "stacked_factor", "static_point", "svec_len", "vanishing_supply",
+    "zoo_build",
 ]
