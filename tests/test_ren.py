@@ -758,3 +758,20 @@ def test_sdp_fallback_is_checked_as_rounded_to_the_result_dtype(monkeypatch):
     res = dj.fit_ren(jr.PRNGKey(6), w, qsr, width=2, num_inits=2, max_steps=3, throw=False)
     assert not res.certified.any()
     assert res.result_names() == ["not_certified"] * 2
+
+
+def test_runs_without_a_finite_iterate_are_flagged_not_raised():
+    """Draws so large that the map overflows in float32 leave runs with no finite iterate:
+    with `throw=False` they come back flagged `non_finite` (no certificate is attempted on
+    NaN), and `throw=True` raises a `ValueError` that says so."""
+    rng = np.random.default_rng(0)
+    y = rng.standard_normal((10, 4, 1)).astype(np.float32)
+    W = dj.Windows(rng.standard_normal((10, 2)).astype(np.float32), y, -0.5 * y)
+    qsr = dj.QSR.bounded_gain(2.0, n_in=1, n_out=1)
+    kw = dict(width=2, num_inits=2, init_scale=1e4, max_steps=5)
+    res = dj.fit_ren(jr.PRNGKey(0), W, qsr, throw=False, **kw)
+    names = res.result_names()
+    assert "non_finite" in names
+    assert not any(c for c, r in zip(np.asarray(res.certified), names) if r == "non_finite")
+    with pytest.raises(ValueError, match="never had a finite iterate"):
+        dj.fit_ren(jr.PRNGKey(0), W, qsr, **kw)

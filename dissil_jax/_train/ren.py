@@ -32,7 +32,8 @@ from ._units import balance as balanced, balance_factor, unbalance
 from .direct import MAX_STEPS, RTOL_DIRECT, MapDescent, default_hyperparameters, map_loss
 from .result import FitResult, raise_if_failed
 
-_CONVERGED, _NOT_CERTIFIED = (_outcome.code(r) for r in ("converged", "not_certified"))
+_CONVERGED, _NOT_CERTIFIED, _NON_FINITE = (
+    _outcome.code(r) for r in ("converged", "not_certified", "non_finite"))
 
 
 class RENFitResult(FitResult):
@@ -99,10 +100,22 @@ def _certify_all(res: RENFitResult, qsr: QSR) -> RENFitResult:
     dtype = res.P.dtype
     K, P, lam = res.controllers, np.array(res.P, np.float64), np.array(res.multiplier,
                                                                           np.float64)
-    ok = certified_batch(K, qsr, P, lam)
+    # a run that never had a finite iterate (e.g. a draw the map sends to NaN in float32)
+    # has nothing to certify; the others are checked together
+    num = P.shape[0]
+    finite = np.isfinite(P.reshape(num, -1)).all(1) & np.isfinite(lam.reshape(num, -1)).all(1)
+    for a in jax.tree.leaves(K):
+        finite &= np.isfinite(np.asarray(a, np.float64).reshape(num, -1)).all(1)
+    ok = np.zeros(num, bool)
+    idx = np.nonzero(finite)[0]
+    if len(idx):
+        ok[idx] = certified_batch(jax.tree.map(lambda a: a[idx], K), qsr, P[idx], lam[idx])
     reason = np.asarray(_outcome.codes(res.result)).copy()
     as_returned = lambda a: np.asarray(np.asarray(a, dtype), np.float64)
     for i in np.nonzero(~ok)[0]:
+        if not finite[i]:
+            reason[i] = _NON_FINITE
+            continue
         K_i = jax.tree.map(lambda a: a[i], K)
         cert = certify_ren(K_i, qsr)
         if cert.holds:
@@ -122,10 +135,14 @@ def _uncertified_message(res: RENFitResult, num_inits: int) -> str:
     """`fit_ren`'s error for runs that failed the end check, naming ill-conditioned storages."""
     bad = ~np.asarray(res.certified)
     P = np.asarray(res.P, np.float64)[bad]
-    cond = float(np.max(np.linalg.cond(P))) if P.size else 0.0
+    finite = np.isfinite(P.reshape(len(P), -1)).all(1)
+    cond = float(np.max(np.linalg.cond(P[finite]))) if finite.any() else 0.0
     msg = (f"{int(bad.sum())} of {num_inits} REN controllers failed the float64 certificate "
-           "check and its SDP fallback; pass `throw=False` to inspect them (`certified`, "
-           "`result`)")
+           "check and its SDP fallback")
+    if not finite.all():
+        msg += (f" ({int((~finite).sum())} of them never had a finite iterate: pass a "
+                "smaller `init_scale` or `learning_rate`, or train in float64)")
+    msg += "; pass `throw=False` to inspect them (`certified`, `result`)"
     if cond > _ILL_CONDITIONED:
         return msg + (
             f". Their storages P reached condition number {cond:.1e}, beyond what float64 "
