@@ -103,9 +103,8 @@ def _certify_all(res: RENFitResult, qsr: QSR) -> RENFitResult:
     # a run that never had a finite iterate (e.g. a draw the map sends to NaN in float32)
     # has nothing to certify; the others are checked together
     num = P.shape[0]
-    finite = np.isfinite(P.reshape(num, -1)).all(1) & np.isfinite(lam.reshape(num, -1)).all(1)
-    for a in jax.tree.leaves(K):
-        finite &= np.isfinite(np.asarray(a, np.float64).reshape(num, -1)).all(1)
+    finite = np.all([np.isfinite(np.asarray(a, np.float64).reshape(num, -1)).all(1)
+                     for a in (P, lam, *jax.tree.leaves(K))], axis=0)
     ok = np.zeros(num, bool)
     idx = np.nonzero(finite)[0]
     if len(idx):
