@@ -138,8 +138,9 @@ def _uncertified_message(res: RENFitResult, num_inits: int) -> str:
     cond = float(np.max(np.linalg.cond(P[finite]))) if finite.any() else 0.0
     msg = (f"{int(bad.sum())} of {num_inits} REN controllers failed the float64 certificate "
            "check and its SDP fallback")
-    if not finite.all():
-        msg += (f" ({int((~finite).sum())} of them never had a finite iterate: pass a "
+    non_finite = sum(r == "non_finite" for r, b in zip(res.result_names(), bad) if b)
+    if non_finite:  # as `_certify_all` flagged them
+        msg += (f" ({non_finite} of them never had a finite iterate: pass a "
                 "smaller `init_scale` or `learning_rate`, or train in float64)")
     msg += "; pass `throw=False` to inspect them (`certified`, `result`)"
     if cond > _ILL_CONDITIONED:
