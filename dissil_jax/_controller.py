@@ -10,7 +10,7 @@ import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ._validate import check_abcd, check_int, has_non_finite
+from ._validate import check_abcd, check_int, check_precision, has_non_finite
 
 
 def _collect_systems(sys) -> tuple[tuple[int, ...], list]:
@@ -88,6 +88,7 @@ class LTIController(eqx.Module):
                 raise ValueError(f"`{name}` must be a matrix, got shape {M.shape}.")
             if not jnp.issubdtype(M.dtype, jnp.floating):
                 raise ValueError(f"`{name}` must be a floating-point array, got {M.dtype}.")
+            check_precision(name, M.dtype)
         check_abcd(*mats)
         for name, M in zip(names, mats):
             if has_non_finite(M):
@@ -117,6 +118,7 @@ class LTIController(eqx.Module):
         self, x: Float[Array, " n"], u: Float[Array, " p"]
     ) -> tuple[Float[Array, " n"], Float[Array, " m"]]:
         """One step: returns $(\\hat x_{k+1}, \\hat y_k)$. Unbatched; vmap for batches."""
+        check_step(self, x, u)
         return self.A @ x + self.B @ u, self.C @ x + self.D @ u
 
     @classmethod
@@ -207,3 +209,14 @@ class LTIController(eqx.Module):
     def astype(self, dtype) -> LTIController:
         """Cast all four matrices."""
         return LTIController(*(M.astype(dtype) for M in (self.A, self.B, self.C, self.D)))
+
+
+def check_step(K, x, u) -> None:
+    """A `ValueError` naming `x` or `u` unless they are one state (`[K.n_state]`) and one
+    input (`[K.n_in]`) of a single controller `K` (shapes are static: this holds under jit
+    and vmap, per member)."""
+    for name, v, size, what in (("x", x, K.n_state, "the controller's state, `K.n_state`"),
+                                ("u", u, K.n_in, "the controller's input, `K.n_in`")):
+        if jnp.shape(v) != (size,):
+            raise ValueError(f"`{name}` must have shape ({size},) ({what}), got "
+                             f"{jnp.shape(v)}; one step is unbatched: vmap it for batches.")

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._validate import has_non_finite
+from ._validate import check_precision, has_non_finite
 
 
 def _as_real_array(name: str, a) -> Array:
@@ -19,12 +19,7 @@ def _as_real_array(name: str, a) -> Array:
     except (TypeError, ValueError):
         raise ValueError(f"`{name}` must be a real floating-point array, got {a!r}.") from None
     if jnp.issubdtype(arr.dtype, jnp.floating):
-        if jnp.finfo(arr.dtype).bits < 32:
-            # the certificates and the SDPs need float32 at least (bfloat16 is not even a
-            # numpy float, and float16's 1e-3 round-off swamps every LMI margin)
-            raise ValueError(f"`{name}` has dtype {arr.dtype}; pass float32 or float64 (e.g. "
-                             f"`{name}.astype(np.float32)`): half precision is too coarse "
-                             "for the certificates.")
+        check_precision(name, arr.dtype)
         return arr
     if jnp.issubdtype(arr.dtype, jnp.integer) and arr.dtype != jnp.bool_:
         out = arr.astype(jnp.result_type(float))

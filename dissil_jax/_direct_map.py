@@ -39,7 +39,7 @@ from jaxtyping import Array, Float
 
 from . import _linalg
 from ._controller import LTIController
-from ._rate_scale import balanced_blocks
+from ._rate_scale import balanced_blocks, rate_factor, scaled_rate
 from ._supply import QSR
 
 #: Default margin eps of the map: KYP(P) <= -eps diag(P, Phi0) and P >= eps I. The float64
@@ -126,6 +126,51 @@ def map_constants(qsr: QSR, margin: float) -> tuple[np.ndarray, ...]:
     return D0, Phi0, G_phi, T_u, (N + N.T) / 2
 
 
+class MapRate(eqx.Module):
+    """A supply rate ($Q\\preceq0$) with its map constants (`map_constants`) as arrays.
+
+    The maps accept a [`QSR`][dissil_jax.QSR] too, but a `QSR` is a static value: every
+    rate compiles its own copy of a jitted training run, and a process that trains under a
+    hundred rates holds a hundred executables (their code pages exhausted Linux's default
+    limit of 65,530 memory maps after about 70 `fit_ren` or 100 `fit_direct` calls with
+    distinct rates, aborting the process). The trainers pass this form instead, whose
+    values are traced: one compilation per shape. `units` are the REN map's input units
+    (`_ren/map.py: ren_rate`), None for the LTI map; `margin` is static.
+    """
+
+    Q: Array
+    S: Array
+    R: Array
+    D0: Array
+    Phi0: Array
+    G_phi: Array
+    T_u: Array
+    N: Array
+    units: Array | None
+    margin: float = eqx.field(static=True)
+
+
+def map_rate(qsr, margin: float = MARGIN, dtype=None, units=None) -> MapRate:
+    """The `MapRate` of a [`QSR`][dissil_jax.QSR] in `dtype` (host, float64 constants);
+    a `MapRate` is returned as it is (its margin must be `margin`)."""
+    if isinstance(qsr, MapRate):
+        if qsr.margin != margin:
+            raise ValueError(f"the map's constants were built for margin {qsr.margin}, "
+                             f"not {margin}.")
+        return qsr
+    arrays = (qsr.Q, qsr.S, qsr.R, *map_constants(qsr, margin))
+    return MapRate(*(jnp.asarray(M, dtype) for M in arrays),
+                   units=None if units is None else jnp.asarray(units, dtype), margin=margin)
+
+
+def solved_rate(qsr: QSR, margin: float, dtype, build=map_rate) -> tuple[MapRate, Array]:
+    """`(rate, k)`: the rate the trainers solve, $(Q,S,R)/\\kappa$ with $\\kappa$ =
+    `rate_factor(qsr)` (a power of two, 1 for rates near unit size), as a `MapRate` built
+    by `build`, and $\\kappa$ (the storage found is multiplied back by it)."""
+    k = rate_factor(qsr)
+    return build(scaled_rate(qsr, k), margin, dtype), jnp.asarray(k, dtype)
+
+
 def check_margin(margin) -> float:
     """`margin` as a float in (0, 1), or a ValueError naming it."""
     if isinstance(margin, jax.core.Tracer) or not (np.ndim(margin) == 0
@@ -147,7 +192,7 @@ def _right_inv(Z, G):
     return _linalg.solve_triangular(G, Z.T, lower=False, trans=True).T
 
 
-def output_map(W: Float[Array, "m n+p"], G_P: Float[Array, "n n"], qsr: QSR,
+def output_map(W: Float[Array, "m n+p"], G_P: Float[Array, "n n"], qsr: QSR | MapRate,
                margin: float = MARGIN):
     """Step 3 of the map, the loop transformation: `(C, D, K_F)` from `W` and the storage's
     upper Cholesky factor $G_P$ ($P = G_P^\\top G_P$).
@@ -158,7 +203,9 @@ def output_map(W: Float[Array, "m n+p"], G_P: Float[Array, "n n"], qsr: QSR,
     $\\Phi(D)\\succeq\\varepsilon\\Phi_0$, which the REN map uses.
     """
     n, p, dtype = G_P.shape[0], W.shape[1] - G_P.shape[0], W.dtype
-    D0, _, G_phi, T_u, N = (jnp.asarray(M, dtype) for M in map_constants(qsr, margin))
+    rate = map_rate(qsr, margin, dtype)
+    D0, G_phi, T_u, N = (jnp.asarray(M, dtype) for M in (rate.D0, rate.G_phi, rate.T_u,
+                                                           rate.N))
     eye = lambda k: jnp.eye(k, dtype=dtype)
     G = jsl.block_diag(G_P, G_phi)
     # (C, D): the loop transformation, Z' N Z < I, Y = I - T'Z invertible since N >= T T'.
@@ -173,17 +220,18 @@ def output_map(W: Float[Array, "m n+p"], G_P: Float[Array, "n n"], qsr: QSR,
     return CD[:, :n], D0 + CD[:, n:], K_F
 
 
-def direct_map(theta: DirectParams, qsr: QSR, margin: float = MARGIN):
+def direct_map(theta: DirectParams, qsr: QSR | MapRate, margin: float = MARGIN):
     """The controller and certificate of one parameter $\\theta$ (unbatched; vmap for batches).
 
     $$\\theta = (X, W, V)\\ \\mapsto\\ (K, P), \\qquad \\mathrm{KYP}(P)\\preceq
     -\\varepsilon\\operatorname{diag}(P,\\Phi_0), \\quad P\\succeq\\varepsilon I,$$
 
     for every $\\theta$ (steps 1-4 of the module docstring; `docs/concepts.md`). Pure JAX,
-    smooth in $\\theta$; `qsr` and `margin` are static.
+    smooth in $\\theta$; `margin` is static.
 
-    **Arguments:** `theta` ([`DirectParams`]), the supply rate `qsr` ($Q\\preceq0$) and the
-    margin $\\varepsilon\\in(0,1)$.
+    **Arguments:** `theta` ([`DirectParams`]), the supply rate `qsr` ($Q\\preceq0$; a
+    static `QSR`, or a `MapRate` whose values may be traced) and the margin
+    $\\varepsilon\\in(0,1)$.
 
     **Returns:** `(K, P)`: an `LTIController` and its storage matrix, in `theta`'s dtype.
     """

@@ -87,9 +87,13 @@ def scan_outputs(K, x0, u_in, name: str = "dj.rollout"):
                          f"vmap the rollout over a batch, e.g. `jax.vmap({name}, (0, None, "
                          "None))(K, x0, u_in)`.")
     u_in = jnp.asarray(u_in)
-    if x0 is None:
-        x0 = jnp.zeros((K.n_state,), jnp.result_type(K.A.dtype, u_in.dtype))
-    x0 = jnp.asarray(x0)
+    # the state's dtype is the step's: integer or lower-precision x0 and u_in are promoted
+    # (else the scan's carry would change type after one step)
+    x0 = None if x0 is None else jnp.asarray(x0)
+    dtype = jnp.result_type(K.A.dtype, u_in.dtype, *(() if x0 is None else (x0.dtype,)))
+    if not jnp.issubdtype(dtype, jnp.inexact):
+        dtype = K.A.dtype
+    x0 = jnp.zeros((K.n_state,), dtype) if x0 is None else x0.astype(dtype)
     if x0.shape != (K.n_state,):
         raise ValueError(f"`x0` must have shape ({K.n_state},) (the controller's state size), "
                          f"got {x0.shape}.")

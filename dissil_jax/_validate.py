@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any, cast
 
 import jax.core
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -71,3 +72,13 @@ def check_abcd(A, B, C, D, *, what: str = "") -> None:
             raise ValueError(
                 f"`{what}{name}` has shape {M.shape}; with A {A.shape}, B {B.shape}, "
                 f"C {C.shape} it must be {batch + expected[name]}.")
+
+
+def check_precision(name: str, dtype) -> None:
+    """A `ValueError` naming `name` for a half-precision float dtype (float16, bfloat16):
+    the certificates and the SDPs need float32 at least (bfloat16 is not even a numpy
+    float, and float16's round-off of 1e-3 swamps every LMI margin)."""
+    if jnp.issubdtype(dtype, jnp.floating) and jnp.finfo(dtype).bits < 32:
+        raise ValueError(f"`{name}` has dtype {dtype}; pass float32 or float64 (e.g. "
+                         f"`{name}.astype(np.float32)`): half precision is too coarse for "
+                         "the certificates.")

@@ -263,6 +263,34 @@ def test_no_retracing_across_calls(getkey, monkeypatch):
         dj.fit_direct(getkey(), w1, qsr, num_inits=3, max_steps=5)
 
 
+def test_rates_of_one_shape_share_one_compilation(getkey, monkeypatch):
+    """The trainers pass the rate's values traced (`MapRate`): supply rates of one shape,
+    out-of-band ones included (solved divided by a power of two), train under one
+    compilation. (With the rate static, each compiled its own run, and ~100 rates in one
+    process exhausted Linux's memory-map limit and aborted it.)"""
+    traced = eqx.debug.assert_max_traces(direct._run, max_traces=1)
+    monkeypatch.setattr(direct, "_run_jit", eqx.filter_jit(traced))
+    w = expert_windows(5, 1, 1, 1)
+    for gamma in (0.5, 2.0, 1e3):
+        qsr = dj.QSR.bounded_gain(gamma, n_in=1, n_out=1)
+        res = dj.fit_direct(getkey(), w, qsr, num_inits=2, max_steps=5)
+        assert bool(np.all(certified(*(res.controllers.A, res.controllers.B,
+                                       res.controllers.C, res.controllers.D), qsr, res.P)))
+
+
+@pytest.mark.parametrize("name", ["strict_paper", "passive", "cone"])
+def test_traced_rate_is_the_static_rate(getkey, name):
+    """The map under a traced `MapRate` equals the map with the rate's constants baked in,
+    up to the round-off of an XLA program compiled another way (a few ulps of float64)."""
+    qsr = SUPPLY_RATES[name]
+    th = _random_theta(getkey(), 8, 3, qsr, 1.0)
+    static = jax.jit(jax.vmap(lambda t: dm.direct_map(t, qsr)))(th)
+    traced = jax.jit(jax.vmap(lambda t, r: dm.direct_map(t, r), in_axes=(0, None)))(
+        th, dm.map_rate(qsr, dm.MARGIN, jnp.float64))
+    for a, b in zip(jax.tree.leaves(traced), jax.tree.leaves(static)):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * float(np.abs(b).max()))
+
+
 def test_defaults_follow_the_order(getkey):
     # The paper's sizes keep the values chosen there; wider controllers get a smaller step
     # and a smaller initial scale (rule: docs/concepts.md, "Initialisation and steps").

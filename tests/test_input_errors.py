@@ -411,6 +411,43 @@ def test_half_precision_windows_are_refused(dtype):
         dj.Windows(None, y, jnp.ones((4, 2, 1), jnp.float32))
 
 
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
+def test_half_precision_controllers_are_refused(dtype, K11):
+    """Like the windows: the controllers' certificates need float32 at least."""
+    half = lambda mats: [jnp.asarray(M, dtype) for M in mats]
+    with pytest.raises(ValueError, match="`A` has dtype .*float32 or float64"):
+        dj.LTIController(*half((K11.A, K11.B, K11.C, K11.D)))
+    with pytest.raises(ValueError, match="`A` has dtype .*float32 or float64"):
+        dj.RENController(*half(dj.RENController.from_lti(K11, width=2).matrices))
+
+
+def test_one_step_names_a_wrong_state_or_input(K11):
+    """A single step of either controller refuses a wrong state or input size, or a batch,
+    by name (a raw shape error from a matrix product before)."""
+    for K in (K11, dj.RENController.from_lti(K11, width=2)):
+        with pytest.raises(ValueError, match="`u` must have shape \\(1,\\)"):
+            K(jnp.ones(1), jnp.ones(2))
+        with pytest.raises(ValueError, match="`x` must have shape \\(1,\\).*vmap"):
+            K(jnp.ones((3, 1)), jnp.ones(1))
+        with pytest.raises(ValueError, match="`x` must have shape"):
+            jax.jit(lambda x: K(x, jnp.ones(1)))(jnp.ones(2))
+
+
+def test_rollouts_promote_an_integer_or_narrow_start():
+    """An integer `x0` (or `u_in`) runs in the controller's dtype: the scan's carry keeps
+    its type (a raw TypeError from `lax.scan` before), with the outputs of a float start."""
+    K = _lti(np.eye(2) * 0.5, np.ones((2, 1)), np.ones((1, 2)), 1.0)
+    R = dj.RENController.from_lti(K, width=2, activation="tanh")
+    u = np.arange(3.0)[:, None]
+    for roll, C in ((dj.rollout, K), (dj.ren_rollout, R)):
+        ref = roll(C, jnp.asarray([1.0, -2.0]), u)
+        for x0, u_in in (([1, -2], u), (np.array([1, -2]), u.astype(int)),
+                         (np.array([1.0, -2.0], np.float32), u)):
+            out = roll(C, x0, u_in)
+            assert out.dtype == ref.dtype
+            np.testing.assert_array_equal(out, ref)
+
+
 def test_project_shares_one_reference_storage_across_a_batch():
     """`P_ref` of shape [n, n] with a batch of targets (as `certify` takes a shared `P`)
     used to fail inside vmap; each member is projected as it would be alone."""

@@ -1,6 +1,7 @@
 """REN controllers: the model, its certificate (against the definition), the direct map and
 `dj.fit_ren`."""
 
+import math
 import os
 import subprocess
 import sys
@@ -177,6 +178,15 @@ def test_bad_input_names_the_argument():
     for act in ("sigmoid", lambda v: 2 * v, lambda v: v + 1.0, lambda v: -jnp.tanh(v)):
         with pytest.raises(ValueError, match="`activation`"):
             dj.RENController(*mats, activation=act)
+    # NumPy's and math's functions cannot run on traced arrays: said so, by name
+    for act in (np.tanh, math.tanh):
+        with pytest.raises(ValueError, match="`activation` must be a JAX function.*np.tanh"):
+            dj.RENController(*mats, activation=act)
+    with pytest.raises(ValueError, match="`activation` must take one array"):
+        dj.RENController(*mats, activation=lambda a, b: a)
+    # a traceable callable closing over a traced value cannot be screened inside `jit`
+    with pytest.raises(ValueError, match="closes over traced values"):
+        jax.jit(lambda c: dj.RENController(*mats, activation=lambda v: c * jnp.tanh(v)).A)(0.5)
     # a callable that passes the screen is kept (leaky ReLU: slopes 0.1 and 1)
     dj.RENController(*mats, activation=lambda v: jnp.where(v > 0, v, 0.1 * v))
     w = expert_windows(0, 2, 2, 2, N=4)
@@ -666,6 +676,31 @@ def _tight_gain_problem(gamma):
     u = -0.5 * y + 0.1 * jr.normal(jr.fold_in(key, 1), (25, 2, 1))
     W = dj.Windows(jr.normal(jr.fold_in(key, 2), (25, 2)), y, u)
     return key, W, dj.QSR.bounded_gain(gamma, n_out=1, n_in=1)
+
+
+def test_rates_of_one_shape_share_one_compilation(monkeypatch):
+    """`fit_ren` passes the rate's values and the map's input units traced: gain bounds
+    from 1e-6 to 1e3 (units and rate factor both vary) train under one compilation, each
+    certified by the float64 end check."""
+    traced = eqx.debug.assert_max_traces(ren_train._run, max_traces=1)
+    monkeypatch.setattr(ren_train, "_run_jit", eqx.filter_jit(traced))
+    for gamma in (1e-6, 1e-3, 1.0, 1e3):
+        key, W, qsr = _tight_gain_problem(gamma)
+        res = dj.fit_ren(key, W, qsr, width=2, num_inits=2, max_steps=5)
+        assert bool(np.all(res.certified))
+
+
+@pytest.mark.parametrize("name", list(SUPPLY_RATES))
+def test_traced_rate_is_the_static_rate(name):
+    """The REN map under a traced `ren_rate` equals the map with the rate baked in, up to
+    the round-off of an XLA program compiled another way (a few ulps of float64)."""
+    qsr = SUPPLY_RATES[name]
+    theta = _random_params(jr.PRNGKey(12), 4, 2, 3, 2, 2, 0.5)
+    static = jax.jit(jax.vmap(lambda t: rm.ren_map(t, qsr, 3, direct_input=True)))(theta)
+    traced = jax.jit(jax.vmap(lambda t, r: rm.ren_map(t, r, 3, direct_input=True),
+                              in_axes=(0, None)))(theta, rm.ren_rate(qsr, dtype=jnp.float64))
+    for a, b in zip(jax.tree.leaves(traced), jax.tree.leaves(static)):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * float(np.abs(b).max()))
 
 
 @pytest.mark.parametrize("gamma", [1e-3, 1e-6])

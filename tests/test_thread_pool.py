@@ -23,7 +23,7 @@ import pytest
 from jax.test_util import check_grads
 
 import dissil_jax as dj
-from dissil_jax.internal import direct_run_unchecked as _run, linalg as _linalg
+from dissil_jax.internal import direct_map, direct_run_unchecked as _run, linalg as _linalg, ren_map
 
 
 def _custom_calls(fn, *args):
@@ -37,7 +37,8 @@ def test_direct_run_compiles_without_custom_calls(getkey):
     n, p = 5, 2
     w = dj.Windows(jr.normal(getkey(), (4, n)), jr.normal(getkey(), (4, 3, p)),
                    jr.normal(getkey(), (4, 3, p)))
-    run = lambda key, w: _run(key, w, dj.QSR.passive(p), 0.03, 0.3, optimizer=None,
+    rate = direct_map.solved_rate(dj.QSR.passive(p), 1e-2, w.y.dtype)
+    run = lambda key, w: _run(key, w, *rate, 0.03, 0.3, optimizer=None,
                               num_inits=4, n_state=n, max_steps=3, atol=0.0, rtol=0.0,
                               margin=1e-2)
     assert _custom_calls(run, getkey(), w) == []
@@ -54,8 +55,9 @@ def test_ren_run_compiles_without_custom_calls(getkey):
     n, p = 2, 1
     w = dj.Windows(jr.normal(getkey(), (4, n)), jr.normal(getkey(), (4, 3, p)),
                    jr.normal(getkey(), (4, 3, p)))
+    rate = direct_map.solved_rate(dj.QSR(-1.0, 0.5, 1.0), 1e-2, w.y.dtype, ren_map.ren_rate)
     run = lambda key, w: ren_train._run(
-        key, w, dj.QSR(-1.0, 0.5, 1.0), 0.03, 0.3, width=3, activation="relu",
+        key, w, *rate, 0.03, 0.3, width=3, activation="relu",
         optimizer=None, num_inits=4, n_state=n, max_steps=3, atol=0.0, rtol=0.0,
         margin=1e-2, direct_input=True)
     assert _custom_calls(run, getkey(), w) == []

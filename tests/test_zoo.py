@@ -237,6 +237,36 @@ def test_evaluate_trained_and_nonfinite(problems):
     assert bad.stable[1] and bad.imitation_error[1] == pytest.approx(1.0, rel=1e-12)
 
 
+def test_evaluate_rens_certified_and_odd_ones_started_where_asked(problems):
+    """A REN's certificate is its trainer's pair, checked by `certify_ren` (it was reported
+    False for every REN); an odd REN (order 2n) starts at `start(x0)`, and without `start`
+    the mismatch with the plant state is named. The errors are checked against a plain
+    loop of `ren_predict`."""
+    p = problems["chain2_passive"]
+    assert p.test.x0 is not None
+    fits = {odd: (lambda t, odd=odd: dj.fit_ren(t.key, t.windows, t.qsr, width=2,
+                                                num_inits=2, max_steps=5, odd=odd))
+            for odd in (False, True)}
+    mirror = lambda x0: jnp.concatenate([x0, -x0], -1)
+    rep = zoo.evaluate(p, fits[False])
+    n = p.test.x0.shape[1]
+    with pytest.raises(ValueError, match=f"order {2 * n}, .* {n}-dimensional plant state.*`start`"):
+        zoo.evaluate(p, fits[True])
+    odd = zoo.evaluate(p, fits[True], start=mirror)
+    target = -np.asarray(p.test.u, np.float64)
+    J0 = np.mean(np.sum(target**2, axis=(1, 2)))
+    for report, odd_run in ((rep, False), (odd, True)):
+        res = fits[odd_run](zoo.task(p))
+        assert report.certified.all() and report.stable.all()
+        x0 = mirror(p.test.x0) if odd_run else p.test.x0
+        for i in range(2):
+            Ki = jax.tree.map(lambda M: M[i], res.controllers)
+            assert dj.certify_ren(Ki, p.qsr).holds  # its own SDP, not the trainer's pair
+            pred = dj.ren_predict(Ki, dj.Windows(x0, p.test.y, p.test.u))
+            J = np.mean(np.sum((np.asarray(pred) - target) ** 2, axis=(1, 2)))
+            np.testing.assert_allclose(report.imitation_error[i], J / J0, rtol=1e-10)
+
+
 def _zero_like(t, i):
     n, pp, m = t.n_state, t.windows.n_in, t.windows.n_out
     return dj.LTIController(jnp.zeros((n, n)), jnp.zeros((n, pp)), jnp.zeros((m, n)),

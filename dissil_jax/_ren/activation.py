@@ -8,6 +8,7 @@ from collections.abc import Callable
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 
@@ -55,11 +56,25 @@ def check_activation(activation, rescreen: bool = False) -> str | Callable:
             dtype = jnp.result_type(out)
             vals = np.asarray(out, np.float64)
             points = np.asarray(grid, np.float64)
-    except jax.errors.TracerArrayConversionError:
+    except _NOT_TRACEABLE as err:
+        if _under_jit():
+            raise ValueError(
+                "`activation` (a callable) could not be screened inside this JAX "
+                "transformation: it closes over traced values, or it is not a JAX function "
+                "(NumPy's or `math`'s). Close over Python numbers only, and screen it once "
+                "outside any transformation before a RENController is built inside one: "
+                "build one RENController with it eagerly first (`dj.fit_ren` does this)."
+            ) from None
         raise ValueError(
-            "`activation` (a callable) must be screened once outside any JAX transformation "
-            "before a RENController is built inside one: build one RENController with it "
-            "eagerly first (`dj.fit_ren` does this for you).") from None
+            "`activation` must be a JAX function applied elementwise (it runs on traced "
+            "arrays inside the compiled rollouts and training loop): NumPy and `math` "
+            "functions such as `np.tanh` or `math.tanh` cannot run there. Use `jnp.tanh`, "
+            f"`jax.nn.relu`, or the names 'tanh'/'relu'. ({type(err).__name__} when applied "
+            "under `jax.vmap`.)") from None
+    except Exception as err:
+        raise ValueError(
+            "`activation` must take one array and return an array of its shape; applying it "
+            f"under `jax.vmap` raised {type(err).__name__}: {err}") from None
     if vals.shape != _GRID.shape or not np.all(np.isfinite(vals)):
         raise ValueError("`activation` must map scalars to finite scalars elementwise.")
     # Round-off allowance per quotient, in the evaluation's precision (float32 without x64):
@@ -79,6 +94,17 @@ def check_activation(activation, rescreen: bool = False) -> str | Callable:
             "needs it. Rescale it (e.g. sigma(v)/L for slopes in [0, L]) or use 'relu'/'tanh'.")
     _remember(activation)
     return activation
+
+
+# What a callable that is not JAX-traceable raises on a tracer (NumPy's and `math`'s
+# functions call `__array__`, `float` or `bool` on it).
+_NOT_TRACEABLE = (jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError,
+                  jax.errors.TracerBoolConversionError, jax.errors.TracerIntegerConversionError)
+
+
+def _under_jit() -> bool:
+    """Whether the caller is being traced by `jax.jit` (new arrays are then tracers)."""
+    return isinstance(jnp.zeros(()) + 0, jax.core.Tracer)
 
 
 def _holds_arrays(fn) -> bool:

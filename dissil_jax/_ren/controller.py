@@ -13,10 +13,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._controller import LTIController
+from .._controller import LTIController, check_step
 from .._data import Windows
 from .._rollout import check_window_sizes, scan_outputs
-from .._validate import check_int, has_non_finite
+from .._validate import check_int, check_precision, has_non_finite
 from .activation import ACTIVATIONS, check_activation
 
 
@@ -120,6 +120,7 @@ class RENController(eqx.Module):
             if M.ndim < 2 or not jnp.issubdtype(M.dtype, jnp.floating):
                 raise ValueError(f"`{name}` must be a floating-point matrix, got shape "
                                  f"{M.shape} and dtype {M.dtype}.")
+            check_precision(name, M.dtype)
         batch = self.A.shape[:-2]
         n, q, p, m = self.A.shape[-1], self.C1.shape[-2], self.B2.shape[-1], self.C2.shape[-2]
         expected = dict(A=(n, n), B1=(n, q), B2=(n, p), C1=(q, n), D11=(q, q), D12=(q, p),
@@ -189,6 +190,7 @@ class RENController(eqx.Module):
             raise ValueError(f"`K` must be a single controller (batch shape "
                              f"{self.batch_shape}); vmap over the batch, e.g. "
                              "`jax.vmap(lambda k: k(x, u))(K)`.")
+        check_step(self, x, u)
         b = self.C1 @ x + self.D12 @ u
         D11 = jnp.tril(self.D11, -1)  # traced D11 is not checked in __check_init__
         return b if self.width == 0 else _explicit_layer(self.sigma, D11, b)

@@ -56,7 +56,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .. import _linalg
-from .._direct_map import MARGIN, map_constants, output_map
+from .._direct_map import MARGIN, MapRate, map_constants, map_rate, output_map
 from .._rate_scale import nearest_power_of_two
 from .._supply import QSR
 from .controller import RENController
@@ -85,7 +85,7 @@ class RENParams(eqx.Module):
     Xi: Float[Array, "q p"]
 
 
-def ren_map(theta: RENParams, qsr: QSR, width: int, activation="tanh",
+def ren_map(theta: RENParams, qsr: QSR | MapRate, width: int, activation="tanh",
             margin: float = MARGIN, direct_input: bool = False):
     """The REN controller and certificate of one parameter $\\theta$ (unbatched; vmap for
     batches).
@@ -93,7 +93,8 @@ def ren_map(theta: RENParams, qsr: QSR, width: int, activation="tanh",
     $$\\theta\\mapsto (K, P, \\Lambda),\\qquad M(P,\\Lambda)\\preceq
     -\\varepsilon\\operatorname{diag}(P, 2\\Lambda, \\tfrac12\\Phi_0)$$
 
-    (steps 1-4 of the module docstring). `qsr` ($Q\\preceq0$), `width` $q$, `activation`,
+    (steps 1-4 of the module docstring). `qsr` ($Q\\preceq0$: a static `QSR`, or the
+    `MapRate` of `ren_rate`, whose values may be traced), `width` $q$, `activation`,
     `margin` $\\varepsilon\\in(0,1)$ and `direct_input` (train $D_{12}$, else
     $D_{12} = 0$) are static.
 
@@ -103,15 +104,16 @@ def ren_map(theta: RENParams, qsr: QSR, width: int, activation="tanh",
     q, n = int(width), theta.Y.shape[0]
     X, C2, D21, B = theta.X, theta.C2, theta.D21, theta.B
     dtype = X.dtype
-    Phi0 = map_constants(qsr, margin)[1]  # cached with the LTI map's constants
-    Q, S, R, Phi0 = (jnp.asarray(M, dtype) for M in (qsr.Q, qsr.S, qsr.R, Phi0))
+    rate = ren_rate(qsr, margin, dtype)
+    Q, S, R, Phi0 = (jnp.asarray(M, dtype) for M in (rate.Q, rate.S, rate.R, rate.Phi0))
     # 1. the feedthrough: Phi(D22) >= eps Phi0
-    _, D22, _ = output_map(theta.W, jnp.zeros((0, 0), dtype), qsr, margin)
+    _, D22, _ = output_map(theta.W, jnp.zeros((0, 0), dtype), rate, margin)
     Phi = R + S.T @ D22 + D22.T @ S + D22.T @ Q @ D22
     T = S + Q @ D22
     # 2. the u column of the big matrix and the Schur complement over it
     # B and Xi in units of the inputs' certified size (`input_units`)
-    units = jnp.asarray(input_units(qsr, margin), dtype)
+    assert rate.units is not None  # `ren_rate` sets them
+    units = jnp.asarray(rate.units, dtype)
     B = B * units
     xi = theta.Xi * units if direct_input else jnp.zeros_like(theta.Xi)
     col = jnp.concatenate([C2.T @ T, D21.T @ T - xi, B])
@@ -132,6 +134,17 @@ def ren_map(theta: RENParams, qsr: QSR, width: int, activation="tanh",
     K = RENController(AB[:, :n], AB[:, n:n + q], AB[:, n + q:], C1, D11, D12, C2, D21, D22,
                       activation=activation)
     return K, (P + P.T) / 2, lam
+
+
+def ren_rate(qsr: QSR | MapRate, margin: float = MARGIN, dtype=None) -> MapRate:
+    """The `MapRate` of `ren_map`: the LTI map's, with the input units (`input_units`); a
+    `MapRate` that has them is returned as it is."""
+    if isinstance(qsr, MapRate):
+        if qsr.units is None:
+            raise ValueError("the REN map needs the input units: build its rate with "
+                             "`ren_rate`.")
+        return map_rate(qsr, margin)
+    return map_rate(qsr, margin, dtype, units=input_units(qsr, margin))
 
 
 def input_units(qsr: QSR, margin: float = MARGIN) -> np.ndarray:

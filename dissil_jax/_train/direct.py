@@ -13,9 +13,8 @@ import optax
 
 from .. import _outcome
 from .._data import Windows
-from .._direct_map import MARGIN, check_margin, direct_map, init_params
+from .._direct_map import MARGIN, MapRate, check_margin, direct_map, init_params, solved_rate
 from .._projection.project import project
-from .._rate_scale import rate_factor, scaled_rate
 from .._rollout import imitation_loss
 from .._sdp import lmi as _lmi
 from .._sdp.indefinite import is_indefinite
@@ -131,19 +130,21 @@ class MapDescent(Method):
         return (optax.apply_updates(theta, updates), opt_state), _CONVERGED
 
 
-def _run(key, windows, qsr, learning_rate, init_scale, *, optimizer, num_inits, n_state,
-         max_steps, atol, rtol, margin, keep="best") -> FitResult:
-    """`direct_run` without argument checks or `throw` (traceable; `qsr`, `optimizer` static)."""
+def _run(key, windows, rate: MapRate, k, learning_rate, init_scale, *, optimizer, num_inits,
+         n_state, max_steps, atol, rtol, margin, keep="best") -> FitResult:
+    """`direct_run` without argument checks or `throw` (traceable; `optimizer` static).
+
+    `rate, k = solved_rate(qsr, margin, dtype)`: the rate as solved (divided by the power
+    of two `k` when far from unit size; P is multiplied back) and its map constants, traced
+    here so that training under another rate of the same shape does not compile again."""
     s2 = loss_scale(windows)
-    k = rate_factor(qsr)  # a rate far from unit size: solved divided by k, P multiplied back
-    qsr = scaled_rate(qsr, k)
     dtype = windows.y.dtype
     theta0 = init_params(key, num_inits, n_state, windows.n_in, windows.n_out, init_scale,
                          dtype)
     opt = optax.adam(learning_rate) if optimizer is None else optimizer
     (_, _, (K, P), _), hist, loss, steps, reason, kept = iterate(
         MapDescent(theta0, scaled(windows, s2), opt,
-                   map_loss(lambda theta: direct_map(theta, qsr, margin), imitation_loss)),
+                   map_loss(lambda theta: direct_map(theta, rate, margin), imitation_loss)),
         max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
     return FitResult(
         controllers=K, P=P * k, certified=None,
@@ -212,7 +213,8 @@ def direct_run(
     optimizer, learning_rate, init_scale, n_state, margin = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, margin=margin)
-    res = _run(key, windows, qsr, learning_rate, init_scale, optimizer=optimizer,
+    res = _run(key, windows, *solved_rate(qsr, margin, windows.y.dtype), learning_rate,
+               init_scale, optimizer=optimizer,
                num_inits=int(num_inits), n_state=n_state, max_steps=int(max_steps),
                atol=atol, rtol=rtol, margin=margin, keep=check_keep(keep))
     return raise_if_failed(res) if throw else res
@@ -345,8 +347,9 @@ def fit_direct(
         atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, margin=margin)
     c = balance_factor(windows, balance)  # outputs' units against inputs' (`_units.py`)
     windows, qsr = balanced(windows, qsr, c)
+    rate = solved_rate(qsr, margin, windows.y.dtype)  # traced: one compilation per shape
     return unbalance(fit_timed(
-        lambda *h: _run_jit(key, windows, qsr, *h, optimizer=optimizer,
+        lambda *h: _run_jit(key, windows, *rate, *h, optimizer=optimizer,
                             num_inits=int(num_inits), n_state=n_state,
                             max_steps=int(max_steps),
                             # traced: another tolerance does not recompile the run

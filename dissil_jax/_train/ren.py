@@ -16,12 +16,11 @@ import optax
 
 from .. import _outcome
 from .._data import Windows
-from .._direct_map import MARGIN, check_margin
-from .._rate_scale import rate_factor, scaled_rate
+from .._direct_map import MARGIN, MapRate, check_margin, solved_rate
 from .._ren.activation import check_activation
 from .._ren.certify import certified_batch, certify_ren
 from .._ren.controller import block_diag2, ren_imitation_loss, ren_odd_loss
-from .._ren.map import init_ren_params, ren_map
+from .._ren.map import init_ren_params, ren_map, ren_rate
 from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
 from .._validate import check_flag, check_int
@@ -58,21 +57,21 @@ def to_user_units(K, lam, s):
                        (K.B1 * s, K.C1 / s, K.D12 / s, K.D21 * s)), lam * s**2
 
 
-def _run(key, windows, qsr, learning_rate, init_scale, *, width, activation, optimizer,
-         num_inits, n_state, max_steps, atol, rtol, margin, direct_input, odd=False,
-         keep="best"):
+def _run(key, windows, rate: MapRate, k, learning_rate, init_scale, *, width, activation,
+         optimizer, num_inits, n_state, max_steps, atol, rtol, margin, direct_input,
+         odd=False, keep="best"):
     # Train in normalised units (`_scale.py`), as the LTI trainers do; the neurons stay in
     # those units, so the result is mapped back exactly for any activation (`to_user_units`).
+    # `rate, k = solved_rate(qsr, margin, dtype, ren_rate)`: a rate far from unit size is
+    # solved divided by k, (P, lam) multiplied back; traced, so one compilation per shape.
     s2 = loss_scale(windows)
-    k = rate_factor(qsr)  # a rate far from unit size: solved divided by k, (P, lam) times k
-    qsr = scaled_rate(qsr, k)
     data = scaled(windows, s2)
     theta0 = init_ren_params(key, num_inits, n_state, width, windows.n_in, windows.n_out,
                              init_scale, windows.y.dtype)
     opt = optax.adam(learning_rate) if optimizer is None else optimizer
     # The driver loop of every gradient trainer, with the LTI direct map's method and the
     # REN map's loss in place of the LTI one.
-    ren = lambda theta: ren_map(theta, qsr, width, activation, margin, direct_input)
+    ren = lambda theta: ren_map(theta, rate, width, activation, margin, direct_input)
     loss_fn = ren_odd_loss if odd else ren_imitation_loss
     (_, _, (K, P, lam), _), hist, loss, steps, reason, kept = iterate(
         MapDescent(theta0, data, opt, map_loss(ren, loss_fn)),
@@ -285,7 +284,8 @@ def fit_ren(
     dtype = windows.y.dtype
     c = balance_factor(windows, balance)  # outputs' units against inputs' (`_units.py`)
     windows, qsr = balanced(windows, qsr, c)
-    res = _run_jit(key, windows, qsr, jnp.asarray(learning_rate, dtype),
+    res = _run_jit(key, windows, *solved_rate(qsr, margin, dtype, ren_rate),
+                   jnp.asarray(learning_rate, dtype),
                    jnp.asarray(init_scale, dtype), width=int(width), activation=activation,
                    optimizer=optimizer, num_inits=int(num_inits), n_state=n_state,
                    max_steps=int(max_steps), atol=jnp.asarray(atol / c**2, dtype),

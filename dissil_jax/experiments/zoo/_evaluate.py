@@ -13,6 +13,8 @@ import numpy as np
 
 from ..._certify.certify import certify
 from ..._controller import LTIController
+from ..._ren.certify import certify_ren
+from ..._ren.controller import RENController
 from ..._train.result import FitResult
 from ...systems import LinearPlant
 from ..metrics import lti_spectral_radius, rule_stable
@@ -58,24 +60,50 @@ def _take(tree, idx):
     return jax.tree.map(lambda l: l[idx] if eqx.is_array(l) else l, tree)
 
 
-def certified(problem: Problem, controllers, P=None) -> np.ndarray:
-    """`[K]` exact float64 certificates of `dj.certify` (with the storages `P` if given)."""
+def certified(problem: Problem, controllers, P=None, multiplier=None) -> np.ndarray:
+    """`[K]` exact float64 certificates: `dj.certify` of LTI controllers (with the storages
+    `P` if given), `dj.certify_ren` of RENs (with the pairs `(P, multiplier)` if given,
+    else its SDP); False for any other controller (the MLP) and non-finite ones."""
     ok = _finite(controllers)
     out = np.zeros(ok.shape, bool)
-    if not isinstance(controllers, LTIController) or not ok.any():
+    ren = isinstance(controllers, RENController)
+    if not (ren or isinstance(controllers, LTIController)) or not ok.any():
         return out
     idx = np.nonzero(ok)[0]
     K = _take(controllers, idx)
-    if P is not None and bool(np.all(np.isfinite(np.asarray(P)[idx]))):
-        out[idx] = np.asarray(certify(K, problem.qsr, P=np.asarray(P)[idx]).holds)
+    # the trainer's certificate when it is given in full and finite, else a search
+    given = [np.asarray(a)[idx] for a in ((P, multiplier) if ren else (P,)) if a is not None]
+    full = len(given) == (2 if ren else 1) and all(np.isfinite(a).all() for a in given)
+    if ren:
+        P_i, lam_i = given if full else (None, None)
+        out[idx] = np.asarray(certify_ren(K, problem.qsr, P=P_i, multiplier=lam_i).holds)
     else:
-        out[idx] = np.asarray(certify(K, problem.qsr).holds)
+        out[idx] = np.asarray(certify(K, problem.qsr, P=given[0] if full else None).holds)
     return out
 
 
-def stable(problem: Problem, controllers) -> np.ndarray:
+def _start(problem: Problem, K, x0, start):
+    """The controllers' initial states for plant states `x0` (`[N, n]`): `start(x0)`, or
+    `x0` itself (as in the training windows), refused when the orders differ."""
+    if start is not None:
+        xhat0 = jnp.asarray(start(x0))
+        if xhat0.shape != (x0.shape[0], K.n_state):
+            raise ValueError(f"`start` must map the plant states {tuple(x0.shape)} to "
+                             f"controller states ({x0.shape[0]}, {K.n_state}), got shape "
+                             f"{xhat0.shape}.")
+        return xhat0
+    if getattr(K, "n_state", x0.shape[1]) != x0.shape[1]:  # (the MLP has no order)
+        raise ValueError(
+            f"the controllers have order {K.n_state}, but the problem's windows start them "
+            f"at its {x0.shape[1]}-dimensional plant state. Pass `start`, the map from plant "
+            "states to controller states (for `fit_ren(odd=True)`: `start=lambda x0: "
+            "jnp.concatenate([x0, -x0], -1)`).")
+    return x0
+
+
+def stable(problem: Problem, controllers, start=None) -> np.ndarray:
     """`[K]` closed-loop stability with the plant (negative feedback, controller at rest or
-    at the plant state as in the training windows).
+    at the plant state as in the training windows, or at `start(x0)`).
 
     Exact for an `LTIController` on a `LinearPlant` (spectral radius of the loop below 1);
     otherwise a noise-free simulation of `sim_steps(problem)` steps (at least 200, and at
@@ -95,16 +123,18 @@ def stable(problem: Problem, controllers) -> np.ndarray:
     dtype = x0.dtype
     N, n, m, T = x0.shape[0], problem.plant.n_state, problem.plant.n_in, sim_steps(problem)
     noise = Noise(jnp.zeros((N, T, n), dtype), jnp.zeros((N, T, m), dtype))
-    xhat0 = None if problem.facts.has_state else "rest"
-    if xhat0 == "rest" and not isinstance(K, LTIController):
-        xhat0 = jnp.zeros((N, problem.n_state), dtype)
+    if problem.facts.has_state:
+        xhat0 = _start(problem, K, x0, start)
+    else:
+        xhat0 = "rest" if isinstance(K, LTIController) else jnp.zeros((N, K.n_state), dtype)
     traj = simulate_controllers(problem.plant, K, x0, noise, xhat0)
     out[idx] = rule_stable(traj, abs_tol=SIM_ABS * problem.facts.units)
     return out
 
 
-def imitation_error(problem: Problem, controllers) -> np.ndarray:
-    """`[K]` held-out loss relative to the zero controller's, $J(K)/J(0)$ ($\\infty$ if not finite)."""
+def imitation_error(problem: Problem, controllers, start=None) -> np.ndarray:
+    """`[K]` held-out loss relative to the zero controller's, $J(K)/J(0)$ ($\\infty$ if not
+    finite); the controllers start at the windows' states, or at `start(x0)`."""
     ok = _finite(controllers)
     out = np.full(ok.shape, np.inf)
     if not ok.any():
@@ -112,7 +142,9 @@ def imitation_error(problem: Problem, controllers) -> np.ndarray:
     idx = np.nonzero(ok)[0]
     K = _take(controllers, idx)
     W = problem.test
-    n_state = K.n_state if isinstance(K, LTIController) else problem.n_state
+    if W.x0 is not None:
+        W = eqx.tree_at(lambda w: w.x0, W, _start(problem, K, W.x0, start))
+    n_state = K.n_state if isinstance(K, (LTIController, RENController)) else problem.n_state
     pred = np.asarray(predict_any(K, W, n_state), np.float64)
     target = np.asarray(W.target, np.float64)
     J = np.mean(np.sum((pred - target[None]) ** 2, axis=(-2, -1)), axis=-1)
@@ -121,7 +153,7 @@ def imitation_error(problem: Problem, controllers) -> np.ndarray:
     return out
 
 
-def evaluate(problem: Problem, method: Callable, *, key=None) -> Report:
+def evaluate(problem: Problem, method: Callable, *, key=None, start=None) -> Report:
     """Run `method` on `problem` and report what it learned (see [`Report`][dissil_jax.experiments.zoo.Report]).
 
     **Arguments:**
@@ -131,6 +163,10 @@ def evaluate(problem: Problem, method: Callable, *, key=None) -> Report:
       windows, controller supply rate, controller order, key) and returning a
       `dj.FitResult`, a batch of controllers (leading axis) or one `LTIController`.
     - `key`: the PRNG key handed to the method (default `PRNGKey(0)`).
+    - `start`: where the controllers start on a problem whose windows record the plant
+      state $x_0$: a map `[N, n] -> [N, n_state]` (default: at $x_0$ itself, as in
+      training). An odd REN of `fit_ren(odd=True)` starts at $(x_0, -x_0)$:
+      `start=lambda x0: jnp.concatenate([x0, -x0], -1)`.
 
     **Returns:** a `Report` with one entry per returned controller.
 
@@ -140,14 +176,15 @@ def evaluate(problem: Problem, method: Callable, *, key=None) -> Report:
     rep = zoo.evaluate(p, lambda t: dj.fit_pgd(t.key, t.windows, t.qsr, n_state=t.n_state))
     ```
     """
-    start = time.perf_counter()
+    began = time.perf_counter()
     out = method(task(problem, key))
     out = jax.block_until_ready(out)
-    wall = time.perf_counter() - start
-    P = train_loss = None
+    wall = time.perf_counter() - began
+    P = multiplier = train_loss = None
     if isinstance(out, FitResult):
         P, train_loss = out.P, np.asarray(out.final_loss, np.float64)
+        multiplier = getattr(out, "multiplier", None)  # a REN's certificate: (P, multiplier)
         out = out.controllers
     K = as_batch(out)
-    return Report(certified(problem, K, P), stable(problem, K), imitation_error(problem, K),
-                  train_loss, float(wall))
+    return Report(certified(problem, K, P, multiplier), stable(problem, K, start),
+                  imitation_error(problem, K, start), train_loss, float(wall))

@@ -12,6 +12,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from ..._controller import LTIController
 from ..._data import Windows
+from ..._ren.controller import RENController
 from ..._supply import QSR
 
 
@@ -95,7 +96,8 @@ class Report(NamedTuple):
     """The outcome of [`evaluate`][dissil_jax.experiments.zoo.evaluate], one entry per controller.
 
     - `certified`: `[K]` bool, $(Q,S,R)$-dissipativity of each controller proved by the exact
-      float64 check of `dj.certify` (False for controllers that are not LTI).
+      float64 check of `dj.certify` (`dj.certify_ren` for REN controllers; False for
+      other controllers, e.g. the MLP).
     - `stable`: `[K]` bool, the closed loop with the plant (exact for LTI loops).
     - `imitation_error`: `[K]` the held-out imitation loss relative to the zero controller's,
       $J(K;\\text{test}) / J(0;\\text{test})$ (0 is perfect, 1 is no better than $K = 0$;
@@ -159,8 +161,10 @@ class ObserverExpert(eqx.Module):
 
 
 def as_batch(controllers) -> Any:
-    """A controller with one leading batch axis (a single `LTIController` gains one)."""
-    if isinstance(controllers, LTIController) and controllers.batch_shape == ():
+    """A controller with one leading batch axis (a single `LTIController` or
+    `RENController` gains one)."""
+    if isinstance(controllers, (LTIController, RENController)) and \
+            controllers.batch_shape == ():
         return jax.tree.map(lambda M: M[None], controllers)
     return controllers
 

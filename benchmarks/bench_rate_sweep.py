@@ -1,0 +1,67 @@
+"""Training under many supply rates in one process: compilations and memory maps per rate.
+
+Each trainer trains under `--rates` gain bounds of one shape (SISO, gamma from 0.5 to 2,
+one distinct rate per call), then as many times again under the first rate. Reported per
+trainer: the ratio of the distinct rates' mean wall time per call to the repeated rate's
+(about 1 when a new rate reuses the compiled run, the compile-to-run ratio when it
+compiles its own), and the process's memory maps added per distinct rate (each compiled
+executable keeps its code pages mapped; Linux allows 65,530 maps per process by default,
+`vm.max_map_count`, and aborts the process with "LLVM ERROR: Unable to allocate section
+memory" beyond).
+
+Usage: python benchmarks/bench_rate_sweep.py [--rates 8] [--trainers fit_direct fit_ren fit_pgd]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import dissil_jax as dj
+
+
+def _maps() -> int:
+    with open("/proc/self/maps") as f:
+        return sum(1 for _ in f)
+
+
+def _windows():
+    rng = np.random.default_rng(0)
+    x0, y = rng.normal(size=(20, 2)), rng.normal(size=(20, 10, 1))
+    return dj.Windows(jnp.asarray(x0), jnp.asarray(y), jnp.asarray(-0.5 * y))
+
+
+def _calls(fn, rates):
+    start, maps = time.perf_counter(), _maps()
+    for qsr in rates:
+        jax.block_until_ready(fn(qsr))
+    return (time.perf_counter() - start) / len(rates), (_maps() - maps) / len(rates)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rates", type=int, default=8)
+    parser.add_argument("--trainers", nargs="+", default=["fit_direct", "fit_ren", "fit_pgd"])
+    args = parser.parse_args()
+    w, key = _windows(), jax.random.PRNGKey(0)
+    gains = np.geomspace(0.5, 2.0, args.rates + 1)
+    print(f"{args.rates} distinct gain bounds, then {args.rates} calls under one; "
+          "2 initialisations, 20 steps\n")
+    print("| trainer | distinct / repeated wall time per call | maps per distinct rate |")
+    print("|---|---|---|")
+    for name in args.trainers:
+        fit = getattr(dj, name)
+        fn = lambda qsr: fit(key, w, qsr, num_inits=2, max_steps=20, throw=False)
+        rate = lambda g: dj.QSR.bounded_gain(float(g), n_in=1, n_out=1)
+        fn(rate(gains[-1]))  # compile once (the repeated rate's call then reuses it)
+        distinct, maps = _calls(fn, [rate(g) for g in gains[:-1]])
+        repeated, _ = _calls(fn, [rate(gains[-1])] * args.rates)
+        print(f"| `{name}` | {distinct / repeated:.1f} | {maps:.0f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,89 @@
+"""Progress reports of long training runs, printed from inside the compiled loop.
+
+A trainer's loop is one `lax.while_loop`, silent until it returns. With `progress=True`
+(the trainers' default) the loop calls back to the host every `every(max_steps)` steps;
+the host prints nothing during the first `DELAY` seconds, so short runs stay silent, and
+then one line at most every `INTERVAL` seconds, on standard error:
+
+    fit_ren: step 240 of at most 600, 61 of 100 runs training, lowest loss 3.1e-03, 14 s
+
+The compiled loop receives a traced token (`reporting`), so calls with another reporter
+reuse the compiled run; token 0 reports nothing.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import sys
+import threading
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+#: Seconds of training before the first report (shorter runs print nothing).
+DELAY = 10.0
+#: Seconds between reports.
+INTERVAL = 10.0
+
+_LOCK = threading.Lock()
+_REPORTERS: dict[int, _Reporter] = {}
+_IDS = itertools.count(1)
+
+
+def every(max_steps: int) -> int:
+    """How many steps apart the loop calls back: about 100 calls per run at most."""
+    return max(1, int(max_steps) // 100)
+
+
+class _Reporter:
+    def __init__(self, name: str, max_steps: int):
+        self.name, self.max_steps = name, int(max_steps)
+        self.start = time.perf_counter()
+        self.last = -float("inf")
+
+    def __call__(self, k, loss, done):
+        now = time.perf_counter()
+        if now - self.start < DELAY or now - self.last < INTERVAL:
+            return
+        self.last = now
+        loss, done = np.asarray(loss, np.float64).ravel(), np.asarray(done).ravel()
+        finite = loss[np.isfinite(loss)]
+        best = f"{finite.min():.2e}" if finite.size else "none finite"
+        print(f"{self.name}: step {int(k)} of at most {self.max_steps}, "
+              f"{int((~done).sum())} of {done.size} runs training, lowest loss {best}, "
+              f"{now - self.start:.0f} s", file=sys.stderr, flush=True)
+
+
+def _dispatch(token, k, loss, done):
+    with _LOCK:
+        reporter = _REPORTERS.get(int(token))
+    if reporter is not None:
+        reporter(k, loss, done)
+
+
+def report(token, k, loss, done, max_steps: int) -> None:
+    """In the loop's body (traced): call back with step `k`, the lanes' losses and which
+    lanes stopped, every `every(max_steps)` steps."""
+    jax.lax.cond(k % every(max_steps) == 0,
+                 lambda: jax.debug.callback(_dispatch, token, k, loss, done),
+                 lambda: None)
+
+
+@contextlib.contextmanager
+def reporting(name: str, max_steps: int, enabled: bool):
+    """The token of a run's reporter (an int32 array, traced by the compiled run), or 0
+    when `enabled` is False; the reporter lives until the block exits."""
+    if not enabled:
+        yield jnp.asarray(0, jnp.int32)
+        return
+    with _LOCK:
+        token = next(_IDS)
+        _REPORTERS[token] = _Reporter(name, max_steps)
+    try:
+        yield jnp.asarray(token, jnp.int32)
+    finally:
+        with _LOCK:
+            del _REPORTERS[token]
