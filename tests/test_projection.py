@@ -221,6 +221,29 @@ def test_refine_rounds_move_closer(getkey):
     assert dists[5] < 0.2 * dists[1]
 
 
+def test_solver_caches_are_bounded_and_rebuilt_alike(getkey, monkeypatch):
+    """A sweep over supply rates keeps at most `CACHE_SIZE` LMIs and solvers per thread
+    (unbounded, the caches grew with every rate); a rate whose entries were dropped is
+    rebuilt and projects bit for bit as before."""
+    monkeypatch.setattr(_projection, "CACHE_SIZE", 2)
+    monkeypatch.setattr(_projection, "_LMI_CACHE", _projection._LMI_CACHE.__class__())
+    monkeypatch.setattr(_projection, "_LOCAL", threading.local())
+    K = dj.LTIController.random(getkey(), 2, 1, 1, scale=1.0)
+    rates = [dj.QSR.bounded_gain(g, n_in=1, n_out=1) for g in (0.5, 0.6, 0.7, 0.8)]
+    first = dj.project(K, rates[0])
+    for qsr in rates[1:]:
+        dj.project(K, qsr)
+        assert len(_projection._LMI_CACHE) <= 2
+    assert (rates[0], 2) not in _projection._LMI_CACHE
+    again = dj.project(K, rates[0])
+    assert tree_allclose(again, first, rtol=0, atol=0)
+    # the thread-local cache of this thread, used the same way
+    cache = _projection._LOCAL.__dict__.setdefault("solvers", _projection._LMI_CACHE.__class__())
+    for qsr in rates:
+        _projection._thread_solver(qsr, 2, 1e-6, 0.0)
+    assert len(cache) == 2 and list(cache)[-1][0] == rates[-1]
+
+
 # -- failures never return an uncertified controller ------------------------------------------
 
 

@@ -39,8 +39,22 @@ from .solver import _ProjectionSolver
 _STATS = {"solve_time": 0.0, "solves": 0, "callbacks": collections.Counter()}
 _STATS_LOCK = threading.Lock()
 _LOCAL = threading.local()
-_LMI_CACHE: dict = {}
+_LMI_CACHE: collections.OrderedDict = collections.OrderedDict()
 _LMI_LOCK = threading.Lock()
+#: (rate, order) pairs whose LMI and per-thread solver are kept, least recently used
+#: dropped first (a solver holds ~10 MB at order 24: unbounded, a sweep over rates grew).
+CACHE_SIZE = 16
+
+
+def _lru(cache: collections.OrderedDict, key, build):
+    value = cache.get(key)
+    if value is None:
+        value = cache[key] = build()
+        while len(cache) > CACHE_SIZE:
+            cache.popitem(last=False)
+    else:
+        cache.move_to_end(key)
+    return value
 _SOLVED, _UNCHANGED, _SKIPPED, _NOT_CERTIFIED = (
     _outcome.code(n) for n in ("solved", "unchanged", "skipped", "not_certified"))
 # A solution that fails the exact check after rounding is re-solved with the margin
@@ -52,12 +66,8 @@ P_FLOOR = 1e-2
 
 
 def _lmi(qsr: QSR, n: int) -> ConvexifiedLMI:
-    key = (qsr, n)
     with _LMI_LOCK:
-        lmi = _LMI_CACHE.get(key)
-        if lmi is None:
-            lmi = _LMI_CACHE[key] = ConvexifiedLMI(n, qsr.n_in, qsr.n_out, qsr)
-    return lmi
+        return _lru(_LMI_CACHE, (qsr, n), lambda: ConvexifiedLMI(n, qsr.n_in, qsr.n_out, qsr))
 
 
 def solver_stats() -> dict:
@@ -68,15 +78,9 @@ def solver_stats() -> dict:
 
 
 def _thread_solver(qsr: QSR, n: int, eps: float, reg: float) -> _ProjectionSolver:
-    cache = getattr(_LOCAL, "solvers", None)
-    if cache is None:
-        cache = _LOCAL.solvers = {}
-    key = (qsr, n, eps, reg)
-    solver = cache.get(key)
-    if solver is None:
-        solver = cache[key] = _ProjectionSolver(_lmi(qsr, n), eps=eps, reg=reg,
-                                                floor=P_FLOOR if n > 1 else 0.0)
-    return solver
+    cache = _LOCAL.__dict__.setdefault("solvers", collections.OrderedDict())  # per thread
+    return _lru(cache, (qsr, n, eps, reg), lambda: _ProjectionSolver(
+        _lmi(qsr, n), eps=eps, reg=reg, floor=P_FLOOR if n > 1 else 0.0))
 
 
 def _solve_batch(qsr, targets, P_tilde, eps, weights, *, base_eps, reg, dtype, shards,

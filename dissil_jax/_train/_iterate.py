@@ -50,6 +50,7 @@ import jax
 import jax.numpy as jnp
 
 from .. import _outcome
+from ._progress import report
 
 #: The trainers' default stopping rule: `atol = 0` and these `rtol`, relative to the run's
 #: initial loss, so that when a run stops does not depend on the data's units. Chosen on
@@ -110,11 +111,14 @@ def _evaluate(method, pending):
     return method.evaluate(pending)
 
 
-def iterate(method: Method, *, max_steps: int, atol, rtol, keep: str = "best"):
+def iterate(method: Method, *, max_steps: int, atol, rtol, keep: str = "best",
+            progress=None):
     """Run `method` for at most `max_steps` steps per lane (module docstring).
 
     `keep="last"` returns the last accepted state of every method (the paper's Algorithm 2
-    outputs its last iterate).
+    outputs its last iterate). `progress`: `(token, scale)`, a reporter's token
+    (`_progress.reporting`) and the factor that brings the method's loss to the user's
+    units, or None for a loop without host callbacks.
 
     The loop's body is `evaluate` (at iteration 0 the initial iterate), the bookkeeping,
     then `update`. So the loss and its gradient, usually the largest part of the compiled
@@ -192,6 +196,10 @@ def iterate(method: Method, *, max_steps: int, atol, rtol, keep: str = "best"):
         # projection skips inactive lanes), and it is not evaluated.
         state, loss = evaluate(c["pending"])
         c = jax.lax.cond(c["k"] == 0, first, later, c, state, loss)
+        if progress is not None:
+            token, scale = progress
+            report(token, c["k"], scale * (c["best_loss"] if keep_best else c["loss"]),
+                   c["done"] | (c["k"] >= max_steps), max_steps)
         active = ~c["done"] & (c["k"] < max_steps)
         pending, code = method.update(c["state"], active)
         return dict(c, k=c["k"] + 1, pending=pending,

@@ -8,7 +8,8 @@ then one line at most every `INTERVAL` seconds, on standard error:
     fit_ren: step 240 of at most 600, 61 of 100 runs training, lowest loss 3.1e-03, 14 s
 
 The compiled loop receives a traced token (`reporting`), so calls with another reporter
-reuse the compiled run; token 0 reports nothing.
+reuse the compiled run; token 0 reports nothing. ICO's runs are host loops on worker
+threads; they report through `HostProgress`.
 """
 
 from __future__ import annotations
@@ -39,8 +40,8 @@ def every(max_steps: int) -> int:
 
 
 class _Reporter:
-    def __init__(self, name: str, max_steps: int):
-        self.name, self.max_steps = name, int(max_steps)
+    def __init__(self, name: str, max_steps: int, scale: float = 1.0):
+        self.name, self.max_steps, self.scale = name, int(max_steps), float(scale)
         self.start = time.perf_counter()
         self.last = -float("inf")
 
@@ -49,7 +50,8 @@ class _Reporter:
         if now - self.start < DELAY or now - self.last < INTERVAL:
             return
         self.last = now
-        loss, done = np.asarray(loss, np.float64).ravel(), np.asarray(done).ravel()
+        loss = self.scale * np.asarray(loss, np.float64).ravel()
+        done = np.asarray(done).ravel()
         finite = loss[np.isfinite(loss)]
         best = f"{finite.min():.2e}" if finite.size else "none finite"
         print(f"{self.name}: step {int(k)} of at most {self.max_steps}, "
@@ -73,17 +75,42 @@ def report(token, k, loss, done, max_steps: int) -> None:
 
 
 @contextlib.contextmanager
-def reporting(name: str, max_steps: int, enabled: bool):
+def reporting(name: str, max_steps: int, enabled: bool, scale: float = 1.0):
     """The token of a run's reporter (an int32 array, traced by the compiled run), or 0
-    when `enabled` is False; the reporter lives until the block exits."""
+    when `enabled` is False; the reporter lives until the block exits. `scale` multiplies
+    the losses it reports (a balanced problem's, $c^2$, to the user's units)."""
     if not enabled:
         yield jnp.asarray(0, jnp.int32)
         return
     with _LOCK:
         token = next(_IDS)
-        _REPORTERS[token] = _Reporter(name, max_steps)
+        _REPORTERS[token] = _Reporter(name, max_steps, scale)
     try:
         yield jnp.asarray(token, jnp.int32)
     finally:
         with _LOCK:
             del _REPORTERS[token]
+
+
+class HostProgress:
+    """Progress of `num_runs` runs stepping on host threads (ICO): `step(i, k, loss)` after
+    each accepted step of run `i`, `done(i)` when it ends; reported like the compiled
+    loops' (nothing when not `enabled`)."""
+
+    def __init__(self, name: str, max_steps: int, num_runs: int, enabled: bool):
+        self._reporter = _Reporter(name, max_steps) if enabled else None
+        self._lock = threading.Lock()
+        self._k = np.zeros(num_runs, np.int64)
+        self._loss = np.full(num_runs, np.nan)
+        self._done = np.zeros(num_runs, bool)
+
+    def step(self, i: int, k: int, loss: float) -> None:
+        if self._reporter is None:
+            return
+        with self._lock:
+            self._k[i], self._loss[i] = k, loss
+            self._reporter(self._k.max(), self._loss.copy(), self._done.copy())
+
+    def done(self, i: int) -> None:
+        with self._lock:
+            self._done[i] = True

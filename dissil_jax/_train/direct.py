@@ -29,6 +29,7 @@ from ._checks import (
     check_optimizer,
 )
 from ._iterate import Method, iterate, where
+from ._progress import reporting
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balance_factor, unbalance
 from .result import FitResult, fit_timed, raise_if_failed
@@ -131,7 +132,7 @@ class MapDescent(Method):
 
 
 def _run(key, windows, rate: MapRate, k, learning_rate, init_scale, *, optimizer, num_inits,
-         n_state, max_steps, atol, rtol, margin, keep="best") -> FitResult:
+         n_state, max_steps, atol, rtol, margin, keep="best", progress=None) -> FitResult:
     """`direct_run` without argument checks or `throw` (traceable; `optimizer` static).
 
     `rate, k = solved_rate(qsr, margin, dtype)`: the rate as solved (divided by the power
@@ -145,7 +146,8 @@ def _run(key, windows, rate: MapRate, k, learning_rate, init_scale, *, optimizer
     (_, _, (K, P), _), hist, loss, steps, reason, kept = iterate(
         MapDescent(theta0, scaled(windows, s2), opt,
                    map_loss(lambda theta: direct_map(theta, rate, margin), imitation_loss)),
-        max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
+        max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep,
+        progress=None if progress is None else (progress, s2))
     return FitResult(
         controllers=K, P=P * k, certified=None,
         loss_history=hist * s2, final_loss=loss * s2, converged=reason == _CONVERGED,
@@ -265,6 +267,7 @@ def fit_direct(
     atol: float = 0.0,
     rtol: float = RTOL_DIRECT, init_scale: float | None = None, margin: float = MARGIN,
     fallback_eps: float = 1e-6, throw: bool = True, keep: str = "best", balance: bool = True,
+    progress: bool = True,
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers without projections, through a direct map.
 
@@ -331,6 +334,8 @@ def fit_direct(
     - `balance`: as in `fit_pgd` (default True): when the outputs' size is more than 5x
       above or below the inputs', train on outputs rescaled by a power of two and the
       matching supply rate, and map the result back exactly.
+    - `progress`: as in `fit_pgd` (default True: a line on standard error every 10 s once
+      training has taken 10 s).
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult] with `certified` from the float64
     check and `projected` (bool per initialisation).
@@ -348,13 +353,15 @@ def fit_direct(
     c = balance_factor(windows, balance)  # outputs' units against inputs' (`_units.py`)
     windows, qsr = balanced(windows, qsr, c)
     rate = solved_rate(qsr, margin, windows.y.dtype)  # traced: one compilation per shape
-    return unbalance(fit_timed(
-        lambda *h: _run_jit(key, windows, *rate, *h, optimizer=optimizer,
-                            num_inits=int(num_inits), n_state=n_state,
-                            max_steps=int(max_steps),
-                            # traced: another tolerance does not recompile the run
-                            atol=jnp.asarray(atol / c**2, windows.y.dtype),
-                            rtol=jnp.asarray(rtol, windows.y.dtype),
-                            margin=margin, keep=check_keep(keep)),
-        (learning_rate, init_scale), windows.y.dtype,
-        lambda res: certify_or_project(res, qsr, windows, eps=float(fallback_eps)), throw), c)
+    with reporting("fit_direct", max_steps, check_flag("progress", progress), c**2) as token:
+        return unbalance(fit_timed(
+            lambda *h: _run_jit(key, windows, *rate, *h, optimizer=optimizer,
+                                num_inits=int(num_inits), n_state=n_state,
+                                max_steps=int(max_steps),
+                                # traced: another tolerance does not recompile the run
+                                atol=jnp.asarray(atol / c**2, windows.y.dtype),
+                                rtol=jnp.asarray(rtol, windows.y.dtype),
+                                margin=margin, keep=check_keep(keep), progress=token),
+            (learning_rate, init_scale), windows.y.dtype,
+            lambda res: certify_or_project(res, qsr, windows, eps=float(fallback_eps)),
+            throw), c)

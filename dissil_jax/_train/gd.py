@@ -15,6 +15,7 @@ def fit_gd(
     decay: float | None = None, num_inits: int = 8, n_state: int | None = None,
     max_steps: int = GD_MAX_STEPS, atol: float = 0.0, rtol: float = RTOL_GD,
     init_scale: float = ADAM_INIT_SCALE, throw: bool = True, balance: bool = True,
+    progress: bool = True,
 ) -> FitResult:
     """Plain gradient descent on the imitation loss: [`fit_pgd`][dissil_jax.fit_pgd] without $\\Pi$.
 
@@ -56,9 +57,10 @@ def fit_gd(
     `equinox.error_if` (an `EquinoxRuntimeError`) rather than a `ValueError`. The certified
     trainers cannot be traced (their float64 end check runs on the host); their vmappable
     cores are [`direct_run`][dissil_jax.direct_run] and [`pgd_run`][dissil_jax.pgd_run].
+    Traced, `fit_gd` reports no progress (`progress` as in `fit_pgd`).
     """
     return _fit(key, windows, None,
                 optimizer=default_rule(optimizer, learning_rate, decay, windows, n_state),
                 learning_rate=learning_rate, decay=decay, init_scale=init_scale,
                 num_inits=num_inits, n_state=n_state, max_steps=max_steps, atol=atol,
-                rtol=rtol, eps=0.0, throw=throw, balance=balance)
+                rtol=rtol, eps=0.0, throw=throw, balance=balance, progress=progress)

@@ -32,6 +32,7 @@ from ._checks import (
 )
 from ._init import init_controllers
 from ._iterate import RTOL, Method, iterate
+from ._progress import reporting
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balance_factor, unbalance
 from .result import FitResult, fit_timed, raise_if_failed
@@ -111,7 +112,8 @@ class _PGD(Method):
 
 
 def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_inits,
-         n_state, max_steps, atol, rtol, eps, method="clarabel", keep="best") -> FitResult:
+         n_state, max_steps, atol, rtol, eps, method="clarabel", keep="best",
+         progress=None) -> FitResult:
     """`pgd_run` without argument checks or `throw` (traceable; `qsr` and `optimizer` static).
 
     Trains on the windows divided by the data scale (`_scale.py`), so that steps do not
@@ -133,7 +135,8 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
         method, K0, weighted, qsr)
     pgd = _PGD(K0, P0, code0, scaled(windows, s2), opt, qsr, eps, method, warm, weighted)
     (K, P, *_), hist, loss, steps, reason, kept = iterate(
-        pgd, max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
+        pgd, max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep,
+        progress=None if progress is None else (progress, s2))
     hist, loss = hist * s2, loss * s2
     return FitResult(
         controllers=K, P=None if P is None else P * k,
@@ -219,9 +222,10 @@ def pgd_run(
 
 def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_inits,
          n_state, max_steps, atol, rtol, eps, throw, method="clarabel", keep="best",
-         balance=True):
+         balance=True, progress=True):
     """`pgd_run`, compiled once per static configuration, timed and certified as a batch."""
     check_key(key)
+    progress = check_flag("progress", progress)
     if qsr is None:  # plain GD has no host check: it runs under `jax.vmap` too
         check_flag("throw", throw)
     else:
@@ -243,15 +247,20 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
         ok = np.asarray(res.certified) & _lmi.certified(K.A, K.B, K.C, K.D, qsr, res.P)
         return eqx.tree_at(lambda r: r.certified, res, jnp.asarray(ok))
 
-    return unbalance(fit_timed(
-        lambda *h: _run_jit(key, windows, qsr, *h, optimizer=optimizer,
-                            num_inits=int(num_inits), n_state=n_state,
-                            max_steps=int(max_steps),
-                            # traced: another tolerance does not recompile the run
-                            atol=jnp.asarray(atol / c**2, windows.y.dtype),
-                            rtol=jnp.asarray(rtol, windows.y.dtype),
-                            eps=float(eps), method=method, keep=check_keep(keep)),
-        (learning_rate, decay, init_scale), windows.y.dtype, certify, throw), c)
+    # no reports from `fit_gd` under a user's `jax.jit` or `jax.vmap` (its only host work)
+    traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree.leaves((key, windows)))
+    name = "fit_gd" if qsr is None else "fit_pgd"
+    with reporting(name, max_steps, progress and not traced, c**2) as token:
+        return unbalance(fit_timed(
+            lambda *h: _run_jit(key, windows, qsr, *h, optimizer=optimizer,
+                                num_inits=int(num_inits), n_state=n_state,
+                                max_steps=int(max_steps),
+                                # traced: another tolerance does not recompile the run
+                                atol=jnp.asarray(atol / c**2, windows.y.dtype),
+                                rtol=jnp.asarray(rtol, windows.y.dtype),
+                                eps=float(eps), method=method, keep=check_keep(keep),
+                                progress=None if traced else token),
+            (learning_rate, decay, init_scale), windows.y.dtype, certify, throw), c)
 
 
 def fit_pgd(
@@ -259,7 +268,7 @@ def fit_pgd(
     decay: float | None = None, num_inits: int = 8, n_state: int | None = None,
     max_steps: int = 150, atol: float = 0.0, rtol: float = RTOL,
     init_scale: float = ADAM_INIT_SCALE, eps: float = 1e-6, throw: bool = True,
-    method: str = "auto", keep: str = "best", balance: bool = True,
+    method: str = "auto", keep: str = "best", balance: bool = True, progress: bool = True,
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers by projected gradient descent (paper Alg. 2).
 
@@ -339,6 +348,10 @@ def fit_pgd(
     - `balance`: rescale the outputs when their units are far from the inputs' (default
       True, see "Units" above); False trains every signal in the one scale $s$, as the
       paper's reproduction does (its step sizes were chosen that way).
+    - `progress`: report long training on standard error (default True): nothing during
+      the first 10 s, then a line at most every 10 s with the step, the runs still
+      training and the lowest loss so far (from inside the compiled loop, through
+      `jax.debug.callback`); False for silence.
 
     **Initialisation.** The paper draws "each matrix element from a normal distribution"
     and projects the draw (paper §4.1); `init_scale=1.0` is that N(0, 1), which the
@@ -376,4 +389,5 @@ def fit_pgd(
     return _fit(key, windows, qsr, optimizer=default_rule(optimizer, learning_rate, decay),
                 learning_rate=learning_rate, decay=decay, init_scale=init_scale,
                 num_inits=num_inits, n_state=n_state, max_steps=max_steps, atol=atol,
-                rtol=rtol, eps=eps, throw=throw, method=method, keep=keep, balance=balance)
+                rtol=rtol, eps=eps, throw=throw, method=method, keep=keep, balance=balance,
+                progress=progress)

@@ -26,6 +26,7 @@ from .._supply import QSR
 from .._validate import check_flag, check_int
 from ._checks import check_eager, check_fit_args, check_keep, check_key, check_n_state
 from ._iterate import iterate
+from ._progress import reporting
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balance_factor, unbalance
 from .direct import MAX_STEPS, RTOL_DIRECT, MapDescent, default_hyperparameters, map_loss
@@ -59,7 +60,7 @@ def to_user_units(K, lam, s):
 
 def _run(key, windows, rate: MapRate, k, learning_rate, init_scale, *, width, activation,
          optimizer, num_inits, n_state, max_steps, atol, rtol, margin, direct_input,
-         odd=False, keep="best"):
+         odd=False, keep="best", progress=None):
     # Train in normalised units (`_scale.py`), as the LTI trainers do; the neurons stay in
     # those units, so the result is mapped back exactly for any activation (`to_user_units`).
     # `rate, k = solved_rate(qsr, margin, dtype, ren_rate)`: a rate far from unit size is
@@ -75,7 +76,8 @@ def _run(key, windows, rate: MapRate, k, learning_rate, init_scale, *, width, ac
     loss_fn = ren_odd_loss if odd else ren_imitation_loss
     (_, _, (K, P, lam), _), hist, loss, steps, reason, kept = iterate(
         MapDescent(theta0, data, opt, map_loss(ren, loss_fn)),
-        max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep)
+        max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep,
+        progress=None if progress is None else (progress, s2))
     K, lam = to_user_units(K, lam, s2**0.5)
     if odd:  # the trained REN is the odd part of K (`RENController.odd_part`)
         K, P, lam = K.odd_part(), 0.5 * block_diag2(P), 0.5 * jnp.concatenate([lam, lam], -1)
@@ -185,7 +187,7 @@ def fit_ren(
     num_inits: int = 8, n_state: int | None = None, max_steps: int = MAX_STEPS,
     atol: float = 0.0, rtol: float = RTOL_DIRECT, margin: float = MARGIN,
     direct_input: bool = False, odd: bool = False, throw: bool = True, keep: str = "best",
-    balance: bool = True,
+    balance: bool = True, progress: bool = True,
 ) -> RENFitResult:
     """Learn $(Q,S,R)$-dissipative REN controllers (nonlinear, dynamic) from demonstrations.
 
@@ -216,7 +218,8 @@ def fit_ren(
     **Arguments:**
 
     - `key`, `windows`, `qsr` ($Q\\preceq0$), `num_inits`, `n_state`, `max_steps`, `atol`, `rtol`,
-      `optimizer`, `learning_rate`, `init_scale`, `margin`, `throw`, `keep`, `balance`: as in
+      `optimizer`, `learning_rate`, `init_scale`, `margin`, `throw`, `keep`, `balance`,
+      `progress`: as in
       [`fit_direct`][dissil_jax.fit_direct] (`learning_rate` is Adam's step on the REN
       map's free parameters); the defaults are `fit_direct`'s rule at the controller's
       order $\\hat n$ capped at 0.1, i.e. $(0.1, 0.1)$ up to $\\hat n + p = 27$
@@ -284,14 +287,16 @@ def fit_ren(
     dtype = windows.y.dtype
     c = balance_factor(windows, balance)  # outputs' units against inputs' (`_units.py`)
     windows, qsr = balanced(windows, qsr, c)
-    res = _run_jit(key, windows, *solved_rate(qsr, margin, dtype, ren_rate),
-                   jnp.asarray(learning_rate, dtype),
-                   jnp.asarray(init_scale, dtype), width=int(width), activation=activation,
-                   optimizer=optimizer, num_inits=int(num_inits), n_state=n_state,
-                   max_steps=int(max_steps), atol=jnp.asarray(atol / c**2, dtype),
-                   rtol=jnp.asarray(rtol, dtype), margin=margin,
-                   direct_input=bool(direct_input), odd=bool(odd), keep=check_keep(keep))
-    jax.block_until_ready(res)
+    with reporting("fit_ren", max_steps, check_flag("progress", progress), c**2) as token:
+        res = _run_jit(key, windows, *solved_rate(qsr, margin, dtype, ren_rate),
+                       jnp.asarray(learning_rate, dtype),
+                       jnp.asarray(init_scale, dtype), width=int(width), activation=activation,
+                       optimizer=optimizer, num_inits=int(num_inits), n_state=n_state,
+                       max_steps=int(max_steps), atol=jnp.asarray(atol / c**2, dtype),
+                       rtol=jnp.asarray(rtol, dtype), margin=margin,
+                       direct_input=bool(direct_input), odd=bool(odd), keep=check_keep(keep),
+                       progress=token)
+        jax.block_until_ready(res)
     res = _certify_all(res, qsr)
     res = eqx.tree_at(lambda r: r.wall_time, res, jnp.asarray(time.perf_counter() - start,
                                                               dtype))

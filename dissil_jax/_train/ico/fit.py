@@ -16,9 +16,11 @@ from ..._projection.project import project
 from ..._rate_scale import rate_factor, scaled_rate
 from ..._sdp import lmi as _lmi, sdp as _sdp
 from ..._supply import QSR
+from ..._validate import check_flag
 from .._checks import check_eager, check_fit_args, check_key
 from .._init import INIT_SCALE, init_controllers
 from .._iterate import RTOL
+from .._progress import HostProgress
 from .._scale import loss_scale, scaled
 from .._units import balance as balanced, balance_factor, unbalance
 from ..result import FitResult, raise_if_failed
@@ -129,7 +131,7 @@ def _not_started(pb: ICOProblem, theta, P, outcome, max_steps):
 
 
 def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps, prox,
-         window_cone, callback, throw, balance):
+         window_cone, callback, throw, balance, progress=True):
     check_key(key)
     check_eager("fit_ico" if qsr is not None else "fit_ico_nc", key, windows, throw)
     _check_args(windows, qsr, num_inits, max_steps, atol, rtol, init_scale)
@@ -156,21 +158,27 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
                     prox=prox, window_cone=window_cone)
     mats = [np.asarray(M, np.float64) for M in (K0.A, K0.B, K0.C, K0.D)]
     thetas = [pb.theta(*(M[i] for M in mats)) for i in range(num_inits)]
-    user_cb = None
-    if callback is not None:
-        def in_controller_units(i, step, theta, P, J):
+    name = "fit_ico" if qsr is not None else "fit_ico_nc"
+    reports = HostProgress(name, max_steps, num_inits, check_flag("progress", progress))
+
+    def in_controller_units(i, step, theta, P, J):
+        reports.step(i, step, c**2 * s2 * J)
+        if callback is not None:
             A, B, C, D = pb.mats(theta)
             callback(i, step, LTIController(A, B, c * C, c * D), None if P is None else k * P,
                      c**2 * s2 * J)
 
-        user_cb = in_controller_units
+    def one(i):
+        out = (_run_one(pb, thetas[i], None if qsr is None else P0[i], max_steps=max_steps,
+                        atol=atol / s2, rtol=rtol, dtype=dtype, index=i,
+                        callback=in_controller_units)
+               if not _outcome.failed(code0[i])
+               else _not_started(pb, thetas[i], P0[i], code0[i], max_steps))
+        reports.done(i)
+        return out
 
     def work(indices):
-        return [_run_one(pb, thetas[i], None if qsr is None else P0[i], max_steps=max_steps,
-                         atol=atol / s2, rtol=rtol, dtype=dtype, index=i, callback=user_cb)
-                if not _outcome.failed(code0[i]) else _not_started(pb, thetas[i], P0[i], code0[i],
-                                                                 max_steps)
-                for i in indices]
+        return [one(i) for i in indices]
 
     results = [r for chunk in _sdp.thread_map(work, range(num_inits), balance=True)
                for r in chunk]
@@ -205,7 +213,7 @@ def fit_ico(
     eps: float = 1e-6,
     prox: float = 1e-4,
     window_cone: str = "stacked", callback: Callable | None = None, throw: bool = True,
-    balance: bool = True,
+    balance: bool = True, progress: bool = True,
 ) -> FitResult:
     """Learn $(Q,S,R)$-dissipative controllers by iterative convex overbounding (paper Alg. 1).
 
@@ -337,6 +345,8 @@ def fit_ico(
     - `window_cone`: `"stacked"` (default), `"soc"` or `"psd"`, see above.
     - `callback`: optional `callback(init_index, step, K, P, loss)` called for the initial
       point (step 0) and every accepted iterate, from worker threads.
+    - `progress`: as in [`fit_pgd`][dissil_jax.fit_pgd] (default True: a line on standard
+      error every 10 s once training has taken 10 s).
     - `throw`: raise a `ValueError` when a run stopped early (an SDP failure or a refused
       step, see `FitResult.result`). With `throw=False` the result is returned; every
       run, including one that stopped early, carries its best (and last accepted) certified iterate.
@@ -356,7 +366,8 @@ def fit_ico(
         raise ValueError("`qsr` is None; use `dj.fit_ico_nc` for unconstrained ICO.")
     return _fit(key, windows, qsr, num_inits=num_inits, max_steps=max_steps, atol=atol,
                 rtol=rtol, init_scale=init_scale, eps=eps, prox=prox,
-                window_cone=window_cone, callback=callback, throw=throw, balance=balance)
+                window_cone=window_cone, callback=callback, throw=throw, balance=balance,
+                progress=progress)
 
 
 def fit_ico_nc(
@@ -364,16 +375,17 @@ def fit_ico_nc(
     rtol: float = RTOL, init_scale: float = INIT_SCALE, prox: float = 1e-4,
     window_cone: str = "stacked",
     callback: Callable | None = None, throw: bool = True, balance: bool = True,
+    progress: bool = True,
 ) -> FitResult:
     """ICO without the dissipativity constraint (the paper's ICO-NC baseline).
 
     The same overbound and iteration as [`fit_ico`][dissil_jax.fit_ico], with no LMI and no
     projection of the random initialisation (drawn from the paper's N(0, 1) by default; its
     initial scale was not re-measured); the result carries `P = None` and
-    `certified = None` (no stability guarantee). `callback` receives `P = None`; `throw`
-    and `balance` as in `fit_ico`.
+    `certified = None` (no stability guarantee). `callback` receives `P = None`; `throw`,
+    `balance` and `progress` as in `fit_ico`.
     """
     return _fit(key, windows, None, num_inits=num_inits, max_steps=max_steps, atol=atol,
                 rtol=rtol,
                 init_scale=init_scale, eps=1e-6, prox=prox, window_cone=window_cone,
-                callback=callback, throw=throw, balance=balance)
+                callback=callback, throw=throw, balance=balance, progress=progress)

@@ -1,0 +1,65 @@
+"""Progress reports of long training runs: printed from inside the compiled loop (and
+ICO's host loop) once a run has taken `DELAY` seconds, silent with `progress=False`, under
+a user's `jax.vmap`, and for runs shorter than the delay."""
+
+import jax
+import jax.random as jr
+import numpy as np
+import pytest
+from helpers import expert_windows
+
+import dissil_jax as dj
+from dissil_jax.internal import progress
+
+QSR = dj.QSR.passive(1)
+
+
+def _lines(err: str, name: str) -> list[str]:
+    return [line for line in err.splitlines() if line.startswith(f"{name}: step")]
+
+
+@pytest.fixture
+def immediate(monkeypatch):
+    """Reports from the first callback on, one per callback."""
+    monkeypatch.setattr(progress, "DELAY", 0.0)
+    monkeypatch.setattr(progress, "INTERVAL", 0.0)
+
+
+@pytest.mark.parametrize("name", ["fit_direct", "fit_ren", "fit_pgd", "fit_gd"])
+def test_long_runs_report_from_the_compiled_loop(immediate, capsys, name):
+    w = expert_windows(2, 2, 1, 1, N=6)
+    fit = getattr(dj, name)
+    args = (jr.PRNGKey(0), w) if name == "fit_gd" else (jr.PRNGKey(0), w, QSR)
+    res = fit(*args, num_inits=3, max_steps=60, atol=0.0, rtol=0.0, throw=False)
+    lines = _lines(capsys.readouterr().err, name)
+    # one callback per step (every max_steps // 100 steps, at least 1), from step 0 on
+    assert len(lines) == 61, lines[:3]
+    assert lines[0].startswith(f"{name}: step 0 of at most 60, 3 of 3 runs training")
+    assert lines[-1].startswith(f"{name}: step 60 of at most 60, 0 of 3 runs training")
+    # the lowest loss reported last is the lowest the runs reached, in the user's units
+    # (printed to 3 significant digits)
+    best = float(lines[-1].split("lowest loss ")[1].split(",")[0])
+    np.testing.assert_allclose(best, float(np.min(res.final_loss)), rtol=0.01)
+
+
+def test_ico_reports_from_its_host_loop(immediate, capsys):
+    w = expert_windows(2, 2, 1, 1, N=6)
+    res = dj.fit_ico(jr.PRNGKey(0), w, QSR, num_inits=2, max_steps=3, atol=0.0, rtol=0.0,
+                     throw=False)
+    lines = _lines(capsys.readouterr().err, "fit_ico")
+    assert len(lines) == 2 + int(np.sum(res.steps))  # step 0 and every accepted step
+    assert all("of at most 3" in line for line in lines)
+
+
+def test_silent_when_asked_short_or_traced(capsys, monkeypatch):
+    w = expert_windows(2, 2, 1, 1, N=6)
+    dj.fit_direct(jr.PRNGKey(0), w, QSR, num_inits=2, max_steps=20)  # shorter than DELAY
+    assert _lines(capsys.readouterr().err, "fit_direct") == []
+    monkeypatch.setattr(progress, "DELAY", 0.0)
+    monkeypatch.setattr(progress, "INTERVAL", 0.0)
+    dj.fit_direct(jr.PRNGKey(0), w, QSR, num_inits=2, max_steps=20, progress=False)
+    jax.vmap(lambda k: dj.fit_gd(k, w, num_inits=2, max_steps=20).final_loss)(
+        jr.split(jr.PRNGKey(1), 2))
+    assert capsys.readouterr().err == ""
+    with pytest.raises(ValueError, match="`progress` must be True or False"):
+        dj.fit_ren(jr.PRNGKey(0), w, QSR, progress="yes")
