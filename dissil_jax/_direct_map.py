@@ -88,10 +88,13 @@ def feedthrough_centre(qsr: QSR) -> tuple[np.ndarray, np.ndarray]:
         # balanced by powers of two, y = t_y y~ and u = t_u u~ (a congruence), and map back:
         # D = (t_y / t_u) D~ and Phi(D) = Phi~(D~) / t_u^2. Rates that pass unbalanced keep
         # their centre.
-        t_y, t_u, balanced = balanced_blocks(qsr)
-        best = _centre_search(balanced.Q, balanced.S, balanced.R)
-        if best is not None:
-            best = (t_y / t_u * best[0], best[1] / t_u**2)
+        # A zero block (a degenerate cone, Q = 0) takes its unit from S (`cross`).
+        for cross in (False, True):
+            t_y, t_u, balanced = balanced_blocks(qsr, cross)
+            best = _centre_search(balanced.Q, balanced.S, balanced.R)
+            if best is not None:
+                best = (t_y / t_u * best[0], best[1] / t_u**2)
+                break
     if best is None:
         raise ValueError(
             "`qsr` admits no strictly dissipative controller: no feedthrough D gives "

@@ -58,12 +58,26 @@ def unit_scale(M) -> float:
     return 1.0 if size == 0.0 else float(nearest_power_of_two(size ** -0.5))
 
 
-def balanced_blocks(qsr: QSR) -> tuple[float, float, QSR]:
+def balanced_blocks(qsr: QSR, cross: bool = False) -> tuple[float, float, QSR]:
     """`(t_y, t_u, rate)`: the powers of two `unit_scale(Q)`, `unit_scale(R)` and the rate
     in the output and input units $y = t_y\\tilde y$, $u = t_u\\tilde u$,
     $(t_y^2Q, t_yt_uS, t_u^2R)$: a congruence, so the same inertia and, for a controller
-    $(A, Bt_u, C/t_y, Dt_u/t_y)$, the same dissipation inequality with the same storage."""
+    $(A, Bt_u, C/t_y, Dt_u/t_y)$, the same dissipation inequality with the same storage.
+
+    With `cross`, a zero $Q$ or $R$ block takes its unit from $S$ instead, so that
+    $t_yt_u\\max|S_{ij}|$ is within a factor 2 of 1 (both from $S$ when both are zero): a
+    degenerate cone ($Q = 0$) whose $S$ is tiny against $R$ has its whole static set
+    below round-off otherwise."""
     t_y, t_u = unit_scale(qsr.Q), unit_scale(qsr.R)
+    size = lambda M: float(np.abs(np.asarray(M, np.float64)).max(initial=0.0))
+    s = size(qsr.S)
+    if cross and s > 0.0 and (size(qsr.Q) == 0.0 or size(qsr.R) == 0.0):
+        if size(qsr.Q) == 0.0 and size(qsr.R) == 0.0:
+            t_y = t_u = unit_scale(qsr.S)
+        elif size(qsr.Q) == 0.0:
+            t_y = float(nearest_power_of_two(1.0 / (t_u * s)))
+        else:
+            t_u = float(nearest_power_of_two(1.0 / (t_y * s)))
     return t_y, t_u, QSR(t_y**2 * qsr.Q, t_y * t_u * qsr.S, t_u**2 * qsr.R)
 
 

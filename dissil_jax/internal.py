@@ -29,7 +29,7 @@ from ._projection import (
 from ._projection.project import solver_stats
 from ._ren import certify as ren_certify, controller as ren_controller, map as ren_map
 from ._sdp import lmi, sdp
-from ._sdp.indefinite import is_indefinite, static_point
+from ._sdp.indefinite import check_feasible, is_indefinite, static_point
 from ._sdp.lmi import (
     ConvexifiedLMI,
     certified,
@@ -66,7 +66,7 @@ from .experiments.zoo import _build as zoo_build
 __all__ = [
     "ConvexifiedLMI", "FIGURES", "ICOProblem", "ICOSolver", "INIT_SCALE", "Iterate",
     "METRIC_FLOOR", "MapDescent", "Method", "OUTPUT_BAND", "TABLES", "certified", "certify_fast", "certify_sdp", "certify_state_scale",
-    "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct", "gd_learning_rate",
+    "check_feasible", "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct", "gd_learning_rate",
     "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "ico_step", "init_controllers", "is_indefinite",
     "iterate",
     "kyp_bound_holds", "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",

@@ -17,6 +17,7 @@ import pytest
 from helpers import as_float32, dissipation_ok, expert_windows, index
 
 import dissil_jax as dj
+import dissil_jax.internal as dji
 from dissil_jax.experiments import realisable_windows
 from dissil_jax.experiments.protocol import example_spec, fit, run_config, training_data
 from dissil_jax.internal import certified, direct, direct_map as dm
@@ -81,6 +82,27 @@ def test_map_is_well_conditioned_near_q_zero():
         K, P = jax.jit(jax.vmap(lambda t: dm.direct_map(t, qsr)))(th)
         for a, b in zip(jax.tree.leaves((K, P)), jax.tree.leaves((K0, P0))):
             assert float(jnp.max(jnp.abs(a - b))) < 1e3 * delta * (1 + float(jnp.max(jnp.abs(b))))
+
+
+@pytest.mark.parametrize("e", [-24, -12, 12, 24])
+def test_degenerate_cone_with_outputs_in_other_units_is_feasible(e):
+    """A degenerate cone (Q = 0, R < 0) with its outputs in units 2^e (the rate the trainers
+    solve after balancing outputs of that size): its static set is tiny against R (Phi's
+    positive eigenvalue ~|S|^2/|R|), which the centre search and the feasibility count took
+    for round-off at 2^-24. Both now balance S against R first; the centre's Phi0 is
+    positive definite in exact float64 terms, and the map's controllers certify."""
+    c = 2.0**e
+    cone = dj.QSR.degenerate_conic(0.5, dim=2)
+    qsr = dj.QSR(c * c * cone.Q, c * cone.S, cone.R)
+    dji.check_feasible(qsr)  # no ValueError
+    D0, Phi0 = dm.feedthrough_centre(qsr)
+    Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
+    Phi = R + S.T @ D0 + D0.T @ S + D0.T @ Q @ D0
+    np.testing.assert_allclose(Phi, Phi0, rtol=1e-12, atol=0)
+    assert np.linalg.eigvalsh(Phi)[0] > 0
+    th = _random_theta(jr.PRNGKey(3), 6, 2, qsr, 1.0)
+    K, P = jax.jit(jax.vmap(lambda t: dm.direct_map(t, qsr)))(th)
+    assert bool(np.all(certified(K.A, K.B, K.C, K.D, qsr, P)))
 
 
 def test_grad_through_the_map():

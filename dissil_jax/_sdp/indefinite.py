@@ -55,8 +55,9 @@ def check_feasible(qsr: QSR) -> None:
     p = qsr.n_in
     # The count is an inertia, which a congruence keeps (Sylvester): the blocks are scaled to
     # unit size by powers of two first, so that a small R beside a large Q (a gain bound of
-    # 1e-6: eigenvalues -1 and 1e-12) is not taken for round-off.
-    w = np.linalg.eigvalsh(_supply_matrix(balanced_blocks(qsr)[2]))
+    # 1e-6: eigenvalues -1 and 1e-12) is not taken for round-off; a zero block takes its
+    # unit from S (a degenerate cone with a tiny S: eigenvalue ~|S|^2/|R|).
+    w = np.linalg.eigvalsh(_supply_matrix(balanced_blocks(qsr, cross=True)[2]))
     scale = max(1.0, float(np.abs(w).max(initial=0.0)))
     n_pos = int(np.sum(w > _TOL * scale))
     if n_pos < p:
