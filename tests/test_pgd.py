@@ -122,8 +122,8 @@ def test_no_retracing_across_calls(getkey, monkeypatch):
     with the default step (Adam) as with the paper's rule."""
     w1 = random_windows(getkey(), N=8)
     w2 = random_windows(getkey(), N=8, gain=0.4)
-    # outputs balanced against the inputs as they are: another factor would be another
-    # (static) supply rate, hence another compilation
+    # outputs balanced against the inputs as they are (another factor, another rate: the
+    # same compilation too, `test_rates_of_one_shape_share_one_compilation`)
     assert output_factor(w1) == output_factor(w2) == 1.0
 
     def count_traces():
@@ -140,6 +140,25 @@ def test_no_retracing_across_calls(getkey, monkeypatch):
     count_traces()
     dj.fit_pgd(getkey(), w1, QSR, num_inits=2, max_steps=5, learning_rate=1.0, decay=0.99)
     dj.fit_pgd(getkey(), w2, QSR, num_inits=2, max_steps=5, learning_rate=0.01, decay=0.9)
+
+
+def test_rates_of_one_shape_share_one_compilation(getkey, monkeypatch):
+    """`fit_pgd` passes its rate by reference (a traced token that the projection's host
+    callback resolves): rates of one shape, an out-of-band one included, train under one
+    compilation (a static rate compiled a run per rate, and a few hundred exhausted the
+    process's memory maps). Each run equals `pgd_run`'s, whose rate is static: the same
+    host solves, and gradient steps compiled in another program (round-off)."""
+    traced = eqx.debug.assert_max_traces(pgd._run, max_traces=1)
+    monkeypatch.setattr(pgd, "_run_jit", eqx.filter_jit(traced))
+    w, key = random_windows(getkey(), N=8), getkey()
+    for gamma in (0.5, 2.0, 1e3):
+        qsr = dj.QSR.bounded_gain(gamma, n_in=1, n_out=1)
+        res = dj.fit_pgd(key, w, qsr, num_inits=2, max_steps=5, balance=False)
+        ref = jax.jit(lambda k, q=qsr: dj.pgd_run(k, w, q, num_inits=2, max_steps=5))(key)
+        assert bool(np.all(res.certified))
+        for a, b in zip(jax.tree.leaves((res.controllers, res.P, res.final_loss)),
+                        jax.tree.leaves((ref.controllers, ref.P, ref.final_loss))):
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
 
 
 def test_learning_rate_sweep_with_vmap_equals_loop(getkey):

@@ -32,6 +32,7 @@ from .args import (
     check_options as _check_options,
     check_qsr as _check_qsr,
 )
+from .handle import RateHandle, resolve
 from .relinearise import project_rows_indefinite
 from .result import Projection as Projection, raise_on_failure as _raise_on_failure
 from .solver import _ProjectionSolver
@@ -174,8 +175,8 @@ def _project_rows(qsr, targets, P_tilde, weights, rounds, *, eps, reg, dtype, sh
     return best, codes
 
 
-def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, C0, D0, shard, *, qsr, has_ref, eps,
-                reg, refine, shards):
+def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, C0, D0, shard, token=None, *, qsr,
+                has_ref, eps, reg, refine, shards):
     """pure_callback target: arrays carry identical leading batch axes (broadcast_all).
 
     Active targets already certified by `P_ref` come back unchanged; the others are
@@ -184,7 +185,11 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, C0, D0, shard, *, qsr
     number of callbacks running at once on this host (`_sdp.shard`); each uses its share
     of the thread pool. `WA`..`WD` are the metric's weights (scaled per row to at most 1).
     `C0`, `D0` are the first linearisation points of an indefinite $Q$ (`relinearise.py`).
+    With `qsr` None the rate is `token`'s (`rate_handle`; broadcast like the batch).
     """
+    if qsr is None:
+        assert token is not None  # `_project_one` passes one with a `RateHandle`
+        qsr = resolve(token)
     dtype = np.asarray(A).dtype
     batch, n = A.shape[:-2], A.shape[-1]
     with _STATS_LOCK:
@@ -244,8 +249,8 @@ def _indefinite_solve(qsr, targets, P_tilde, weights, H0, **kwargs):
     return _certified_solve(qsr, targets, P_tilde, weights, H0=H0, **kwargs)
 
 
-def _project_one(K: LTIController, P_ref, W: LTIController, active, K_ref, *, qsr: QSR, eps,
-                 reg, refine):
+def _project_one(K: LTIController, P_ref, W: LTIController, active, K_ref, *,
+                 qsr: QSR | RateHandle, eps, reg, refine):
     """The unbatched JAX side: one `pure_callback` (vmapped calls batch on the host).
 
     Inside `jax.shard_map` (e.g. [`sweep`][dissil_jax.sweep]) each device calls its own
@@ -262,12 +267,14 @@ def _project_one(K: LTIController, P_ref, W: LTIController, active, K_ref, *, qs
         P_ref = jnp.eye(n, dtype=dtype)
     shapes = tuple(jax.ShapeDtypeStruct(M.shape, dtype) for M in (K.A, K.B, K.C, K.D, P_ref))
     shard, shards = _sdp.shard()
-    callback = partial(_host_batch, qsr=qsr, has_ref=has_ref, eps=float(eps), reg=float(reg),
-                       refine=int(refine), shards=shards)
+    handle = isinstance(qsr, RateHandle)
+    callback = partial(_host_batch, qsr=None if handle else qsr, has_ref=has_ref,
+                       eps=float(eps), reg=float(reg), refine=int(refine), shards=shards)
+    token = (qsr.token,) if handle else ()
     A, B, C, D, P, codes = jax.pure_callback(
         callback, (*shapes, jax.ShapeDtypeStruct((), jnp.int32)), K.A, K.B, K.C, K.D, P_ref,
         W.A, W.B, W.C, W.D, jnp.asarray(active, bool), K_ref.C.astype(dtype),
-        K_ref.D.astype(dtype), shard, vmap_method="broadcast_all")
+        K_ref.D.astype(dtype), shard, *token, vmap_method="broadcast_all")
     return LTIController(A, B, C, D), P, codes
 
 
@@ -385,13 +392,18 @@ def project(
     ok = proj.result == dj.Outcome.solved
     ```
     """
-    _check_qsr(K, qsr)
-    _check_options(K, P_ref, active, eps, reg, refine, metric)
-    _check_eps_room(qsr, eps)
+    if isinstance(qsr, RateHandle):  # a trainer's: checked, scaled, Clarabel's path
+        _check_options(K, P_ref, active, eps, reg, refine, metric)
+        k, first_order = 1.0, False
+    else:
+        _check_qsr(K, qsr)
+        _check_options(K, P_ref, active, eps, reg, refine, metric)
+        _check_eps_room(qsr, eps)
+        k = rate_factor(qsr)  # a rate far from unit size: divided by a power of two (exact)
+        qsr = scaled_rate(qsr, k)
+        first_order = _projection_fo.use_first_order(method, K, metric is not None, qsr)
     _check_k_ref(K, K_ref)
-    k = rate_factor(qsr)  # a rate far from unit size: divided by a power of two (exact)
-    qsr, P_ref = scaled_rate(qsr, k), None if P_ref is None else P_ref / k
-    first_order = _projection_fo.use_first_order(method, K, metric is not None, qsr)
+    P_ref = None if P_ref is None else P_ref / k
     fn = partial(partial(_project_fo_cold, weighted=metric is not None) if first_order else
                  _project_one, qsr=qsr, eps=eps, reg=reg, refine=refine)
     W = jax.tree.map(jnp.ones_like, K) if metric is None else metric

@@ -16,6 +16,7 @@ from .._controller import LTIController
 from .._data import Windows
 from .._projection import first_order as _first_order
 from .._projection.args import check_eps_room
+from .._projection.handle import RateHandle, trainer_rate
 from .._projection.project import project, project_first_order_warm
 from .._rate_scale import rate_factor, scaled_rate
 from .._rollout import imitation_loss
@@ -63,7 +64,7 @@ class _PGD(Method):
     code0: Any
     windows: Windows
     opt: optax.GradientTransformation
-    qsr: QSR | None
+    qsr: QSR | RateHandle | None  # a handle: the rate by reference (`trainer_rate`)
     eps: float
     method: str
     warm: bool  # the first-order projection, warm-started from the previous step's ADMM state
@@ -76,7 +77,7 @@ class _PGD(Method):
     def init(self):
         pending = (self.K0, self.P0, jax.vmap(self.opt.init)(self.K0))
         if self.warm:  # one cold ADMM state per initialisation
-            assert self.qsr is not None  # `warm` is the first-order projection's
+            assert isinstance(self.qsr, QSR)  # `warm` is the first-order projection's
             n, qsr, dtype = self.K0.n_state, self.qsr, self.K0.A.dtype
             cold = jax.vmap(lambda K: _first_order.cold_state(
                 n, qsr, dtype, (K.A, K.B, K.C, K.D) if self.weighted else None))(self.K0)
@@ -99,12 +100,14 @@ class _PGD(Method):
             # once per step (refine=1; the next step re-linearises). No effect for Q <= 0.
             metric = optimizer_metric(opt_state, K_new)
             if self.warm:
+                assert isinstance(self.qsr, QSR)  # the first-order path's rate is static
                 proj, warm[0] = project_first_order_warm(K_new, self.qsr, P, warm[0],
                                                          active=active, eps=self.eps,
                                                          metric=metric)
-            else:
-                proj = project(K_new, self.qsr, P, throw=False, active=active, eps=self.eps,
-                               metric=metric, K_ref=K, refine=1, method=self.method)
+            else:  # (`project` takes a `RateHandle` for a `QSR`: `trainer_rate`)
+                proj = project(K_new, cast(QSR, self.qsr), P, throw=False, active=active,
+                               eps=self.eps, metric=metric, K_ref=K, refine=1,
+                               method=self.method)
             codes = _outcome.codes(proj.result)
             code = jnp.where(_outcome.failed(codes), codes, code)
             K_new, P_new = proj
@@ -113,16 +116,19 @@ class _PGD(Method):
 
 def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_inits,
          n_state, max_steps, atol, rtol, eps, method="clarabel", keep="best",
-         progress=None) -> FitResult:
+         progress=None, k=None) -> FitResult:
     """`pgd_run` without argument checks or `throw` (traceable; `qsr` and `optimizer` static).
 
     Trains on the windows divided by the data scale (`_scale.py`), so that steps do not
-    depend on units; losses and `atol` are converted from and to the user's units.
+    depend on units; losses and `atol` are converted from and to the user's units. With
+    `k` given, `qsr` is the `RateHandle` of the rate divided by `k` (`fit_pgd`'s
+    `trainer_rate`): its values are traced, so another rate does not compile again.
     """
     s2 = loss_scale(windows)
-    # a rate far from unit size is solved divided by a power of two, P multiplied back
-    k = 1.0 if qsr is None else rate_factor(qsr)
-    qsr = None if qsr is None else scaled_rate(qsr, k)
+    if k is None:
+        # a rate far from unit size is solved divided by a power of two, P multiplied back
+        k = 1.0 if qsr is None else rate_factor(qsr)
+        qsr = None if qsr is None else scaled_rate(qsr, k)
     K0 = init_controllers(key, num_inits, windows, init_scale, n_state=n_state)
     if qsr is None:
         P0, code0 = None, jnp.full(num_inits, _MAX_STEPS, jnp.int32)
@@ -131,8 +137,7 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
         code0 = _outcome.codes(proj.result)
     opt = paper_rule(learning_rate, decay) if optimizer is None else optimizer
     weighted = optimizer_metric(jax.vmap(opt.init)(cast(Any, K0)), K0) is not None
-    warm = qsr is not None and _first_order.use_first_order(
-        method, K0, weighted, qsr)
+    warm = isinstance(qsr, QSR) and _first_order.use_first_order(method, K0, weighted, qsr)
     pgd = _PGD(K0, P0, code0, scaled(windows, s2), opt, qsr, eps, method, warm, weighted)
     (K, P, *_), hist, loss, steps, reason, kept = iterate(
         pgd, max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep,
@@ -247,19 +252,20 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
         ok = np.asarray(res.certified) & _lmi.certified(K.A, K.B, K.C, K.D, qsr, res.P)
         return eqx.tree_at(lambda r: r.certified, res, jnp.asarray(ok))
 
+    rate, k = trainer_rate(qsr, method, n_state, windows.y.dtype)
     # no reports from `fit_gd` under a user's `jax.jit` or `jax.vmap` (its only host work)
     traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree.leaves((key, windows)))
     name = "fit_gd" if qsr is None else "fit_pgd"
     with reporting(name, max_steps, progress and not traced, c**2) as token:
         return unbalance(fit_timed(
-            lambda *h: _run_jit(key, windows, qsr, *h, optimizer=optimizer,
+            lambda *h: _run_jit(key, windows, rate, *h, optimizer=optimizer,
                                 num_inits=int(num_inits), n_state=n_state,
                                 max_steps=int(max_steps),
                                 # traced: another tolerance does not recompile the run
                                 atol=jnp.asarray(atol / c**2, windows.y.dtype),
                                 rtol=jnp.asarray(rtol, windows.y.dtype),
                                 eps=float(eps), method=method, keep=check_keep(keep),
-                                progress=None if traced else token),
+                                progress=None if traced else token, k=k),
             (learning_rate, decay, init_scale), windows.y.dtype, certify, throw), c)
 
 

@@ -134,7 +134,8 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
     # The step sizes were chosen on the data as they are, in one scale for every signal
     # (`tuning.py`), and the examples' outputs are 4-90x smaller than their inputs: without
     # `balance=False` the trainers would rescale the outputs (`dj.fit_pgd`, "units").
-    unbalanced = dict(common, balance=False)
+    # The command line shows its own progress bar: no trainer's reports interleave with it.
+    unbalanced = dict(common, balance=False, progress=False)
     if method == "pgd":
         # The paper's Algorithm 2 outputs its last iterate, C_{i+1}.
         return dj.fit_pgd(key, windows, spec.qsr, learning_rate=spec.pgd_learning_rate,
