@@ -25,12 +25,16 @@ def immediate(monkeypatch):
     monkeypatch.setattr(progress, "INTERVAL", 0.0)
 
 
-@pytest.mark.parametrize("name", ["fit_direct", "fit_ren", "fit_pgd", "fit_gd"])
+@pytest.mark.parametrize("name", ["fit_direct", "fit_ren", "fit_pgd", "fit_gd", "fit_mlp"])
 def test_long_runs_report_from_the_compiled_loop(immediate, capsys, name):
+    """One line per callback with the batch's state; the MLP's loop is vmapped by its
+    caller and calls back once per run, which the reporter gathers into one line."""
     w = expert_windows(2, 2, 1, 1, N=6)
     fit = getattr(dj, name)
-    args = (jr.PRNGKey(0), w) if name == "fit_gd" else (jr.PRNGKey(0), w, QSR)
-    res = fit(*args, num_inits=3, max_steps=60, atol=0.0, rtol=0.0, throw=False)
+    unconstrained = name in ("fit_gd", "fit_mlp")
+    args = (jr.PRNGKey(0), w) if unconstrained else (jr.PRNGKey(0), w, QSR)
+    kw = dict(hidden=(8,)) if name == "fit_mlp" else {}
+    res = fit(*args, num_inits=3, max_steps=60, atol=0.0, rtol=0.0, throw=False, **kw)
     lines = _lines(capsys.readouterr().err, name)
     # one callback per step (every max_steps // 100 steps, at least 1), from step 0 on
     assert len(lines) == 61, lines[:3]

@@ -40,18 +40,26 @@ def every(max_steps: int) -> int:
 
 
 class _Reporter:
-    def __init__(self, name: str, max_steps: int, scale: float = 1.0):
+    def __init__(self, name: str, max_steps: int, scale: float = 1.0, lanes: int = 0):
         self.name, self.max_steps, self.scale = name, int(max_steps), float(scale)
         self.start = time.perf_counter()
         self.last = -float("inf")
+        # a loop vmapped by its caller (the MLP) calls back once per lane, in order
+        self.lanes, self.parts = int(lanes), []
 
     def __call__(self, k, loss, done):
+        loss = self.scale * np.asarray(loss, np.float64).ravel()
+        done = np.asarray(done).ravel()
+        if loss.size < self.lanes:  # one lane of a vmapped loop: gather the step's lanes
+            self.parts.append((loss, done))
+            if sum(part[0].size for part in self.parts) < self.lanes:
+                return
+            loss, done = (np.concatenate(a) for a in zip(*self.parts))
+            self.parts = []
         now = time.perf_counter()
         if now - self.start < DELAY or now - self.last < INTERVAL:
             return
         self.last = now
-        loss = self.scale * np.asarray(loss, np.float64).ravel()
-        done = np.asarray(done).ravel()
         finite = loss[np.isfinite(loss)]
         best = f"{finite.min():.2e}" if finite.size else "none finite"
         print(f"{self.name}: step {int(k)} of at most {self.max_steps}, "
@@ -75,16 +83,17 @@ def report(token, k, loss, done, max_steps: int) -> None:
 
 
 @contextlib.contextmanager
-def reporting(name: str, max_steps: int, enabled: bool, scale: float = 1.0):
+def reporting(name: str, max_steps: int, enabled: bool, scale: float = 1.0, lanes: int = 0):
     """The token of a run's reporter (an int32 array, traced by the compiled run), or 0
     when `enabled` is False; the reporter lives until the block exits. `scale` multiplies
-    the losses it reports (a balanced problem's, $c^2$, to the user's units)."""
+    the losses it reports (a balanced problem's, $c^2$, to the user's units); `lanes`: the
+    number of runs of a loop vmapped by its caller, which calls back once per run."""
     if not enabled:
         yield jnp.asarray(0, jnp.int32)
         return
     with _LOCK:
         token = next(_IDS)
-        _REPORTERS[token] = _Reporter(name, max_steps, scale)
+        _REPORTERS[token] = _Reporter(name, max_steps, scale, lanes)
     try:
         yield jnp.asarray(token, jnp.int32)
     finally:

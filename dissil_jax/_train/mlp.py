@@ -8,6 +8,7 @@ from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
@@ -19,6 +20,7 @@ from .._data import Windows
 from .._validate import check_flag, check_int
 from ._checks import check_fit_args, check_key
 from ._iterate import RTOL_MLP, Method, iterate
+from ._progress import reporting
 from .result import FitResult, fit_timed
 
 _CONVERGED, _MAX_STEPS = _outcome.code("converged"), _outcome.code("max_steps")
@@ -160,7 +162,7 @@ class _Adam(Method):
         return (optax.apply_updates(params, updates), opt_state), jnp.asarray(_CONVERGED)
 
 
-def _train_one(key, X, T, *, hidden, max_steps, learning_rate, atol, rtol):
+def _train_one(key, X, T, token, *, hidden, max_steps, learning_rate, atol, rtol):
     """Train one MLP (pure; vmapped over `key` by `fit_mlp`).
 
     At most `max_steps + 1` gradient evaluations: $J_0$, then one per Adam step, until
@@ -171,21 +173,21 @@ def _train_one(key, X, T, *, hidden, max_steps, learning_rate, atol, rtol):
     params, static = eqx.partition(model, eqx.is_inexact_array)
     (params, _, _), hist, J, steps, reason, kept = iterate(
         _Adam(params, static, X, T, optax.adam(learning_rate)), max_steps=max_steps,
-        atol=atol, rtol=rtol)
+        atol=atol, rtol=rtol, progress=None if token is None else (token, 1.0))
     return eqx.combine(params, static), hist, J, reason == _CONVERGED, steps, reason, kept
 
 
 @partial(eqx.filter_jit)
-def _train_batch(keys, X, T, hidden, max_steps, learning_rate, atol, rtol):
+def _train_batch(keys, X, T, hidden, max_steps, learning_rate, atol, rtol, token):
     fn = partial(_train_one, hidden=hidden, max_steps=max_steps, learning_rate=learning_rate,
                  atol=atol, rtol=rtol)
-    return eqx.filter_vmap(fn, in_axes=(0, None, None))(keys, X, T)
+    return eqx.filter_vmap(fn, in_axes=(0, None, None, None))(keys, X, T, token)
 
 
 def fit_mlp(
     key, windows: Windows, *, hidden: Sequence[int] = (150, 150), num_inits: int = 8,
     max_steps: int = 2000, learning_rate: float = 1e-3, atol: float = 0.0, rtol: float = RTOL_MLP,
-    throw: bool = True,
+    throw: bool = True, progress: bool = True,
 ) -> FitResult:
     """Train the paper's NN baseline (NN + GD): a static ReLU MLP on the demonstration pairs.
 
@@ -216,6 +218,8 @@ def fit_mlp(
       each of them moves per step), in the data's own units: unlike the LTI trainers,
       `fit_mlp` does not normalise the windows.
     - `throw`: raise a `ValueError` if a run's loss became non-finite (as `dj.fit_gd`).
+    - `progress`: as in [`fit_pgd`][dissil_jax.fit_pgd] (default True: a line on standard
+      error every 10 s once training has taken 10 s).
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult] whose `controllers` is an
     [`MLPController`][dissil_jax.MLPController] with a leading `[num_inits]` axis; `P` and
@@ -231,10 +235,15 @@ def fit_mlp(
 
     def run():
         model, hist, J, converged, steps, reason, kept = _train_batch(
-            keys, X, T, hidden, int(max_steps), float(learning_rate), float(atol), float(rtol))
+            keys, X, T, hidden, int(max_steps), float(learning_rate), float(atol), float(rtol),
+            None if traced else token)
         return FitResult(
             controllers=model, P=None, certified=None, loss_history=hist, final_loss=J,
             converged=converged, steps=steps, wall_time=jnp.asarray(jnp.nan, X.dtype),
             result=_outcome.item(reason), kept_step=kept)
 
-    return fit_timed(run, (), X.dtype, lambda res: res, throw)
+    # no reports under a user's `jax.jit` or `jax.vmap`
+    traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree.leaves((key, windows)))
+    with reporting("fit_mlp", max_steps, check_flag("progress", progress) and not traced,
+                   lanes=int(num_inits)) as token:
+        return fit_timed(run, (), X.dtype, lambda res: res, throw)

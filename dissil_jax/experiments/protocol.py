@@ -161,7 +161,7 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
                           **dict(unbalanced, atol=0.0))
     if method == "mlp":
         return dj.fit_mlp(key, windows, hidden=spec.hidden, num_inits=inits, atol=spec.tol,
-                          rtol=0.0, throw=False)
+                          rtol=0.0, throw=False, progress=False)
     raise ValueError(f"`method` must be one of {METHODS}, got {method!r}.")
 
 
