@@ -47,6 +47,7 @@ from dissil_jax.internal import (  # noqa: E402
     ConvexifiedLMI,  # noqa: E402
     certify_fast as _certify_fast,
     projection as _projection,
+    projection_cache as _projection_cache,
 )
 
 PATHS = ("project", "certify", "certify_sdp", "pgd", "pgd_default", "ico", "direct")
@@ -205,7 +206,7 @@ def main():
                     skipped.append((path, n, m))
                     stopped.add(path)
                     continue
-                _projection._LOCAL.__dict__.clear()  # solvers of other sizes: not kept
+                _projection_cache._LOCAL.__dict__.clear()  # solvers of other sizes: not kept
                 t, note = cell(path, n, m, qsr, state)
                 if t is None:
                     print(f"  {path:12s}   skipped ({note})")

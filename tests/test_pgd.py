@@ -269,7 +269,7 @@ class _FailAfter:
     report `solver_failed` (a solver failure injected on the host)."""
 
     def __init__(self, monkeypatch, ok):
-        from dissil_jax.internal import projection as _projection
+        from dissil_jax.internal import projection_cache as _projection
 
         self.ok, self.calls, self._orig = ok, 0, _projection._ProjectionSolver.solve
         self.failed = _outcome.code("solver_failed")

@@ -10,7 +10,13 @@ from helpers import dissipation_matrix, dissipation_ok, index, tree_allclose
 from hypothesis import given, settings, strategies as st
 
 import dissil_jax as dj
-from dissil_jax.internal import outcome as _outcome, projection as _projection, sdp as _sdp
+from dissil_jax.internal import (
+    LRU,
+    outcome as _outcome,
+    projection as _projection,
+    projection_cache as _cache,
+    sdp as _sdp,
+)
 
 pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 
@@ -225,23 +231,34 @@ def test_solver_caches_are_bounded_and_rebuilt_alike(getkey, monkeypatch):
     """A sweep over supply rates keeps at most `CACHE_SIZE` LMIs and solvers per thread
     (unbounded, the caches grew with every rate); a rate whose entries were dropped is
     rebuilt and projects bit for bit as before."""
-    monkeypatch.setattr(_projection, "CACHE_SIZE", 2)
-    monkeypatch.setattr(_projection, "_LMI_CACHE", _projection._LMI_CACHE.__class__())
-    monkeypatch.setattr(_projection, "_LOCAL", threading.local())
+    monkeypatch.setattr(_cache, "CACHE_SIZE", 2)
+    monkeypatch.setattr(_cache, "_LMI_CACHE", LRU(2))
+    monkeypatch.setattr(_cache, "_LOCAL", threading.local())
     K = dj.LTIController.random(getkey(), 2, 1, 1, scale=1.0)
     rates = [dj.QSR.bounded_gain(g, n_in=1, n_out=1) for g in (0.5, 0.6, 0.7, 0.8)]
     first = dj.project(K, rates[0])
     for qsr in rates[1:]:
         dj.project(K, qsr)
-        assert len(_projection._LMI_CACHE) <= 2
-    assert (rates[0], 2) not in _projection._LMI_CACHE
+        assert len(_cache._LMI_CACHE) <= 2
+    assert (rates[0], 2) not in _cache._LMI_CACHE
     again = dj.project(K, rates[0])
     assert tree_allclose(again, first, rtol=0, atol=0)
-    # the thread-local cache of this thread, used the same way
-    cache = _projection._LOCAL.__dict__.setdefault("solvers", _projection._LMI_CACHE.__class__())
+    # this thread's solvers, used the same way
     for qsr in rates:
-        _projection._thread_solver(qsr, 2, 1e-6, 0.0)
-    assert len(cache) == 2 and list(cache)[-1][0] == rates[-1]
+        _cache.thread_solver(qsr, 2, 1e-6, 0.0)
+    solvers = _cache._LOCAL.solvers
+    assert len(solvers) == 2 and solvers.keys()[-1][0] == rates[-1]
+
+
+def test_lru_drops_the_least_recently_used():
+    lru = LRU(2)
+    lru.put("a", 1)
+    lru.put("b", 2)
+    assert lru.get("a") == 1  # "a" is now the most recent
+    lru.put("c", 3)
+    assert "b" not in lru and lru.keys() == ["a", "c"]
+    assert lru.get_or_build("d", lambda: 4) == 4 and lru.keys() == ["c", "d"]
+    assert lru.get_or_build("c", lambda: 99) == 3  # present: not rebuilt
 
 
 # -- failures never return an uncertified controller ------------------------------------------
@@ -250,7 +267,7 @@ def test_solver_caches_are_bounded_and_rebuilt_alike(getkey, monkeypatch):
 def _inject(monkeypatch, obj, name, value):
     """Patch `obj.name` and start from empty thread-local solver caches (dropped afterwards),
     so that no solver built before the patch is reused and none built with it survives."""
-    monkeypatch.setattr(_projection, "_LOCAL", threading.local())
+    monkeypatch.setattr(_cache, "_LOCAL", threading.local())
     monkeypatch.setattr(obj, name, value)
 
 
@@ -281,7 +298,7 @@ def _assert_flagged(qsr, target, batch, P_ref, code, match):
 def test_solver_failure_is_flagged(getkey, monkeypatch):
     qsr = dj.QSR.passive(2)
     target, batch, P_ref = _failure_cases(qsr, getkey())
-    monkeypatch.setattr(_projection, "_LOCAL", threading.local())
+    monkeypatch.setattr(_cache, "_LOCAL", threading.local())
     monkeypatch.setitem(_sdp.PROJECTION_SETTINGS, "max_iter", 1)
     code = _assert_flagged(qsr, target, batch, P_ref, Outcome.solver_failed, "Clarabel failed")
     assert code == Outcome.solver_failed
@@ -290,7 +307,7 @@ def test_solver_failure_is_flagged(getkey, monkeypatch):
 def _corrupt_solves(monkeypatch, broken=lambda n: True):
     """Make Clarabel's answers unstable (A + 5 * ones: dissipative for no P) on the calls
     `broken(n)` picks; returns the list of the margins eps the solver was asked for."""
-    original, original_data = _projection._ProjectionSolver.solve, _projection._ProjectionSolver.data
+    original, original_data = _cache._ProjectionSolver.solve, _cache._ProjectionSolver.data
     calls, margins = [], []
 
     def data(self, targets, P_tilde, eps, weights):
@@ -305,8 +322,8 @@ def _corrupt_solves(monkeypatch, broken=lambda n: True):
             x[: self.lmi.nA] += 5.0
         return x, status, t
 
-    _inject(monkeypatch, _projection._ProjectionSolver, "solve", corrupted)
-    monkeypatch.setattr(_projection._ProjectionSolver, "data", data)
+    _inject(monkeypatch, _cache._ProjectionSolver, "solve", corrupted)
+    monkeypatch.setattr(_cache._ProjectionSolver, "data", data)
     return calls
 
 
@@ -394,7 +411,7 @@ def test_projection_at_a_degenerate_reference_is_retried(getkey):
     target = jax.tree.map(lambda a: a + 0.3, Kc)
     assert not dj.certify(target, qsr, P=P_bad).holds
     # linearised at P_bad alone, the projection fails
-    layout = _projection._lmi(qsr, n).layout
+    layout = _cache.lmi(qsr, n).layout
     theta = layout.pack(target.A, target.B, target.C, target.D)[None]
     _, codes = _projection._project_rows(
         qsr, theta, P_bad[None], np.ones_like(theta), 1, eps=1e-6, reg=1e-6,

@@ -31,16 +31,15 @@ to the SDP.
 
 from __future__ import annotations
 
-import collections
 import threading
 import warnings
 
 import numpy as np
 
+from .._lru import LRU
 from .._supply import QSR
 
-_CACHE: collections.OrderedDict = collections.OrderedDict()
-_CACHE_SIZE = 256
+_CACHE = LRU(256)
 _LOCK = threading.Lock()
 # Tightenings tried, relative to the size of the supply-rate terms.
 _DELTAS = (1e-2, 1e-4, 1e-6, 1e-8)
@@ -56,11 +55,7 @@ def remember(A, B, C, D, qsr: QSR, P) -> None:
     A, B, C, D, P = (np.asarray(M, np.float64) for M in (A, B, C, D, P))
     with _LOCK:
         for i in range(len(A)):
-            key = _key(A[i], B[i], C[i], D[i], qsr)
-            _CACHE[key] = P[i].copy()
-            _CACHE.move_to_end(key)
-        while len(_CACHE) > _CACHE_SIZE:
-            _CACHE.popitem(last=False)
+            _CACHE.put(_key(A[i], B[i], C[i], D[i], qsr), P[i].copy())
 
 
 def cached(A, B, C, D, qsr: QSR):

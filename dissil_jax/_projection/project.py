@@ -23,52 +23,27 @@ from .._certify import fast as _certify_fast
 from .._controller import LTIController
 from .._rate_scale import rate_factor, scaled_rate
 from .._sdp import sdp as _sdp
-from .._sdp.lmi import ConvexifiedLMI, cast, certified
+from .._sdp.lmi import cast, certified
 from .._supply import QSR
-from . import first_order as _projection_fo
+from . import cache as _cache, first_order as _projection_fo
 from .args import (
     check_eps_room as _check_eps_room,
     check_k_ref as _check_k_ref,
     check_options as _check_options,
     check_qsr as _check_qsr,
 )
+from .cache import P_FLOOR as P_FLOOR
 from .handle import RateHandle, resolve
 from .relinearise import project_rows_indefinite
 from .result import Projection as Projection, raise_on_failure as _raise_on_failure
-from .solver import _ProjectionSolver
 
 _STATS = {"solve_time": 0.0, "solves": 0, "callbacks": collections.Counter()}
 _STATS_LOCK = threading.Lock()
-_LOCAL = threading.local()
-_LMI_CACHE: collections.OrderedDict = collections.OrderedDict()
-_LMI_LOCK = threading.Lock()
-#: (rate, order) pairs whose LMI and per-thread solver are kept, least recently used
-#: dropped first (a solver holds ~10 MB at order 24: unbounded, a sweep over rates grew).
-CACHE_SIZE = 16
-
-
-def _lru(cache: collections.OrderedDict, key, build):
-    value = cache.get(key)
-    if value is None:
-        value = cache[key] = build()
-        while len(cache) > CACHE_SIZE:
-            cache.popitem(last=False)
-    else:
-        cache.move_to_end(key)
-    return value
 _SOLVED, _UNCHANGED, _SKIPPED, _NOT_CERTIFIED = (
     _outcome.code(n) for n in ("solved", "unchanged", "skipped", "not_certified"))
 # A solution that fails the exact check after rounding is re-solved with the margin
 # enlarged by this factor, at most `_ATTEMPTS - 1` times.
 _ATTEMPTS, _EPS_GROWTH = 3, 100.0
-# The conditioning bound of the projection's P: lambda_min(P) >= P_FLOOR * mean eigenvalue
-# (`_projection/solver.py`; redundant, so left out, for n = 1).
-P_FLOOR = 1e-2
-
-
-def _lmi(qsr: QSR, n: int) -> ConvexifiedLMI:
-    with _LMI_LOCK:
-        return _lru(_LMI_CACHE, (qsr, n), lambda: ConvexifiedLMI(n, qsr.n_in, qsr.n_out, qsr))
 
 
 def solver_stats() -> dict:
@@ -78,26 +53,20 @@ def solver_stats() -> dict:
     return _STATS
 
 
-def _thread_solver(qsr: QSR, n: int, eps: float, reg: float) -> _ProjectionSolver:
-    cache = _LOCAL.__dict__.setdefault("solvers", collections.OrderedDict())  # per thread
-    return _lru(cache, (qsr, n, eps, reg), lambda: _ProjectionSolver(
-        _lmi(qsr, n), eps=eps, reg=reg, floor=P_FLOOR if n > 1 else 0.0))
-
-
 def _solve_batch(qsr, targets, P_tilde, eps, weights, *, base_eps, reg, dtype, shards,
                  H0=None):
     """Solve Π for every row; returns `(A, B, C, D, P)` rounded to `dtype`, codes, certified."""
     n = P_tilde.shape[-1]
-    lmi = _lmi(qsr, n)
+    lmi = _cache.lmi(qsr, n)
     count = len(targets)
     extra = () if H0 is None else (H0,)  # the Q <= 0 path calls `data` exactly as before
-    q, vals, b, diag = _thread_solver(qsr, n, base_eps, reg).data(targets, P_tilde, eps, weights,
+    q, vals, b, diag = _cache.thread_solver(qsr, n, base_eps, reg).data(targets, P_tilde, eps, weights,
                                                                   *extra)
     xs = np.full((count, lmi.nx), np.nan)
     codes = np.empty(count, np.int32)
 
     def work(rows):
-        solver, spent = _thread_solver(qsr, n, base_eps, reg), 0.0
+        solver, spent = _cache.thread_solver(qsr, n, base_eps, reg), 0.0
         for i in rows:
             x, codes[i], t = solver.solve(q[i], vals[i], b[i], diag[i])
             spent += t
@@ -151,7 +120,7 @@ def _project_rows(qsr, targets, P_tilde, weights, rounds, *, eps, reg, dtype, sh
     `((A, B, C, D, P), codes)`; rows without any certified solution hold NaN.
     """
     count = len(targets)
-    layout = _lmi(qsr, P_tilde.shape[-1]).layout
+    layout = _cache.lmi(qsr, P_tilde.shape[-1]).layout
     best_dist = np.full(count, np.inf)
     codes = np.full(count, _outcome.code("solver_failed"), np.int32)
     live, P_tilde, best = np.arange(count), P_tilde.copy(), None
@@ -207,13 +176,13 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, C0, D0, shard, token=
         codes[todo[keep]] = _UNCHANGED
         todo = todo[~keep]
     if len(todo):
-        layout = _lmi(qsr, n).layout
+        layout = _cache.lmi(qsr, n).layout
         targets = layout.pack(*(M[todo] for M in flat[:4]))
         w = layout.pack(*(np.asarray(W, np.float64).reshape((-1,) + W.shape[len(batch):])[todo]
                           for W in (WA, WB, WC, WD)))
         w /= w.max(axis=1, keepdims=True)
         P_tilde = flat[4][todo] if has_ref else np.broadcast_to(np.eye(n), (len(todo), n, n))
-        if _lmi(qsr, n).indefinite:
+        if _cache.lmi(qsr, n).indefinite:
             H0 = tuple(np.asarray(M, np.float64).reshape((-1,) + M.shape[len(batch):])[todo]
                        for M in (C0, D0))
             solve = partial(_indefinite_solve, qsr, eps=eps, reg=reg, dtype=dtype, shards=shards)
