@@ -126,12 +126,12 @@ def test_method_argument(getkey):
     K = _batch(getkey(), 1)
     with pytest.raises(ValueError, match="`method`"):
         dj.project(K, RATES["passive"], method="admm")
-    assert not fo.use_first_order("auto", K, False, RATES["passive"])  # n = 3: Clarabel
-    assert fo.use_first_order("first_order", K, False, RATES["passive"])
-    assert fo.use_first_order("first_order", K, True, RATES["passive"])  # with a metric too
+    assert not fo.use_first_order("auto", K.n_state, False, RATES["passive"])  # n = 3: Clarabel
+    assert fo.use_first_order("first_order", K.n_state, False, RATES["passive"])
+    assert fo.use_first_order("first_order", K.n_state, True, RATES["passive"])  # with a metric too
     # an indefinite Q (here Q = 0.5 I > 0) needs the linearisation only Clarabel's path has
     indefinite = dj.QSR(0.5 * np.eye(2), 0.5 * np.eye(2), -2.0 * np.eye(2))
-    assert not fo.use_first_order("auto", K, False, indefinite)
+    assert not fo.use_first_order("auto", K.n_state, False, indefinite)
     with pytest.raises(ValueError, match="`qsr.Q` negative semidefinite"):
         dj.project(K, indefinite, method="first_order")
 
@@ -278,19 +278,18 @@ def test_warm_started_pgd_is_certified(getkey):
 
 def test_auto_follows_the_measured_order(getkey, monkeypatch):
     qsr = RATES["passive"]
-    at = lambda n: dj.LTIController.random(getkey(), n, 2, 2)
     lo = fo.AUTO_MIN_ORDER
     assert lo is not None and lo > 6  # the paper's sizes (1, 6) keep Clarabel
-    assert fo.use_first_order("auto", at(lo), False, qsr)
-    assert not fo.use_first_order("auto", at(lo - 1), False, qsr)
+    assert fo.use_first_order("auto", lo, False, qsr)
+    assert not fo.use_first_order("auto", lo - 1, False, qsr)
     lo_w = fo.AUTO_MIN_ORDER_METRIC  # with a metric (projected Adam's)
     assert lo_w is not None and lo_w > 6
-    assert fo.use_first_order("auto", at(lo_w), True, qsr)
-    assert not fo.use_first_order("auto", at(lo_w - 1), True, qsr)
+    assert fo.use_first_order("auto", lo_w, True, qsr)
+    assert not fo.use_first_order("auto", lo_w - 1, True, qsr)
     monkeypatch.setattr(fo, "AUTO_MIN_ORDER", None)
-    assert not fo.use_first_order("auto", at(lo), False, qsr)
+    assert not fo.use_first_order("auto", lo, False, qsr)
     monkeypatch.setattr(fo, "AUTO_MIN_ORDER_METRIC", None)
-    assert not fo.use_first_order("auto", at(lo_w), True, qsr)
+    assert not fo.use_first_order("auto", lo_w, True, qsr)
 
 
 def _custom_calls(fn, *args, platform):

@@ -275,9 +275,10 @@ AUTO_MIN_ORDER_METRIC: int | None = 12
 METHODS = ("clarabel", "first_order", "auto")
 
 
-def use_first_order(method, K, weighted: bool, qsr: QSR) -> bool:
-    """Whether `project(..., method=method)` takes the first-order path (checks `method`);
-    `weighted`: whether the projection has a `metric`."""
+def use_first_order(method, n_state: int, weighted: bool, qsr: QSR) -> bool:
+    """Whether `project(..., method=method)` of controllers of order `n_state` takes the
+    first-order path (checks `method`); `weighted`: whether the projection has a
+    `metric`."""
     if method not in METHODS:
         raise ValueError(f"`method` must be one of {METHODS}, got {method!r}.")
     if method == "first_order" and is_indefinite(qsr):
@@ -285,5 +286,5 @@ def use_first_order(method, K, weighted: bool, qsr: QSR) -> bool:
                          "an indefinite Q pass `method='clarabel'` (or 'auto').")
     if method == "auto":
         lo = AUTO_MIN_ORDER_METRIC if weighted else AUTO_MIN_ORDER
-        return not is_indefinite(qsr) and lo is not None and K.n_state >= lo
+        return not is_indefinite(qsr) and lo is not None and n_state >= lo
     return method == "first_order"

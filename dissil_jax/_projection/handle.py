@@ -17,12 +17,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._rate_scale import rate_factor, scaled_rate
-from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
 from . import first_order as _first_order
 
 _LOCK = threading.Lock()
-_RATES: dict = {}  # token -> QSR, and QSR -> token
+_TOKENS: dict[QSR, int] = {}
+_RATES: list[QSR] = []  # the rate of token t is _RATES[t - 1] (token 0: none)
 
 
 class RateHandle(eqx.Module):
@@ -40,17 +40,17 @@ def rate_handle(qsr: QSR) -> RateHandle:
     """The `RateHandle` of `qsr` (one token per distinct rate, kept for the process's life:
     a few hundred bytes each)."""
     with _LOCK:
-        token = _RATES.get(qsr)
-        if token is None:
-            token = _RATES[qsr] = len(_RATES) // 2 + 1
-            _RATES[token] = qsr
+        if qsr not in _TOKENS:
+            _RATES.append(qsr)
+            _TOKENS[qsr] = len(_RATES)
+        token = _TOKENS[qsr]
     return RateHandle(jnp.asarray(token, jnp.int32), qsr.n_in, qsr.n_out)
 
 
 def resolve(token) -> QSR:
     """The rate of a token (an array broadcast like the callback's batch)."""
     with _LOCK:
-        return _RATES[int(np.ravel(np.asarray(token))[0])]
+        return _RATES[int(np.ravel(np.asarray(token))[0]) - 1]
 
 
 def trainer_rate(qsr: QSR | None, method: str, n_state: int, dtype):
@@ -60,10 +60,8 @@ def trainer_rate(qsr: QSR | None, method: str, n_state: int, dtype):
     around the rate's values), `(qsr, None)`: static, divided inside the run."""
     if qsr is None:
         return None, None
-    orders = (_first_order.AUTO_MIN_ORDER, _first_order.AUTO_MIN_ORDER_METRIC)
-    lo = min((o for o in orders if o is not None), default=None)
-    if method == "first_order" or (method == "auto" and lo is not None and n_state >= lo
-                                   and not is_indefinite(qsr)):
+    # with or without a metric (the optimiser's, known inside the run)
+    if any(_first_order.use_first_order(method, n_state, w, qsr) for w in (False, True)):
         return qsr, None
     k = rate_factor(qsr)
     return rate_handle(scaled_rate(qsr, k)), jnp.asarray(k, dtype)

@@ -370,7 +370,8 @@ def project(
         _check_eps_room(qsr, eps)
         k = rate_factor(qsr)  # a rate far from unit size: divided by a power of two (exact)
         qsr = scaled_rate(qsr, k)
-        first_order = _projection_fo.use_first_order(method, K, metric is not None, qsr)
+        first_order = _projection_fo.use_first_order(method, K.n_state, metric is not None,
+                                                     qsr)
     _check_k_ref(K, K_ref)
     P_ref = None if P_ref is None else P_ref / k
     fn = partial(partial(_project_fo_cold, weighted=metric is not None) if first_order else

@@ -137,7 +137,8 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
         code0 = _outcome.codes(proj.result)
     opt = paper_rule(learning_rate, decay) if optimizer is None else optimizer
     weighted = optimizer_metric(jax.vmap(opt.init)(cast(Any, K0)), K0) is not None
-    warm = isinstance(qsr, QSR) and _first_order.use_first_order(method, K0, weighted, qsr)
+    warm = isinstance(qsr, QSR) and _first_order.use_first_order(method, K0.n_state, weighted,
+                                                                  qsr)
     pgd = _PGD(K0, P0, code0, scaled(windows, s2), opt, qsr, eps, method, warm, weighted)
     (K, P, *_), hist, loss, steps, reason, kept = iterate(
         pgd, max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep,
