@@ -9,7 +9,12 @@ executable keeps its code pages mapped; Linux allows 65,530 maps per process by 
 `vm.max_map_count`, and aborts the process with "LLVM ERROR: Unable to allocate section
 memory" beyond).
 
-Usage: python benchmarks/bench_rate_sweep.py [--rates 8] [--trainers fit_direct fit_ren fit_pgd]
+`fit_pgd_first_order` is `fit_pgd(method="first_order")` (ADMM in the compiled run), and
+`pgd_run_first_order` the same run through `pgd_run` under `eqx.filter_jit`, whose rate the
+caller holds as a static value: the reference that compiles once per rate.
+
+Usage: python benchmarks/bench_rate_sweep.py [--rates 8] [--trainers fit_direct fit_ren fit_pgd
+    fit_pgd_first_order pgd_run_first_order]
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from __future__ import annotations
 import argparse
 import time
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -45,7 +51,8 @@ def _calls(fn, rates):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rates", type=int, default=8)
-    parser.add_argument("--trainers", nargs="+", default=["fit_direct", "fit_ren", "fit_pgd"])
+    parser.add_argument("--trainers", nargs="+", default=[
+        "fit_direct", "fit_ren", "fit_pgd", "fit_pgd_first_order", "pgd_run_first_order"])
     args = parser.parse_args()
     w, key = _windows(), jax.random.PRNGKey(0)
     gains = np.geomspace(0.5, 2.0, args.rates + 1)
@@ -53,9 +60,16 @@ def main():
           "2 initialisations, 20 steps\n")
     print("| trainer | distinct / repeated wall time per call | maps per distinct rate |")
     print("|---|---|---|")
+    kw = dict(num_inits=2, max_steps=20, throw=False)
     for name in args.trainers:
-        fit = getattr(dj, name)
-        fn = lambda qsr: fit(key, w, qsr, num_inits=2, max_steps=20, throw=False)
+        if name == "fit_pgd_first_order":
+            fn = lambda qsr: dj.fit_pgd(key, w, qsr, method="first_order", **kw)
+        elif name == "pgd_run_first_order":
+            run = eqx.filter_jit(lambda qsr: dj.pgd_run(key, w, qsr, method="first_order", **kw))
+            fn = lambda qsr: run(qsr)
+        else:
+            fit = getattr(dj, name)
+            fn = lambda qsr, fit=fit: fit(key, w, qsr, **kw)
         rate = lambda g: dj.QSR.bounded_gain(float(g), n_in=1, n_out=1)
         fn(rate(gains[-1]))  # compile once (the repeated rate's call then reuses it)
         distinct, maps = _calls(fn, [rate(g) for g in gains[:-1]])

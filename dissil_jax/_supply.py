@@ -85,15 +85,14 @@ class QSR(eqx.Module):
     any other static value. `Q`, `S` and `R` are read-only float64 numpy arrays.
 
     **Many rates in one process.** `fit_direct`, `direct_run`, `fit_ren` and `fit_pgd`
-    pass the rate's values (or, for `fit_pgd`'s projection, a reference the host resolves)
-    into their compiled run, so rates of one shape share one compilation. `pgd_run`, and
-    `fit_pgd` where its first-order projection may run (from order 12 under
-    `method="auto"`, or `method="first_order"`), compile once per distinct rate, and every
-    compiled run stays mapped in memory: a few hundred distinct rates in one process can
-    exhaust Linux's memory-map limit (`vm.max_map_count`, 65,530 by default; about 400
-    maps per rate), which aborts the process. Call `jax.clear_caches()` every hundred
-    rates or so in such a sweep ([Scaling out](scaling.md), "Many supply rates in one
-    process").
+    pass the rate's values (or, for `fit_pgd`'s Clarabel projection, a reference the host
+    resolves) into their compiled run, so rates of one shape share one compilation.
+    `pgd_run`, whose rate the caller holds as a static value, compiles once per distinct
+    rate, and every compiled run stays mapped in memory: a few hundred distinct rates in
+    one process can exhaust Linux's memory-map limit (`vm.max_map_count`, 65,530 by
+    default; 400-1,100 maps per rate), which aborts the process. Call `jax.clear_caches()`
+    every fifty rates or so in such a sweep ([Scaling out](scaling.md), "Many supply rates
+    in one process").
 
     **Arguments:**
 

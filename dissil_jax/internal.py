@@ -6,7 +6,7 @@ layout can change behind this one list (as lineax's `internal`).
 
 Modules, for monkeypatching in tests and for benchmarks that time one layer alone:
 `certify_fast`, `certify_sdp`, `direct`, `direct_map`, `ico`, `ico_sdp`, `linalg`, `lmi`, `mlp`, `outcome`,
-`pgd`, `progress`, `projection`, `projection_admm`, `projection_cache`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `rollout`,
+`pgd`, `progress`, `projection`, `projection_admm`, `projection_admm_rate`, `projection_cache`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `rollout`,
 `rate_scale`, `sdp`, `zoo_build` (the problem zoo's plants, experts and rates); and the functions and constants in
 `__all__`.
 """
@@ -24,6 +24,7 @@ from ._frequency import vanishing_supply
 from ._lru import LRU
 from ._projection import (
     admm as projection_admm,
+    admm_rate as projection_admm_rate,
     cache as projection_cache,
     first_order as projection_fo,
     project as projection,
@@ -72,7 +73,7 @@ __all__ = [
     "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "ico_step", "init_controllers", "is_indefinite",
     "iterate",
     "kyp_bound_holds", "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",
-    "optimizer_metric", "outcome", "output_factor", "output_ratio", "pgd", "progress", "projection", "projection_admm", "projection_cache", "projection_fo",
+    "optimizer_metric", "outcome", "output_factor", "output_ratio", "pgd", "progress", "projection", "projection_admm", "projection_admm_rate", "projection_cache", "projection_fo",
     "ren_certify",
     "ren_controller",
     "ren_map", "ren_train", "rollout", "rate_scale", "scaled", "sdp", "single_threaded_blas", "smat",

@@ -15,6 +15,7 @@ from dissil_jax.internal import (
     outcome as _outcome,
     output_factor,
     pgd,
+    projection_fo as first_order,
 )
 
 QSR = dj.QSR(-29.867, 3.556, 0.601)
@@ -142,23 +143,31 @@ def test_no_retracing_across_calls(getkey, monkeypatch):
     dj.fit_pgd(getkey(), w2, QSR, num_inits=2, max_steps=5, learning_rate=0.01, decay=0.9)
 
 
-def test_rates_of_one_shape_share_one_compilation(getkey, monkeypatch):
+@pytest.mark.parametrize("method", ["clarabel", "first_order"])
+def test_rates_of_one_shape_share_one_compilation(getkey, monkeypatch, method):
     """`fit_pgd` passes its rate by reference (a traced token that the projection's host
-    callback resolves): rates of one shape, an out-of-band one included, train under one
-    compilation (a static rate compiled a run per rate, and a few hundred exhausted the
-    process's memory maps). Each run equals `pgd_run`'s, whose rate is static: the same
-    host solves, and gradient steps compiled in another program (round-off)."""
+    callback resolves, and for the first-order path the ADMM's constants as arrays): rates
+    of one shape, an out-of-band one included, train under one compilation (a static rate
+    compiled a run per rate, and a few hundred exhausted the process's memory maps). Each
+    run equals `pgd_run`'s, whose rate is static: the same host solves and ADMM
+    arithmetic, compiled in another program (round-off; the ADMM's iterations could then
+    differ at the margin of its stopping test, but agree here)."""
     traced = eqx.debug.assert_max_traces(pgd._run, max_traces=1)
     monkeypatch.setattr(pgd, "_run_jit", eqx.filter_jit(traced))
     w, key = random_windows(getkey(), N=8), getkey()
+    before = first_order.FALLBACKS["projections"]
     for gamma in (0.5, 2.0, 1e3):
         qsr = dj.QSR.bounded_gain(gamma, n_in=1, n_out=1)
-        res = dj.fit_pgd(key, w, qsr, num_inits=2, max_steps=5, balance=False)
-        ref = jax.jit(lambda k, q=qsr: dj.pgd_run(k, w, q, num_inits=2, max_steps=5))(key)
+        res = dj.fit_pgd(key, w, qsr, num_inits=2, max_steps=5, balance=False, method=method)
+        ref = jax.jit(lambda k, q=qsr: dj.pgd_run(k, w, q, num_inits=2, max_steps=5,
+                                                  method=method))(key)
         assert bool(np.all(res.certified))
+        assert all(dissipation_ok(index(res.controllers, i), qsr, res.P[i]) for i in range(2))
         for a, b in zip(jax.tree.leaves((res.controllers, res.P, res.final_loss)),
                         jax.tree.leaves((ref.controllers, ref.P, ref.final_loss))):
             np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+    # the first-order path ran its ADMM (the counter counts its projections), Clarabel not
+    assert (first_order.FALLBACKS["projections"] > before) == (method == "first_order")
 
 
 def test_learning_rate_sweep_with_vmap_equals_loop(getkey):

@@ -12,6 +12,7 @@ from dissil_jax.internal import (
     ConvexifiedLMI,
     projection as projection_mod,
     projection_admm as admm,
+    projection_admm_rate as admm_rate,
     projection_fo as fo,
 )
 
@@ -110,7 +111,7 @@ def test_fallback_to_clarabel_when_the_budget_is_too_small(getkey, monkeypatch, 
     W = _metric(getkey(), K) if weighted else None  # the fallback projects in it too
     monkeypatch.setattr(fo, "MAX_ITER_FO", 1)  # one ADMM step: far from feasible
     # and no repair towards the static point (as for a supply rate without one)
-    monkeypatch.setattr(admm, "static_point", lambda qsr: (np.zeros((2, 2)), -1.0))
+    monkeypatch.setattr(admm_rate, "static_point", lambda qsr: (np.zeros((2, 2)), -1.0))
     fo.FALLBACKS["rows"] = 0
     a = dj.project(K, qsr, method="first_order", metric=W)
     b = dj.project(K, qsr, method="clarabel", metric=W)

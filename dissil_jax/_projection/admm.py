@@ -30,13 +30,12 @@ loop can deadlock XLA's CPU thread pool; docs/scaling.md, "Thread-pool deadlocks
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._supply import QSR
+from .admm_rate import AdmmRate, admm_rate
 
 #: Over-relaxation of the ADMM iterates (1: none; 1.5-1.8 is the usual range).
 RELAX = 1.6
@@ -96,17 +95,17 @@ def psd_part(X, alphas=None):
     return (out + out.T) / 2
 
 
-def sizes(qsr: QSR, n: int):
-    L = qsr.neg_q_factor()
-    p, m, r = qsr.n_in, qsr.n_out, L.shape[1]
-    return p, m, r, 2 * n + p + r
+def sizes(rate: AdmmRate, n: int):
+    """$(p, m, r, N)$: the rate's sizes and the LMI's order $N = 2\\hat n + p + r$."""
+    return rate.p, rate.m, rate.r, 2 * n + rate.p + rate.r
 
 
-def lmi_matrix(A, B, C, D, P, P_tilde, qsr: QSR):
+def lmi_matrix(A, B, C, D, P, P_tilde, qsr: QSR | AdmmRate):
     """$\\mathcal M(A,B,C,D,P;\\tilde P)$ (dense, JAX; the `ConvexifiedLMI` matrix)."""
     n, dtype = A.shape[0], A.dtype
-    p, m, r, N = sizes(qsr, n)
-    S, R, L = (jnp.asarray(M, dtype) for M in (qsr.S, qsr.R, qsr.neg_q_factor()))
+    rate = admm_rate(qsr, dtype)
+    p, m, r, N = sizes(rate, n)
+    S, R, L = rate.S, rate.R, rate.L
     Z = lambda a, b: jnp.zeros((a, b), dtype)
     rows = [
         [-P, -C.T @ S, C.T @ L, A.T @ P_tilde],
@@ -116,24 +115,6 @@ def lmi_matrix(A, B, C, D, P, P_tilde, qsr: QSR):
     ]
     M = jnp.concatenate([jnp.concatenate(row, 1) for row in rows], 0)
     return (M + M.T) / 2
-
-
-@functools.lru_cache(maxsize=32)
-def _constant_systems(qsr: QSR):
-    """Host, float64, cached: the eigenbases of $GG^\\top$ ($\\hat C$-update) and of the
-    $D$-update's Hessian $H_1$ (its system is $(I+\\rho H_1)\\operatorname{vec}D = g$)."""
-    p, m = qsr.n_in, qsr.n_out
-    S, L = qsr.S, qsr.neg_q_factor()
-    G = np.concatenate([-S, L], 1)
-    g, Qg = np.linalg.eigh(G @ G.T)
-    H1 = np.zeros((m * p, m * p))
-    for k in range(m * p):  # column k: the gradient along the basis matrix E_k
-        E = np.zeros((m, p))
-        E.flat[k] = 1.0
-        M22 = -E.T @ S - S.T @ E
-        H1[:, k] = (-(S @ (M22 + M22.T)) + 2 * L @ (E.T @ L).T).reshape(-1)
-    h, Qd = np.linalg.eigh((H1 + H1.T) / 2)
-    return G, g, Qg, h, Qd
 
 
 def to_eigen(K, lam, V):
@@ -152,9 +133,9 @@ def from_eigen(x, lam, V):
             (Ch * s[None, :]) @ V.T, D)
 
 
-def scale(target, lam, V, eps, reg, qsr: QSR):
+def scale(target, lam, V, eps, reg, rate: AdmmRate):
     """The scaled problem's data: targets, weights and the margin's diagonal $\\varepsilon T^2$."""
-    p, m, r, N = sizes(qsr, target[0].shape[0])
+    p, m, r, N = sizes(rate, target[0].shape[0])
     Ah, Bh, Ch, Dt = to_eigen(target, lam, V)
     weights = (lam[None, :] / lam[:, None], 1.0 / lam[:, None], lam[None, :],
                reg * lam[:, None] * lam[None, :])
@@ -170,15 +151,15 @@ def unscale(x, lam, V):
     return (*from_eigen(x[:4], lam, V), (P + P.T) / 2)
 
 
-def _x_update(target, weights, W, qsr, rho, floor=None):
+def _x_update(target, weights, W, rate: AdmmRate, rho, floor=None):
     """argmin over the scaled x of the weighted distance + (rho/2)|M(x; I) - W|_F^2
     (+ (rho/2)|F(X) - W_2|_F^2 with `floor = (a, lam, W_2)`, `floor_map`)."""
     Ah, Bh, Ch, Dt = target
     wA, wB, wC, wX = weights
     n, dtype = Ah.shape[0], Ah.dtype
-    p, m, r, _ = sizes(qsr, n)
-    G, g, Qg, h, Qd = (jnp.asarray(M, dtype) for M in _constant_systems(qsr))
-    S, R, L = (jnp.asarray(M, dtype) for M in (qsr.S, qsr.R, qsr.neg_q_factor()))
+    p, m, r, _ = sizes(rate, n)
+    G, g, Qg, h, Qd = rate.G, rate.g, rate.Qg, rate.h, rate.Qd
+    S, R, L = rate.S, rate.R, rate.L
     i1, i2, i3 = n, n + p, n + p + r
     W11, W44 = W[:i1, :i1], W[i3:, i3:]
     W21, W31, W41 = W[i1:i2, :i1], W[i2:i3, :i1], W[i3:, :i1]
@@ -232,7 +213,7 @@ def _x_floor(wX, W11, W44, rho, a, lam, W2):
     return X * (1 - eye) + jnp.diag(x)
 
 
-def solve(target, weights, c, qsr: QSR, *, tol, feas, max_iter, state, floor=0.0, lam=None,
+def solve(target, weights, c, rate: AdmmRate, *, tol, feas, max_iter, state, floor=0.0, lam=None,
           metric=None):
     """ADMM on the scaled problem (unbatched; vmap for batches).
 
@@ -276,11 +257,11 @@ def solve(target, weights, c, qsr: QSR, *, tol, feas, max_iter, state, floor=0.0
         fl = (a, lam, Z2 + U2) if floor else None
         Y, UY = cons if cons else ((), ())
         if metric is None:
-            x = _x_update(target, weights, -C_diag - Z - U, qsr, rho, fl)
+            x = _x_update(target, weights, -C_diag - Z - U, rate, rho, fl)
         else:  # the x-objective divided by rho: the consensus and the LMI both weigh 1
             x = _x_update(to_eigen(sub(Y, UY), lam, metric[2]), (wA, wB, wC, wX / rho),
-                          -C_diag - Z - U, qsr, 1.0, fl)
-        M = lmi_matrix(*x, jnp.eye(n, dtype=dtype), qsr)
+                          -C_diag - Z - U, rate, 1.0, fl)
+        M = lmi_matrix(*x, jnp.eye(n, dtype=dtype), rate)
         K = -M - C_diag  # the constraint asks K >= 0
         K_rel = RELAX * K + (1 - RELAX) * Z
         Z_new = psd_part(K_rel - U, ADMM_SIGN_ALPHAS)
@@ -327,44 +308,25 @@ def solve(target, weights, c, qsr: QSR, *, tol, feas, max_iter, state, floor=0.0
     return x, (Z, U, Z2, U2, rho) + ((cons,) if cons else ()), it, done
 
 
-@functools.lru_cache(maxsize=32)
-def static_point(qsr: QSR):
-    """A strictly dissipative static gain $D_0 = \\tau S$ (host, cached), with $g_0$ minus the
-    largest eigenvalue of $\\begin{bmatrix}-D_0^\\top S-S^\\top D_0-R & D_0^\\top L\\\\
-    L^\\top D_0 & -I\\end{bmatrix}$; $\\tau$ of a few maximises $\\min(g_0, 1) / (1 +
-    \\lVert D_0\\rVert_F)$, the depth of the point relative to how far `repair` moves towards
-    it. $g_0\\le0$ if no $\\tau$ gives a dissipative gain (then `repair` is not used)."""
-    S, R, L = qsr.S, qsr.R, qsr.neg_q_factor()
-    r = L.shape[1]
-    best, score = (np.zeros_like(S), -np.inf), -np.inf
-    for tau in np.concatenate([[0.0], np.logspace(-3, 3, 61)]):
-        D = tau * S
-        M = np.block([[-D.T @ S - S.T @ D - R, D.T @ L], [L.T @ D, -np.eye(r)]])
-        g = -np.linalg.eigvalsh((M + M.T) / 2).max()
-        value = min(g, 1.0) / (1.0 + np.linalg.norm(D))
-        if value > score:
-            best, score = (D, g), value
-    return best
-
-
-def repair(x, c, qsr: QSR):
+def repair(x, c, qsr: QSR | AdmmRate):
     """Move the scaled solution `x` towards the strictly feasible point
-    $x_0 = (0, 0, 0, D_0, I)$ (`static_point`) just enough that $\\hat{\\mathcal M}
+    $x_0 = (0, 0, 0, D_0, I)$ (`admm_rate.static_point`) just enough that $\\hat{\\mathcal M}
     \\preceq -\\operatorname{diag}(c)$: $\\hat{\\mathcal M}$ is affine in $x$, so with
     $\\delta\\ge\\lambda_{\\max}(\\hat{\\mathcal M}(x) + c)$ and $\\gamma = \\min(1, g_0) -
     \\max c$, the point $(1-t)x + tx_0$, $t = \\delta/(\\delta + \\gamma)$, satisfies it. $\\delta$:
     the Frobenius norm of the PSD part (an upper bound of its largest eigenvalue) plus the
     sign iteration's resolution. An approximate ADMM solution thus needs no residual below
     the margin, only an accurate direction. Returns `(x, t)`."""
-    D0, g0 = static_point(qsr)
     n, dtype = x[0].shape[0], x[0].dtype
+    rate = admm_rate(qsr, dtype)
+    D0, g0 = rate.D0, rate.g0
     A, B, C, D, P = x
-    M = lmi_matrix(A, B, C, D, P, jnp.eye(n, dtype=dtype), qsr) + jnp.diag(c)
+    M = lmi_matrix(A, B, C, D, P, jnp.eye(n, dtype=dtype), rate) + jnp.diag(c)
     nrm = jnp.sqrt(jnp.sum(M * M))
     plus = psd_part(M)
     delta = jnp.sqrt(jnp.sum(plus * plus)) + 1e-6 * nrm
-    gamma = min(1.0, g0) - jnp.max(c)
+    gamma = jnp.minimum(1.0, g0) - jnp.max(c)
     t = jnp.where(gamma > 0, delta / (delta + gamma), 0.0)
     x0 = (jnp.zeros_like(x[0]), jnp.zeros_like(x[1]), jnp.zeros_like(x[2]),
-          jnp.asarray(D0, dtype), jnp.eye(n, dtype=dtype))
+          D0, jnp.eye(n, dtype=dtype))
     return tuple((1 - t) * a + t * b for a, b in zip(x, x0)), t

@@ -37,10 +37,13 @@ import numpy as np
 from .. import _outcome
 from .._certify import fast as _certify_fast
 from .._controller import LTIController
+from .._rate_scale import rate_factor, scaled_rate
 from .._sdp import lmi as _lmi, sdp as _sdp
 from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
 from . import admm as _admm
+from .admm_rate import AdmmRate, admm_rate
+from .handle import RateHandle, rate_handle, resolve
 
 lmi_matrix, psd_part = _admm.lmi_matrix, _admm.psd_part
 
@@ -72,6 +75,16 @@ def _eigh_device(P):
     return w, V
 
 
+def _rate(qsr: QSR | RateHandle | AdmmRate, dtype) -> AdmmRate:
+    """The ADMM's rate: a `RateHandle`'s arrays (a trainer's, traced), or built from a
+    static `QSR` (needs $Q\\preceq0$)."""
+    if isinstance(qsr, RateHandle):
+        if qsr.admm is None:
+            raise ValueError("This `RateHandle` carries no first-order rate.")
+        return qsr.admm
+    return admm_rate(qsr, dtype)
+
+
 def _frame(V, n, N):
     """The rotation $\\operatorname{diag}(V, I_{p+r}, V)$ between the eigenbasis of
     $\\tilde P$ and the original basis (warm starts are kept in the original one)."""
@@ -79,10 +92,10 @@ def _frame(V, n, N):
     return R.at[:n, :n].set(V).at[N - n:, N - n:].set(V)
 
 
-def cold_state(n: int, qsr: QSR, dtype, target=None):
+def cold_state(n: int, qsr: QSR | RateHandle | AdmmRate, dtype, target=None):
     """The ADMM state of a cold start: $Z = U = Z_2 = U_2 = 0$, $\\rho$ = `RHO_FO`; with a
     metric, also the consensus block's $Y$ = `target` ($(A, B, C, D)$) and $U_Y = 0$."""
-    *_, N = _admm.sizes(qsr, n)
+    *_, N = _admm.sizes(_rate(qsr, dtype), n)
     zero, zero2 = jnp.zeros((N, N), dtype), jnp.zeros((n, n), dtype)
     cold = (zero, zero, zero2, zero2, jnp.asarray(RHO_FO, dtype))
     if target is None:
@@ -91,7 +104,7 @@ def cold_state(n: int, qsr: QSR, dtype, target=None):
     return cold + ((Y, tuple(jnp.zeros_like(M) for M in Y)),)
 
 
-def admm_round(target, P_tilde, qsr: QSR, state, *, eps, margin, reg, tol, max_iter,
+def admm_round(target, P_tilde, rate: AdmmRate, state, *, eps, margin, reg, tol, max_iter,
                floor=0.0, weights=None):
     """One ADMM solve of the projection at $\\tilde P$ (unbatched; vmap for batches), from
     `state = (Z, U, Z2, U2, rho)` given in the original basis (a previous solve's, or
@@ -103,28 +116,28 @@ def admm_round(target, P_tilde, qsr: QSR, state, *, eps, margin, reg, tol, max_i
     **Returns:** `((A, B, C, D, P), state, iterations)`.
     """
     n = target[0].shape[0]
-    *_, N = _admm.sizes(qsr, n)
+    *_, N = _admm.sizes(rate, n)
     lam, V = _eigh(P_tilde)
     usable = jnp.all(jnp.isfinite(lam)) & (jnp.min(lam) > 0)  # else: no iterations, fallback
     lam = jnp.where(usable, lam, 1.0)
     V = jnp.where(usable, V, jnp.eye(n, dtype=V.dtype))
     # c: project's constraint M <= -eps I as Mhat <= -eps T^2; ADMM aims at c + margin I
     # (a slack relative to the scaled LMI, whose identity blocks are O(1)).
-    tgt, scaled_weights, c = _admm.scale(target, lam, V, eps, reg, qsr)
+    tgt, scaled_weights, c = _admm.scale(target, lam, V, eps, reg, rate)
     R = _frame(V, n, N)
     Z, U, Z2, U2, rho, *cons = state
     # Without a strictly dissipative static gain (`repair`) the iterate itself must be
     # feasible: Mhat = -c - margin I - Z + E with Z >= 0 satisfies Mhat <= -c once the
     # primal residual |E|_F is below the slack margin.
-    can_repair = _admm.static_point(qsr)[1] > 0
-    feas = jnp.inf if can_repair else 0.5 * margin
+    feas = jnp.where(rate.g0 > 0, jnp.inf, 0.5 * margin)
     x, (Z, U, Z2, U2, rho, *cons), it, _ = _admm.solve(
-        tgt, scaled_weights, c + margin, qsr, tol=tol, feas=feas,
+        tgt, scaled_weights, c + margin, rate, tol=tol, feas=feas,
         max_iter=jnp.where(usable, max_iter, 0), floor=floor if n > 1 else 0.0, lam=lam,
         state=(R.T @ Z @ R, R.T @ U @ R, V.T @ Z2 @ V, V.T @ U2 @ V, rho, *cons),
         metric=None if weights is None else (target, weights, V))
-    if can_repair:  # to project's own constraint; ADMM aimed beyond it, so t is ~0 mostly
-        x, _ = _admm.repair(x, c, qsr)
+    # to project's own constraint; ADMM aimed beyond it, so t is ~0 mostly (and 0 without
+    # a strictly dissipative static gain: `repair` does not move then)
+    x, _ = _admm.repair(x, c, rate)
     state = (R @ Z @ R.T, R @ U @ R.T, V @ Z2 @ V.T, V @ U2 @ V.T, rho, *cons)
     return _admm.unscale(x, lam, V), state, it
 
@@ -147,10 +160,12 @@ TOL_FO_PGD = 3e-4
 _SKIPPED, _UNCHANGED, _SOLVED = (_outcome.code(n) for n in ("skipped", "unchanged", "solved"))
 
 
-def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, WA, WB, WC, WD, active, shard, iters, *,
-                qsr, has_ref, eps, reg, refine, shards, fallback):
+def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, WA, WB, WC, WD, active, shard, iters,
+                token=None, *, qsr, has_ref, eps, reg, refine, shards, fallback):
     """pure_callback target: the exact float64 check of the ADMM results, Clarabel for the
-    rows that fail it (`fallback`, `_projection._host_batch`), codes as `project`'s."""
+    rows that fail it (`fallback`, `_projection._host_batch`), codes as `project`'s. With
+    `qsr` None the rate is `token`'s (a `RateHandle`'s, broadcast like the batch)."""
+    qsr = resolve(token) if qsr is None else qsr
     dtype = np.asarray(A).dtype
     batch = A.shape[:-2]
     flat = lambda M: np.asarray(M, np.float64).reshape((-1,) + M.shape[len(batch):])
@@ -203,7 +218,7 @@ FALLBACKS = {"rows": 0, "projections": 0, "iterations": 0}
 _FALLBACK_LOCK = __import__("threading").Lock()
 
 
-def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, fallback,
+def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR | RateHandle, eps, reg, refine, fallback,
                 margin=None, tol=None, max_iter=None, state=None, floor=0.0, weighted=False):
     """The unbatched first-order projection (vmap for batches): ADMM at $\\tilde P$ =
     `P_ref`, or from $\\tilde P = I$ with `refine` re-linearisations, then one
@@ -231,13 +246,14 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, fallb
         weights = tuple(jnp.asarray(M, dtype) for M in (W.A, W.B, W.C, W.D))
         top = jnp.max(jnp.stack([jnp.max(M) for M in weights]))
         weights = tuple(M / top for M in weights)
-    state = cold_state(n, qsr, dtype, target if weighted else None) if state is None else state
+    rate = _rate(qsr, dtype)
+    state = cold_state(n, rate, dtype, target if weighted else None) if state is None else state
     # an inactive lane (a stopped PGD run) takes no ADMM iteration; its row is skipped
     max_iter = jnp.where(jnp.asarray(active, bool), max_iter, 0)
 
     def one_round(carry):
         _, state, P_tilde, iters = carry
-        x, state, it = admm_round(target, P_tilde, qsr, state, eps=eps, margin=margin,
+        x, state, it = admm_round(target, P_tilde, rate, state, eps=eps, margin=margin,
                                   reg=reg, tol=tol, max_iter=max_iter, floor=floor,
                                   weights=weights)
         # the next round linearises at the new P (if it is usable; else keep P~)
@@ -253,13 +269,14 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR, eps, reg, refine, fallb
                           jax.lax.fori_loop(0, rounds, lambda _, c: one_round(c), carry))
     shard, shards = _sdp.shard()
     shapes = tuple(jax.ShapeDtypeStruct(M.shape, dtype) for M in (*target, P_ref))
-    callback = functools.partial(_host_check, qsr=qsr, has_ref=has_ref, eps=float(eps),
-                                 reg=float(reg), refine=int(refine), shards=shards,
-                                 fallback=fallback)
+    handle = isinstance(qsr, RateHandle)
+    callback = functools.partial(_host_check, qsr=None if handle else qsr, has_ref=has_ref,
+                                 eps=float(eps), reg=float(reg), refine=int(refine),
+                                 shards=shards, fallback=fallback)
     *mats, codes = jax.pure_callback(
         callback, (*shapes, jax.ShapeDtypeStruct((), jnp.int32)), *x, *target, P_ref,
         *(jnp.asarray(M, dtype) for M in (W.A, W.B, W.C, W.D)), jnp.asarray(active, bool),
-        shard, iters, vmap_method="broadcast_all")
+        shard, iters, *((qsr.token,) if handle else ()), vmap_method="broadcast_all")
     return LTIController(*mats[:4]), mats[4], codes, state
 
 
@@ -275,16 +292,34 @@ AUTO_MIN_ORDER_METRIC: int | None = 12
 METHODS = ("clarabel", "first_order", "auto")
 
 
-def use_first_order(method, n_state: int, weighted: bool, qsr: QSR) -> bool:
+def use_first_order(method, n_state: int, weighted: bool, qsr: QSR | RateHandle) -> bool:
     """Whether `project(..., method=method)` of controllers of order `n_state` takes the
     first-order path (checks `method`); `weighted`: whether the projection has a
-    `metric`."""
+    `metric`. A `RateHandle` allows it only when it carries the ADMM's rate
+    (`trainer_rate` adds it where the path may run, never for an indefinite $Q$)."""
     if method not in METHODS:
         raise ValueError(f"`method` must be one of {METHODS}, got {method!r}.")
-    if method == "first_order" and is_indefinite(qsr):
+    # a handle carries the ADMM's rate only where Q <= 0 (`trainer_rate`)
+    indefinite = qsr.admm is None if isinstance(qsr, RateHandle) else is_indefinite(qsr)
+    if method == "first_order" and indefinite:
         raise ValueError("`method='first_order'` needs `qsr.Q` negative semidefinite; for "
                          "an indefinite Q pass `method='clarabel'` (or 'auto').")
     if method == "auto":
         lo = AUTO_MIN_ORDER_METRIC if weighted else AUTO_MIN_ORDER
-        return not is_indefinite(qsr) and lo is not None and n_state >= lo
+        return not indefinite and lo is not None and n_state >= lo
     return method == "first_order"
+
+
+def trainer_rate(qsr: QSR | None, method: str, n_state: int, dtype):
+    """`(rate, k)` for `fit_pgd`'s compiled run: the rate divided by `k = rate_factor(qsr)`
+    as a `RateHandle` (traced, so that another rate does not compile the run again), with
+    `k` as an array of `dtype` (P is multiplied back by it). Where the first-order
+    projection may run (with or without a metric: the optimiser's is known inside the
+    run), the handle carries the ADMM's rate of `dtype` too. `(None, None)` for no rate."""
+    if qsr is None:
+        return None, None
+    k = rate_factor(qsr)
+    scaled = scaled_rate(qsr, k)
+    fo = any(use_first_order(method, n_state, w, scaled) for w in (False, True))
+    return (rate_handle(scaled, admm_rate(scaled, dtype) if fo else None),
+            jnp.asarray(k, dtype))

@@ -252,7 +252,7 @@ def _project_fo_cold(*args, **kwargs):
                                       **kwargs)[:3]
 
 
-def project_first_order_warm(K: LTIController, qsr: QSR, P_ref, state, *, active, eps: float,
+def project_first_order_warm(K: LTIController, qsr: QSR | RateHandle, P_ref, state, *, active, eps: float,
                              reg: float = 1e-6, metric: LTIController | None = None,
                              tol: float | None = None):
     """`project(K, qsr, P_ref, method="first_order", throw=False, active=active, eps=eps,
@@ -361,17 +361,16 @@ def project(
     ok = proj.result == dj.Outcome.solved
     ```
     """
-    if isinstance(qsr, RateHandle):  # a trainer's: checked, scaled, Clarabel's path
+    if isinstance(qsr, RateHandle):  # a trainer's: checked and scaled
         _check_options(K, P_ref, active, eps, reg, refine, metric)
-        k, first_order = 1.0, False
+        k = 1.0
     else:
         _check_qsr(K, qsr)
         _check_options(K, P_ref, active, eps, reg, refine, metric)
         _check_eps_room(qsr, eps)
         k = rate_factor(qsr)  # a rate far from unit size: divided by a power of two (exact)
         qsr = scaled_rate(qsr, k)
-        first_order = _projection_fo.use_first_order(method, K.n_state, metric is not None,
-                                                     qsr)
+    first_order = _projection_fo.use_first_order(method, K.n_state, metric is not None, qsr)
     _check_k_ref(K, K_ref)
     P_ref = None if P_ref is None else P_ref / k
     fn = partial(partial(_project_fo_cold, weighted=metric is not None) if first_order else

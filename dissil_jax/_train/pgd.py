@@ -16,7 +16,8 @@ from .._controller import LTIController
 from .._data import Windows
 from .._projection import first_order as _first_order
 from .._projection.args import check_eps_room
-from .._projection.handle import RateHandle, trainer_rate
+from .._projection.first_order import trainer_rate
+from .._projection.handle import RateHandle
 from .._projection.project import project, project_first_order_warm
 from .._rate_scale import rate_factor, scaled_rate
 from .._rollout import imitation_loss
@@ -77,7 +78,7 @@ class _PGD(Method):
     def init(self):
         pending = (self.K0, self.P0, jax.vmap(self.opt.init)(self.K0))
         if self.warm:  # one cold ADMM state per initialisation
-            assert isinstance(self.qsr, QSR)  # `warm` is the first-order projection's
+            assert self.qsr is not None  # `warm` is the first-order projection's
             n, qsr, dtype = self.K0.n_state, self.qsr, self.K0.A.dtype
             cold = jax.vmap(lambda K: _first_order.cold_state(
                 n, qsr, dtype, (K.A, K.B, K.C, K.D) if self.weighted else None))(self.K0)
@@ -100,7 +101,6 @@ class _PGD(Method):
             # once per step (refine=1; the next step re-linearises). No effect for Q <= 0.
             metric = optimizer_metric(opt_state, K_new)
             if self.warm:
-                assert isinstance(self.qsr, QSR)  # the first-order path's rate is static
                 proj, warm[0] = project_first_order_warm(K_new, self.qsr, P, warm[0],
                                                          active=active, eps=self.eps,
                                                          metric=metric)
@@ -137,8 +137,7 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
         code0 = _outcome.codes(proj.result)
     opt = paper_rule(learning_rate, decay) if optimizer is None else optimizer
     weighted = optimizer_metric(jax.vmap(opt.init)(cast(Any, K0)), K0) is not None
-    warm = isinstance(qsr, QSR) and _first_order.use_first_order(method, K0.n_state, weighted,
-                                                                  qsr)
+    warm = qsr is not None and _first_order.use_first_order(method, K0.n_state, weighted, qsr)
     pgd = _PGD(K0, P0, code0, scaled(windows, s2), opt, qsr, eps, method, warm, weighted)
     (K, P, *_), hist, loss, steps, reason, kept = iterate(
         pgd, max_steps=max_steps, atol=atol / s2, rtol=rtol, keep=keep,
@@ -200,7 +199,9 @@ def pgd_run(
 
     Unlike `fit_pgd` it is safe to `jax.vmap`/`jax.jit` over `key`, `learning_rate`,
     `decay` and `init_scale`, or over the hyperparameters an `optimizer` closes over (a
-    hyperparameter sweep); `qsr` is static (hashable). `qsr=None` gives plain gradient
+    hyperparameter sweep); `qsr` is static (hashable), so each distinct rate compiles a
+    run of its own (`fit_pgd` does not; see [`QSR`][dissil_jax.QSR], "Many rates in one
+    process"). `qsr=None` gives plain gradient
     descent. `wall_time` is NaN and `certified` comes from the projection's own float64
     check (with `throw=False`, a failed initial projection leaves that initialisation with
     `certified=False` and zero steps). `throw`, `method` and `keep` as in `fit_pgd`: with
