@@ -20,7 +20,7 @@ import numpy as np
 import scipy.optimize
 
 from ._outcome import Outcome
-from ._validate import check_int
+from ._validate import check_int, check_real, real_scalar
 
 _SYM_TOL = 1e-9
 
@@ -187,8 +187,9 @@ class QSR(eqx.Module):
         **Returns:** the `QSR` with $S$ of shape `(n_out, n_in)`.
         """
         n_out, n_in = _check_dim("n_out", n_out), _check_dim("n_in", n_in)
-        if not np.isfinite(gamma) or gamma <= 0:
-            raise ValueError(f"`gamma` must be a positive finite gain, got {gamma}.")
+        if not real_scalar(gamma) > 0 or not np.isfinite(real_scalar(gamma)):
+            raise ValueError(f"`gamma` must be a positive finite gain, got {gamma!r}.")
+        gamma = real_scalar(gamma)
         return cls(-np.eye(n_out), np.zeros((n_out, n_in)), gamma**2 * np.eye(n_in))
 
     @classmethod
@@ -200,16 +201,16 @@ class QSR(eqx.Module):
         parameters come first ([`bounded_gain`][dissil_jax.QSR.bounded_gain]).
         """
         dim = _check_dim("dim", dim)
-        if not (np.isfinite(a) and np.isfinite(b)) or not a < b:
-            raise ValueError(f"`a` must be smaller than `b` (both finite), got a={a}, b={b}.")
+        a, b = check_real("a", a), check_real("b", b)
+        if not a < b:
+            raise ValueError(f"`a` must be smaller than `b`, got a={a}, b={b}.")
         return cls(-np.eye(dim), 0.5 * (a + b) * np.eye(dim), -a * b * np.eye(dim))
 
     @classmethod
     def degenerate_conic(cls, d: float, *, dim: int) -> QSR:
         """Degenerate cone $[d, \\infty)$: $Q=0$, $S=\\tfrac12 I$, $R=-dI$."""
         dim = _check_dim("dim", dim)
-        if not np.isfinite(d):
-            raise ValueError(f"`d` must be finite, got {d}.")
+        d = check_real("d", d)
         return cls(np.zeros((dim, dim)), 0.5 * np.eye(dim), -d * np.eye(dim))
 
     # -- utilities ------------------------------------------------------------------
@@ -380,7 +381,11 @@ def stabilising_qsr(plant_qsr: QSR, *, alpha: float = 1.0, margins=(1e-2, 1e-2))
     p, m = plant_qsr.S.shape
     mats = []
     for name, M, d in (("margins[0]", M1, p), ("margins[1]", M2, m)):
-        M = np.asarray(M, np.float64)
+        M = np.asarray(M)
+        if M.dtype.kind not in "iuf" or not np.all(np.isfinite(M)):
+            raise ValueError(f"`{name}` must be a positive scalar or matrix of real numbers, "
+                             f"got {M!r}.")
+        M = M.astype(np.float64)
         M = M * np.eye(d) if M.ndim == 0 else _as_matrix(name, M, (d, d))
         if not np.allclose(M, M.T) or np.linalg.eigvalsh(M).min() <= 0:
             raise ValueError(f"`{name}` must be positive (definite), got eigenvalues "

@@ -48,14 +48,28 @@ def check_int(name: str, value, *, minimum: int = 1) -> int:
     return int(value)
 
 
-def check_tolerance(name: str, value) -> float:
-    """A relative tolerance: a finite non-negative real number, or a ValueError naming it."""
+def real_scalar(value) -> float:
+    """`value` as a `float` if it is one real number (Python or numpy, not a bool, string,
+    complex number or array), else NaN."""
     try:
         real = (not isinstance(value, bool | str | complex | np.complexfloating)
                 and np.ndim(value) == 0 and np.isrealobj(value))
-        v = float(cast(Any, value)) if real else np.nan
+        return float(cast(Any, value)) if real else np.nan
     except (TypeError, ValueError):
-        v = np.nan
+        return np.nan
+
+
+def check_real(name: str, value, what: str = "a finite real number") -> float:
+    """`value` as a finite `float` (`real_scalar`), or a ValueError naming `name`."""
+    v = real_scalar(value)
+    if not np.isfinite(v):
+        raise ValueError(f"`{name}` must be {what}, got {value!r}.")
+    return v
+
+
+def check_tolerance(name: str, value) -> float:
+    """A relative tolerance: a finite non-negative real number, or a ValueError naming it."""
+    v = real_scalar(value)
     if not (np.isfinite(v) and v >= 0):
         raise ValueError(f"`{name}` must be a finite non-negative number, got {value!r}.")
     return v

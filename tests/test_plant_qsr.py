@@ -192,11 +192,65 @@ def test_lti_qsr_bad_input():
     with pytest.raises(ValueError, match="`plant.A`"):
         dj.lti_cone_qsr(batched)
     plant = (np.array([[0.5]]), np.array([[1.0]]), np.array([[1.0]]), np.array([[1.0]]))
-    for backoff in (0.0, -1e-3, np.nan, np.inf):
+    # (a relative back-off of 1 or more would flip the index's sign)
+    for backoff in (0.0, -1e-3, np.nan, np.inf, 1.0, 2.0, "0.1", np.ones(1)):
         for fn in (dj.input_passivity_qsr, dj.output_passivity_qsr, dj.lti_cone_qsr,
                    dj.passivity_indices):
             with pytest.raises(ValueError, match="`backoff`"):
                 fn(plant, backoff=backoff)
+
+
+@pytest.mark.parametrize("s", [1e-6, 1e-3, 1e3])
+def test_sector_lemma_does_not_depend_on_units(s):
+    """The paper's plant with its input and output in other units, x+ = 0.5x + 0.4 sin x +
+    s u, y = s x - 2 s^2 u (the same plant in u' = s u, y' = y / s): Lemma 8's rate and
+    storage scale exactly, S = s^2 32/9, R = s^4 88/3, P = s^2 P_1. At s = 1e-3 the rate
+    used to be invalid (its Lemma 8 matrix negative by more than R itself, and the supply
+    summed along the plant's own motion fell without bound), at s = 1e3 the SDP was called
+    infeasible. Checked independently: eq. 21 written out for the scalar plant, and the
+    supply summed along a simulation of the nonlinear plant from rest."""
+    A, B, C, D, alpha = 0.5, s, s, -2 * s**2, 0.4
+    qsr, P = dj.sector_plant_qsr(A, B, C, D, alpha, return_storage=True)
+    np.testing.assert_allclose(qsr.Q, [[-1.0]])
+    np.testing.assert_allclose(qsr.S / s**2, [[32 / 9]], rtol=1e-6)
+    np.testing.assert_allclose(qsr.R / s**4, [[88 / 3]], rtol=1e-6)
+    Q, S, R, Pv = qsr.Q.item(), qsr.S.item(), qsr.R.item(), P.item()
+    # eq. 21 (scalar: tau = P) [[a, b], [b, d]] >= 0, its entries divided by their sizes
+    # (s^2, s^3, s^4; a congruence): a > 0 and a d - b^2 >= 0
+    a = (C * Q * C + Pv - 2 * alpha**2 * Pv - 2 * A * Pv * A) / s**2
+    b = (C * Q * D + C * S - 2 * A * Pv * B) / s**3
+    d = (D * Q * D + 2 * S * D + R - 2 * B * Pv * B) / s**4
+    assert a > 0 and a * d - b**2 >= 0
+    x, total = 0.0, 0.0
+    for k in range(2000):  # u = (-1)^k: the storage's slack is smallest there
+        u = (-1.0) ** k
+        y = C * x + D * u
+        total += Q * y * y + 2 * y * S * u + R * u * u
+        x = A * x + alpha * np.sin(x) + B * u
+    assert total >= 0  # the storage starts at 0 and stays >= 0
+
+
+@pytest.mark.parametrize("b, c", [(1.0, 1.0), (1e-6, 1.0), (1e6, 1.0), (1.0, 1e-12),
+                                  (1.0, 1e12)])
+def test_lti_rates_do_not_depend_on_the_realisation_or_units(b, c):
+    """G(z) = c (2 + 1/(z - 0.5)) as (0.5, b sqrt(c), sqrt(c) / b, 2c): exact indices from
+    the circle G traces (diameter [4c/3, 4c], centre 8c/3): nu* = 4c/3, rho* = 1/(4c), the
+    tightest cone's radius 4c/3 around 8c/3. Realisations with B = 1e6, C = 1e-6 returned
+    nu = 0 and a 2.5 times wider cone, and gains of 1e-12 a negative nu; every tool now
+    solves in balanced units."""
+    r = np.sqrt(c)
+    plant = (np.array([[0.5]]), np.array([[b * r]]), np.array([[r / b]]), np.array([[2 * c]]))
+    nu = -dj.input_passivity_qsr(plant).R.item()
+    assert 4 * c / 3 * (1 - 3e-3) <= nu < 4 * c / 3  # backed off by 1e-3 (relative)
+    rho = -dj.output_passivity_qsr(plant).Q.item()
+    assert 1 / (4 * c) * (1 - 3e-3) <= rho < 1 / (4 * c)
+    cone = dj.lti_cone_qsr(plant)
+    radius = np.sqrt(cone.R.item() + cone.S.item() ** 2)
+    assert 4 * c / 3 < radius <= 4 * c / 3 * (1 + 3e-3)
+    np.testing.assert_allclose(cone.S.item(), 8 * c / 3, rtol=1e-3)
+    joint = dj.passivity_indices(plant, nu=nu / 2)
+    np.testing.assert_allclose(-joint.R.item(), nu / 2)  # the given nu, in the user's units
+    assert -joint.Q.item() > 0
 
 
 def test_static_plant_rates_follow_from_the_feedthrough():
@@ -237,7 +291,11 @@ def test_plant_rate_errors_say_whether_the_plant_is_stable():
                 fn(unstable)
             # "failed in Clarabel" or "is infeasible in Clarabel": one ending for both
             assert " in Clarabel. The plant `A` is not stable" in str(err.value)
-            assert str(err.value).endswith("(and check that it is discrete-time).")
+            assert "discrete-time" in str(err.value)
+            # an unstable plant can have an output index (a negative one), others cannot
+            # (`passivity_indices` solves for the output index first)
+            output = fn in (dj.output_passivity_qsr, dj.passivity_indices)
+            assert ("only have a negative output passivity index" in str(err.value)) == output
 
 
 def test_plant_rate_errors_name_a_vanishing_supply():

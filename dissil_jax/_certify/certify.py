@@ -13,7 +13,7 @@ from .._outcome import Outcome
 from .._rate_scale import balanced_blocks
 from .._sdp.lmi import VERIFY_RTOL, kyp_bound_holds, kyp_margin, kyp_matrix, kyp_scale
 from .._supply import QSR
-from .._validate import check_tolerance
+from .._validate import check_flag, check_tolerance
 from . import coordinates as _coordinates, fast as _certify_fast, sdp as _certify_sdp
 from .coordinates import balanced_states, state_scale, unbalanced_storage
 
@@ -225,6 +225,7 @@ def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hi
     A, B, C, D = _controller_arrays(K, qsr)
     batch, n = K.batch_shape, K.n_state
     tol = check_tolerance("rtol", rtol)
+    max_margin = check_flag("max_margin", max_margin)
     if P is not None:
         return _verdict(A, B, C, D, qsr, storage_arg("P", P, batch, n), tol, "given")
     if hint is not None:

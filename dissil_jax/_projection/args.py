@@ -92,6 +92,12 @@ def check_options(K: LTIController, P_ref, active, eps, reg, refine, metric=None
             raise ValueError(f"`{name}` must be a finite {'non-negative' if lo_ok else 'positive'}"
                              f" number, got {v!r}.")
     check_int("refine", refine, minimum=0)
+    try:
+        boolean = jnp.result_type(active) == jnp.bool_
+    except TypeError:  # e.g. a string, which would read as True
+        boolean = False
+    if not boolean:
+        raise ValueError(f"`active` must be bool (a scalar or an array), got {active!r}.")
     if jnp.shape(active) not in ((), K.batch_shape):
         raise ValueError(f"`active` must be a bool scalar or have the batch shape "
                          f"{K.batch_shape} of `K`, got shape {jnp.shape(active)}.")

@@ -25,6 +25,7 @@ from .._rate_scale import rate_factor, scaled_rate
 from .._sdp import sdp as _sdp
 from .._sdp.lmi import cast, certified
 from .._supply import QSR
+from .._validate import check_flag
 from . import cache as _cache, first_order as _projection_fo
 from .args import (
     check_eps_room as _check_eps_room,
@@ -361,6 +362,7 @@ def project(
     ok = proj.result == dj.Outcome.solved
     ```
     """
+    check_flag("throw", throw)
     if isinstance(qsr, RateHandle):  # a trainer's: checked and scaled
         _check_options(K, P_ref, active, eps, reg, refine, metric)
         k = 1.0

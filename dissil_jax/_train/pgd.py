@@ -45,7 +45,8 @@ from .steps import (
     paper_rule,
 )
 
-_CONVERGED, _MAX_STEPS = _outcome.code("converged"), _outcome.code("max_steps")
+_CONVERGED, _MAX_STEPS, _NON_FINITE = (
+    _outcome.code(n) for n in ("converged", "max_steps", "non_finite"))
 
 _batched_loss = jax.vmap(jax.value_and_grad(imitation_loss), in_axes=(0, None))
 
@@ -95,8 +96,13 @@ class _PGD(Method):
         updates, opt_state = jax.vmap(self.opt.update)(grads, opt_state, K)
         # optax types its result as a generic pytree; it has K's structure
         K_new, P_new = cast(LTIController, optax.apply_updates(K, updates)), P
-        code = jnp.full(active.shape, _CONVERGED, jnp.int32)
+        # a non-finite step (e.g. a NaN step size of a vmapped sweep) ends its run as such,
+        # before its projection could report it as the solver's failure
+        finite = jax.vmap(lambda K: jnp.all(jnp.stack(
+            [jnp.all(jnp.isfinite(M)) for M in jax.tree.leaves(K)])))(K_new)
+        code = jnp.where(finite, _CONVERGED, _NON_FINITE).astype(jnp.int32)
         if self.qsr is not None:
+            active = active & finite
             # An indefinite Q's positive part is linearised at the certified iterate (K_ref),
             # once per step (refine=1; the next step re-linearises). No effect for Q <= 0.
             metric = optimizer_metric(opt_state, K_new)
