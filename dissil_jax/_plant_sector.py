@@ -28,7 +28,9 @@ def sector_lemma_matrix(A, B, C, D, alpha, qsr: QSR, P, tau=None) -> np.ndarray:
     alpha = check_real("alpha", alpha, "a finite real scalar")
     if not isinstance(qsr, QSR):
         raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
-    qsr.check_sizes(B.shape[1], C.shape[0])
+    if qsr.S.shape != (C.shape[0], B.shape[1]):
+        raise ValueError(f"`qsr` must be a rate of the plant's map u -> y, with S of shape "
+                         f"{(C.shape[0], B.shape[1])}; got S of shape {qsr.S.shape}.")
     n = A.shape[0]
     P = np.atleast_2d(np.asarray(P))
     if P.shape != (n, n) or P.dtype.kind not in "iuf" or not np.all(np.isfinite(P)):

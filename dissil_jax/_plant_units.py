@@ -57,8 +57,3 @@ class PlantUnits:
     def storage(self, P, k: float):
         """The scaled plant's storage as the plant's ($x = Tz$), times `k` (as `rate`)."""
         return k * P / np.outer(self.t, self.t)
-
-    def index(self, value: float, kind: str) -> float:
-        """A passivity index of the plant, from the scaled plant's (`"nu"`: $\\nu = g\\hat\\nu$;
-        `"rho"`: $\\rho = \\hat\\rho/g$), and `"nu_in"`: a user's $\\nu$ into the scaled units."""
-        return {"nu": value * self.g, "rho": value / self.g, "nu_in": value / self.g}[kind]

@@ -479,3 +479,49 @@ def test_fit_pgd_judges_eps_on_the_balanced_rate():
     with pytest.raises(ValueError, match="`eps`"):  # without balancing the room is too small
         dj.fit_pgd(jax.random.PRNGKey(0), w, dj.QSR.conic(0.5e-3, 1.5e-3, dim=1), n_state=1,
                    num_inits=2, max_steps=5, balance=False)
+
+
+def test_flags_of_certify_and_project_must_be_bools(K11):
+    """A string such as "no" is truthy: it used to read as True."""
+    qsr = dj.QSR.bounded_gain(2.0, n_in=1, n_out=1)
+    with pytest.raises(ValueError, match="`max_margin`"):
+        dj.certify(K11, qsr, max_margin="no")
+    with pytest.raises(ValueError, match="`throw`"):
+        dj.project(K11, qsr, throw="no")
+    with pytest.raises(ValueError, match="`active`"):
+        dj.project(K11, qsr, active="no")
+    with pytest.raises(ValueError, match="`active`"):
+        dj.project(K11, qsr, active=1)
+
+
+def test_a_nan_step_in_a_vmapped_pgd_run_ends_as_non_finite():
+    """Under `jax.vmap` a step size cannot be checked eagerly; a NaN one ends its run as
+    `non_finite`, not as the projection's solver failure, and leaves the other lanes
+    alone (each equals its own run)."""
+    rng = np.random.default_rng(0)
+    y = jnp.asarray(rng.standard_normal((4, 3, 1)))
+    W = dj.Windows(jnp.asarray(rng.standard_normal((4, 2))), y, -0.3 * y)
+    key, qsr = jax.random.PRNGKey(0), dj.QSR.passive(1)
+    run = lambda lr: dj.pgd_run(key, W, qsr, learning_rate=lr, max_steps=5, num_inits=1,
+                                throw=False)
+    res = jax.jit(jax.vmap(run))(jnp.array([0.1, jnp.nan]))
+    codes = np.asarray(dji.outcome.codes(res.result))
+    assert codes[1, 0] == dji.outcome.code("non_finite")
+    assert codes[0, 0] != dji.outcome.code("non_finite")
+    alone = jax.jit(run)(0.1)
+    np.testing.assert_allclose(res.final_loss[0], alone.final_loss, rtol=1e-9)
+
+
+def test_hyperparameters_must_be_scalars_also_in_a_sweep():
+    """A learning rate with a shape (a 2-d array swept over its first axis leaves each lane
+    a vector) failed deep inside JAX with a broadcasting error; eagerly an array passed."""
+    rng = np.random.default_rng(0)
+    y = jnp.asarray(rng.standard_normal((4, 3, 1)))
+    W = dj.Windows(jnp.asarray(rng.standard_normal((4, 2))), y, -0.3 * y)
+    key, qsr = jax.random.PRNGKey(0), dj.QSR.passive(1)
+    run = lambda lr: dj.direct_run(key, W, qsr, learning_rate=lr, max_steps=2, num_inits=1,
+                                   throw=False).final_loss
+    with pytest.raises(ValueError, match="`learning_rate` must be a scalar"):
+        jax.vmap(run)(jnp.full((2, 2), 0.1))
+    with pytest.raises(ValueError, match="`init_scale` must be a scalar"):
+        dj.pgd_run(key, W, qsr, init_scale=np.array([0.1, 0.2]), max_steps=2, num_inits=1)

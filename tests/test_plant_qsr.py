@@ -119,8 +119,16 @@ def test_sector_lemma_radius_is_minimal(case):
 
 
 def test_sector_lemma_bad_input():
-    with pytest.raises(ValueError, match="`alpha`"):
-        dj.sector_plant_qsr(0.5, 1.0, 1.0, -2.0, np.nan)
+    for alpha in (np.nan, [0.4, 0.3], "0.4", 1j):
+        with pytest.raises(ValueError, match="`alpha`"):
+            dj.sector_plant_qsr(0.5, 1.0, 1.0, -2.0, alpha)
+    qsr, P = dj.sector_plant_qsr(0.5, 1.0, 1.0, -2.0, 0.4, return_storage=True)
+    for kw, name in [(dict(P=np.nan), "`P`"), (dict(P=np.eye(3)), "`P`"),
+                     (dict(alpha=np.nan), "`alpha`"), (dict(qsr=(0.0, 1.0, 1.0)), "`qsr`"),
+                     (dict(qsr=dj.QSR.passive(2)), "`qsr`")]:
+        args = dict(alpha=0.4, qsr=qsr, P=P) | kw
+        with pytest.raises(ValueError, match=name):
+            dj.sector_lemma_matrix(0.5, 1.0, 1.0, -2.0, **args)
     with pytest.raises(ValueError, match="`A, B, C, D.B`"):
         dj.sector_plant_qsr(np.eye(2), np.ones((3, 1)), np.ones((1, 2)), 0.0, 0.1)
 
@@ -180,6 +188,13 @@ def test_cone_of_a_static_gain_and_of_the_chain(chain):
     r2 = np.linalg.eigvalsh(cone.R + cone.S.T @ cone.S)
     smaller = dj.QSR(cone.Q, cone.S, cone.R - 0.02 * r2.max() * np.eye(3))
     assert frequency_supply_min(A, B, C, D, smaller, FINE) < 0
+
+
+def test_lti_qsr_bad_input_nu():
+    plant = (np.array([[0.5]]), np.array([[1.0]]), np.array([[1.0]]), np.array([[1.0]]))
+    for nu in ("a", np.array([0.1, 0.2]), np.nan, 1j):
+        with pytest.raises(ValueError, match="`nu`"):
+            dj.passivity_indices(plant, nu=nu)
 
 
 def test_lti_qsr_bad_input():

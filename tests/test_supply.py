@@ -64,6 +64,17 @@ def test_constructor_validation():
         dj.QSR.bounded_gain(-1.0, n_in=1, n_out=1)
     with pytest.raises(ValueError, match="`dim`"):
         dj.QSR.passive(0)
+    # arrays, strings and complex numbers are named, not left to numpy's own errors
+    for bad in (np.array([1.0, 2.0]), "1", 1 + 1j, np.nan):
+        with pytest.raises(ValueError, match="`gamma`"):
+            dj.QSR.bounded_gain(bad, n_in=1, n_out=1)
+        with pytest.raises(ValueError, match="`a`"):
+            dj.QSR.conic(bad, 2.0, dim=1)
+        with pytest.raises(ValueError, match="`b`"):
+            dj.QSR.conic(0.0, bad, dim=1)
+        with pytest.raises(ValueError, match="`d`"):
+            dj.QSR.degenerate_conic(bad, dim=1)
+    assert dj.QSR.bounded_gain(np.float32(2.0), n_in=1, n_out=1).R[0, 0] == 4.0
 
 
 def test_neg_q_factor():
@@ -156,6 +167,7 @@ def test_stabilising_qsr_argument_errors():
         ((-np.eye(2), np.eye(3)), r"`margins\[0\]`"), ((np.eye(2), 0.0), r"`margins\[1\]`"),
         ((np.nan, 1.0), r"`margins\[0\]`"), ((np.ones((1, 2, 2)), np.eye(3)), r"`margins\[0\]`"),
         ((np.diag([1.0, 0.0]), np.eye(3)), r"`margins\[0\]`"),
+        (("a", 1.0), r"`margins\[0\]`"), ((np.eye(2), 1j), r"`margins\[1\]`"),
     ]:
         with pytest.raises(ValueError, match=match):
             dj.stabilising_qsr(plant, margins=margins)

@@ -32,6 +32,11 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
     check_int("num_inits", num_inits)
     check_int("max_steps", max_steps, minimum=0)
     for name, v in nonnegative.items():
+        # one value per run, also in a vmapped sweep (where each lane's is a scalar)
+        if jnp.ndim(v) != 0:
+            raise ValueError(f"`{name}` must be a scalar, got shape {jnp.shape(v)} (a sweep "
+                             "over it vmaps the call: `jax.vmap` or `dj.sweep` over a 1-d "
+                             "array).")
         if isinstance(v, jax.core.Tracer):
             continue
         if not np.all(np.isfinite(v)) or np.any(np.asarray(v) < 0):
