@@ -67,6 +67,15 @@ def check_real(name: str, value, what: str = "a finite real number") -> float:
     return v
 
 
+def check_positive(name: str, value, *, zero: bool = False) -> float:
+    """A finite positive (with `zero`, non-negative) real number, or a ValueError naming it."""
+    v = real_scalar(value)
+    if not (np.isfinite(v) and (v > 0 or (zero and v == 0))):
+        kind = "non-negative" if zero else "positive"
+        raise ValueError(f"`{name}` must be a finite {kind} number, got {value!r}.")
+    return v
+
+
 def check_tolerance(name: str, value) -> float:
     """A relative tolerance: a finite non-negative real number, or a ValueError naming it."""
     v = real_scalar(value)

@@ -350,7 +350,9 @@ def test_failed_check_is_projected_and_flagged(getkey):
     w = expert_windows(8, 2, 2, 2)
     res = eqx.filter_jit(dj.direct_run)(getkey(), w, qsr, num_inits=3, max_steps=10)
     broken = eqx.tree_at(lambda r: r.controllers.B, res, res.controllers.B.at[1].mul(50.0))
-    out = direct.certify_or_project(broken, qsr, w, eps=1e-6)
+    with pytest.warns(UserWarning, match=r"1 of 3 trained controllers .* replaced by their "
+                                         "projections"):
+        out = direct.certify_or_project(broken, qsr, w, eps=1e-6)
     np.testing.assert_array_equal(out.projected, [False, True, False])
     assert bool(jnp.all(out.certified))
     assert bool(np.all(dj.certify(out.controllers, qsr, P=out.P).holds))

@@ -525,3 +525,19 @@ def test_hyperparameters_must_be_scalars_also_in_a_sweep():
         jax.vmap(run)(jnp.full((2, 2), 0.1))
     with pytest.raises(ValueError, match="`init_scale` must be a scalar"):
         dj.pgd_run(key, W, qsr, init_scale=np.array([0.1, 0.2]), max_steps=2, num_inits=1)
+
+
+def test_margins_and_weights_of_ico_and_the_direct_fallback_are_checked():
+    """`fit_ico(prox=-1)` ended in a misleading solver failure, `fit_ico(eps=-1)` and
+    `fit_direct(fallback_eps=-1)` were accepted (the latter failing after training)."""
+    rng = np.random.default_rng(0)
+    y = jnp.asarray(rng.standard_normal((6, 2, 1)))
+    W = dj.Windows(jnp.asarray(rng.standard_normal((6, 1))), y, -0.3 * y)
+    key, qsr = jax.random.PRNGKey(0), dj.QSR.passive(1)
+    for kw, name in [(dict(prox=-1.0), "prox"), (dict(prox=np.nan), "prox"),
+                     (dict(eps=-1.0), "eps"), (dict(eps=0.0), "eps")]:
+        with pytest.raises(ValueError, match=f"`{name}` must be a finite"):
+            dj.fit_ico(key, W, qsr, num_inits=1, max_steps=1, **kw)
+    for bad in (-1.0, np.nan, "1e-6"):
+        with pytest.raises(ValueError, match="`fallback_eps` must be a finite positive"):
+            dj.fit_direct(key, W, qsr, num_inits=1, max_steps=1, fallback_eps=bad)

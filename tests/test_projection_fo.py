@@ -318,3 +318,20 @@ def test_eigh_of_the_reference_is_host_on_cpu_and_device_elsewhere(getkey):
     np.testing.assert_allclose(w_dev, w_host, rtol=1e-12)
     for i in range(3):  # eigenvectors up to sign: the reconstructions agree
         np.testing.assert_allclose((V_dev[i] * w_dev[i]) @ V_dev[i].T, P[i], atol=1e-10)
+
+
+def test_a_far_repair_goes_to_clarabel(getkey):
+    """On a rate with little room (gain bound 0.01: R = 1e-4) ADMM's residual tolerance,
+    relative to the scaled LMI, left answers far from feasible, and the repair moved them
+    most of the way to the zero controller: certified, but twice Clarabel's distance from
+    the target. A repair step above `REPAIR_MAX` now hands the row to Clarabel, so the
+    answer is the projection (both Clarabel's; a second, independent check: the distance)."""
+    qsr, K = dj.QSR.bounded_gain(0.01, n_in=2, n_out=2), _batch(getkey(), 3, n=4)
+    before = dict(fo.FALLBACKS)
+    a = dj.project(K, qsr, method="first_order")
+    b = dj.project(K, qsr, method="clarabel")
+    assert fo.FALLBACKS["far_repairs"] - before["far_repairs"] >= 1
+    for i in range(3):
+        assert dissipation_ok(index(a.controller, i), qsr, a.P[i])
+        da, db = (_dist(index(r.controller, i), index(K, i)) for r in (a, b))
+        assert da <= db * (1 + 1e-6) + 1e-12

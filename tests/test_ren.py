@@ -517,6 +517,28 @@ def test_fit_ren_screens_a_callable_again_on_every_call():
         dj.fit_ren(jr.PRNGKey(0), w, SISO["passive"], width=None)
 
 
+def test_an_unhashable_activation_and_a_traced_certificate_are_refused_by_name():
+    """A callable activation is a static field, which JAX hashes: one defining `__eq__`
+    without `__hash__` passed every check and then broke `fit_ren` inside JAX. And
+    `certify_ren` under a transformation raised JAX's conversion error."""
+    class Half:
+        def __call__(self, v):
+            return 0.5 * jnp.tanh(v)
+
+        def __eq__(self, other):  # leaves __hash__ None
+            return isinstance(other, Half)
+
+    w = expert_windows(2, 1, 1, 1, N=6)
+    with pytest.raises(ValueError, match="`activation` must be hashable"):
+        dj.fit_ren(jr.PRNGKey(0), w, SISO["passive"], width=2, num_inits=2, max_steps=2,
+                   activation=Half())
+    K = dj.RENController.from_lti(dj.LTIController(0.5 * jnp.eye(1), jnp.ones((1, 1)),
+                                                   jnp.ones((1, 1)), jnp.zeros((1, 1))), 2)
+    qsr = dj.QSR.bounded_gain(4.0, n_in=1, n_out=1)
+    with pytest.raises(ValueError, match="`certify_ren` cannot run under `jax.jit`"):
+        jax.jit(lambda k: dj.certify_ren(k, qsr).margin)(K)
+
+
 @pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 def test_unbalanced_ren_realisations_are_decided_by_componentwise_bounds():
     """A certified REN with its states in very different units (x = T z, T = diag(1, 1e-3,

@@ -113,7 +113,8 @@ def admm_round(target, P_tilde, rate: AdmmRate, state, *, eps, margin, reg, tol,
     the Frobenius distance; with them `state` also holds the consensus block
     (`admm.solve`'s `metric`).
 
-    **Returns:** `((A, B, C, D, P), state, iterations)`.
+    **Returns:** `((A, B, C, D, P), state, iterations, t)`, `t` the repair's step towards
+    the static point (`admm.repair`; 0 when ADMM's answer already met the constraint).
     """
     n = target[0].shape[0]
     *_, N = _admm.sizes(rate, n)
@@ -137,15 +138,23 @@ def admm_round(target, P_tilde, rate: AdmmRate, state, *, eps, margin, reg, tol,
         metric=None if weights is None else (target, weights, V))
     # to project's own constraint; ADMM aimed beyond it, so t is ~0 mostly (and 0 without
     # a strictly dissipative static gain: `repair` does not move then)
-    x, _ = _admm.repair(x, c, rate)
+    x, t = _admm.repair(x, c, rate)
     state = (R @ Z @ R.T, R @ U @ R.T, V @ Z2 @ V.T, V @ U2 @ V.T, rho, *cons)
-    return _admm.unscale(x, lam, V), state, it
+    return _admm.unscale(x, lam, V), state, it, t
 
 
 #: Defaults of the first-order path: the margin aimed at (above `project`'s eps, so that a
 #: solution with residual below it still satisfies the strict LMI), the residual tolerance
 #: relative to 1 + |M|_F, the iteration budget and the penalty.
 MARGIN_FO, TOL_FO, MAX_ITER_FO, RHO_FO = 1e-4, 1e-4, 5000, 0.1
+#: The largest repair step (`admm.repair`'s $t$, the fraction of the way from ADMM's answer
+#: to the static point) whose row is kept; a larger one goes to Clarabel. ADMM's residual
+#: tolerance is relative to the scaled LMI, so on a rate with little room (a gain bound of
+#: 0.01: $R = 10^{-4}$) its answer can be far from feasible: the repair then moved 85-90 %
+#: of the way to the zero controller, twice Clarabel's distance from the target (orders 12
+#: and 16); at a bound of 0.1, 7 % and 4 % farther. Measured `t` on well-scaled rates: 0
+#: to 5e-4.
+REPAIR_MAX = 1e-2
 #: The residual tolerance of PGD's projections (`project_first_order_warm`), looser than a
 #: single projection's: each starts from the previous step's ADMM state, and the repair
 #: keeps every result feasible, so an inexact projection costs only a slightly different
@@ -161,10 +170,11 @@ _SKIPPED, _UNCHANGED, _SOLVED = (_outcome.code(n) for n in ("skipped", "unchange
 
 
 def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, WA, WB, WC, WD, active, shard, iters,
-                token=None, *, qsr, has_ref, eps, reg, refine, shards, fallback):
+                repair, token=None, *, qsr, has_ref, eps, reg, refine, shards, fallback):
     """pure_callback target: the exact float64 check of the ADMM results, Clarabel for the
-    rows that fail it (`fallback`, `_projection._host_batch`), codes as `project`'s. With
-    `qsr` None the rate is `token`'s (a `RateHandle`'s, broadcast like the batch)."""
+    rows that fail it or whose `repair` step exceeded `REPAIR_MAX` (`fallback`,
+    `_projection._host_batch`), codes as `project`'s. With `qsr` None the rate is
+    `token`'s (a `RateHandle`'s, broadcast like the batch)."""
     qsr = resolve(token) if qsr is None else qsr
     dtype = np.asarray(A).dtype
     batch = A.shape[:-2]
@@ -189,7 +199,10 @@ def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, WA, WB, WC, WD, active, sh
         rounded = [_lmi.cast(M[todo], dtype) for M in sol]
         finite = np.all([np.all(np.isfinite(M), axis=(-2, -1)) for M in rounded], axis=0)
         rA, rB, rC, rD, rP = rounded
-        ok = finite & _lmi.certified(rA, rB, rC, rD, qsr, rP)
+        near = np.asarray(repair).reshape(-1)[todo] <= REPAIR_MAX
+        with _FALLBACK_LOCK:
+            FALLBACKS["far_repairs"] += int(np.sum(~near))
+        ok = finite & near & _lmi.certified(rA, rB, rC, rD, qsr, rP)
         for o, M in zip(out, rounded):
             o[todo[ok]] = M[ok]
         codes[todo[ok]] = _SOLVED
@@ -214,7 +227,7 @@ def _host_check(A, B, C, D, P, tA, tB, tC, tD, P_ref, WA, WB, WC, WD, active, sh
 
 #: Rows the first-order path handed to Clarabel, active projections and their ADMM
 #: iterations (all rounds), since import (tests and benchmarks read them).
-FALLBACKS = {"rows": 0, "projections": 0, "iterations": 0}
+FALLBACKS = {"rows": 0, "projections": 0, "iterations": 0, "far_repairs": 0}
 _FALLBACK_LOCK = __import__("threading").Lock()
 
 
@@ -252,20 +265,20 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR | RateHandle, eps, reg, 
     max_iter = jnp.where(jnp.asarray(active, bool), max_iter, 0)
 
     def one_round(carry):
-        _, state, P_tilde, iters = carry
-        x, state, it = admm_round(target, P_tilde, rate, state, eps=eps, margin=margin,
+        _, state, P_tilde, iters, _ = carry
+        x, state, it, t = admm_round(target, P_tilde, rate, state, eps=eps, margin=margin,
                                   reg=reg, tol=tol, max_iter=max_iter, floor=floor,
                                   weights=weights)
         # the next round linearises at the new P (if it is usable; else keep P~)
         good = jnp.all(jnp.isfinite(x[4])) & (jnp.min(jnp.diag(x[4])) > 0)
-        return x, state, jnp.where(good, x[4], P_tilde), iters + it
+        return x, state, jnp.where(good, x[4], P_tilde), iters + it, t
 
     rounds = 1 if has_ref else max(1, refine)
     carry = ((*(jnp.zeros_like(M) for M in target), jnp.zeros_like(P_ref)), state, P_ref,
-             jnp.zeros((), jnp.int32))
+             jnp.zeros((), jnp.int32), jnp.zeros((), dtype))
     # Several re-linearisation rounds in a loop, so that ADMM is compiled once, not once
     # per round; one round (PGD's steps, at P_ref) as it is.
-    x, state, _, iters = (one_round(carry) if rounds == 1 else
+    x, state, _, iters, t = (one_round(carry) if rounds == 1 else
                           jax.lax.fori_loop(0, rounds, lambda _, c: one_round(c), carry))
     shard, shards = _sdp.shard()
     shapes = tuple(jax.ShapeDtypeStruct(M.shape, dtype) for M in (*target, P_ref))
@@ -276,7 +289,7 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR | RateHandle, eps, reg, 
     *mats, codes = jax.pure_callback(
         callback, (*shapes, jax.ShapeDtypeStruct((), jnp.int32)), *x, *target, P_ref,
         *(jnp.asarray(M, dtype) for M in (W.A, W.B, W.C, W.D)), jnp.asarray(active, bool),
-        shard, iters, *((qsr.token,) if handle else ()), vmap_method="broadcast_all")
+        shard, iters, t, *((qsr.token,) if handle else ()), vmap_method="broadcast_all")
     return LTIController(*mats[:4]), mats[4], codes, state
 
 

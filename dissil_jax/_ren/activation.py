@@ -45,6 +45,13 @@ def check_activation(activation, rescreen: bool = False) -> str | Callable:
             "`activation` is an equinox Module holding JAX arrays. The activation is a static "
             "(compile-time) part of the controller, so its constants must be Python numbers: "
             "declare them `eqx.field(static=True)` with float values, or close over floats.")
+    try:  # a static field of the controller: JAX hashes it to key its compilations
+        hash(activation)
+    except TypeError:
+        raise ValueError(
+            "`activation` must be hashable: it is a static (compile-time) part of the "
+            "controller, and JAX keys its compiled rollouts and training by it. A class "
+            "that defines `__eq__` needs a `__hash__` too (e.g. a frozen dataclass).") from None
     if _passed(activation) and not rescreen:
         return activation
     # Trainers build controllers inside their compiled, differentiated loops, where the

@@ -6,6 +6,8 @@ from __future__ import annotations
 import warnings
 
 import equinox as eqx
+import jax
+import jax.core
 import numpy as np
 
 from .._certify.certify import (
@@ -127,6 +129,11 @@ def _check_args(K, qsr):
     if not isinstance(qsr, QSR):
         raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
     qsr.check_sizes(K.n_in, K.n_out)
+    if any(isinstance(M, jax.core.Tracer) for M in jax.tree.leaves(K)):
+        raise ValueError("`certify_ren` cannot run under `jax.jit` or `jax.vmap` (`K` is "
+                         "traced): it checks the certificate in float64 on the host. Call it "
+                         "on the result, outside the transformation (a batched `K` is "
+                         "certified member by member).")
     # The layer uses tril(D11, -1) only; a traced or edited D11 may carry more, and the
     # certificate of the full matrix would be of another system than the one that runs.
     D11 = np.asarray(K.D11)

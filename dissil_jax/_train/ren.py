@@ -238,7 +238,10 @@ def fit_ren(
       sliding windows (N = 25, seeds 1 and 2, 20 initialisations) it tested 1.02x and
       0.094x the median error of the REN without it ([REN controllers](ren.md)); on the
       linear example's tuning plants, at that example's settings, it tested 2.9x worse,
-      so measure it on your problem. The certificate is
+      so measure it on your problem (both measured with ReLU). With an odd activation
+      such as `"tanh"` (the default) the REN, which has no biases, is odd already:
+      `odd=True` then returns the same map at twice the order and width. It is for ReLU
+      and other activations that are not odd. The certificate is
       $(\\tfrac12\\operatorname{diag}(P, P), \\tfrac12\\operatorname{diag}(\\Lambda,
       \\Lambda))$, checked like any other.
     - `activation`: `"tanh"` (default: on the problem zoo's tuning half, at the default step,

@@ -16,7 +16,7 @@ from ..._projection.project import project
 from ..._rate_scale import rate_factor, scaled_rate
 from ..._sdp import lmi as _lmi, sdp as _sdp
 from ..._supply import QSR
-from ..._validate import check_flag
+from ..._validate import check_flag, check_positive
 from .._checks import check_eager, check_fit_args, check_key
 from .._init import INIT_SCALE, init_controllers
 from .._iterate import RTOL
@@ -135,6 +135,7 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
     check_key(key)
     check_eager("fit_ico" if qsr is not None else "fit_ico_nc", key, windows, throw)
     _check_args(windows, qsr, num_inits, max_steps, atol, rtol, init_scale)
+    eps, prox = check_positive("eps", eps), check_positive("prox", prox, zero=True)
     c = balance_factor(windows, balance)  # outputs' units against inputs' (`_units.py`)
     windows, qsr = balanced(windows, qsr, c)
     atol = atol / c**2
