@@ -21,7 +21,8 @@ class Outcome(eqx.Enumeration):
     Every result type has it in its `result` field. Projections report `solved`,
     `unchanged`, `skipped` or one of the three failures (`infeasible`, `solver_failed`,
     `not_certified`); trainers report why each run stopped: `converged`, `max_steps`,
-    `non_finite`, or the failure that ended it; certificates report `solved` when the
+    `stalled` (ICO found no further certified step), `non_finite`, or the failure that
+    ended it; certificates report `solved` when the
     certificate holds. A failure never comes with an uncertified controller: the
     projection returns its (flagged) target, the certified trainers their best certified iterate.
     """
@@ -64,6 +65,12 @@ class Outcome(eqx.Enumeration):
         "strictly dissipative for `qsr` (`source` says whether the SDP or a cheap necessary "
         "condition, 'disproved: ...', decided)."
     )
+    stalled = (
+        "no further certified step: ICO's step failed the exact float64 check even when "
+        "shortened, and the run stopped at its last certified iterate (near the edge of the "
+        "dissipative set, or in float32, where rounding the step can take it out); a "
+        "larger `eps` leaves more room"
+    )
     no_multiplier = (
         "no multiplier alpha > 0 makes the matrix of the QSR stability theorem (paper "
         "Theorem 1) negative definite: the loop is not certified"
@@ -73,13 +80,14 @@ class Outcome(eqx.Enumeration):
 #: The item names in code order: `NAMES[code(name)] == name`.
 NAMES: tuple[str, ...] = (
     "converged", "max_steps", "non_finite", "solver_failed", "loss_increased",
-    "not_certified", "solved", "unchanged", "skipped", "infeasible", "no_multiplier")
+    "not_certified", "solved", "unchanged", "skipped", "infeasible", "no_multiplier",
+    "stalled")
 if len(Outcome) != len(NAMES) or not all(isinstance(getattr(Outcome, n), Outcome) for n in NAMES):
     raise ImportError("`_outcome.NAMES` must list every `Outcome` item once.")
 _ITEMS = tuple(getattr(Outcome, n) for n in NAMES)
 _FAILURES = ("infeasible", "solver_failed", "not_certified")
 #: The trainers' normal ends; anything else is a failure for `throw=True`.
-FINE = ("converged", "max_steps")
+FINE = ("converged", "max_steps", "stalled")
 
 
 def code(name: str) -> int:

@@ -43,7 +43,9 @@ class FitResult(eqx.Module):
       (the stopping rule of the trainer's `atol`/`rtol`), `max_steps`, `non_finite` (the loss
       became NaN or infinite; the constrained trainers keep their best certified iterate), `infeasible`, `solver_failed` or `not_certified` (a projection or an ICO SDP
       failed; the best certified iterate is kept), `loss_increased` (ICO's float64 guard
-      refused a step). Compare with `res.result == dj.Outcome.converged`. (Called
+      refused a step), `stalled` (after accepted steps, ICO found no step that passes
+      the float64 check, even shortened; its last certified iterate is kept, and
+      `throw=True` does not raise for it). Compare with `res.result == dj.Outcome.converged`. (Called
       `stop_reason` before; that name remains a read-only alias.)
     - `projected`: `[num_inits]` bool or None. Only
       [`fit_direct`][dissil_jax.fit_direct] sets it: True where the direct map's controller
