@@ -6,7 +6,7 @@ layout can change behind this one list (as lineax's `internal`).
 
 Modules, for monkeypatching in tests and for benchmarks that time one layer alone:
 `certify_fast`, `certify_sdp`, `direct`, `direct_map`, `ico`, `ico_sdp`, `linalg`, `lmi`, `mlp`, `outcome`,
-`pgd`, `progress`, `projection`, `projection_admm`, `projection_admm_rate`, `projection_cache`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `rollout`,
+`pgd`, `pgd_steps`, `progress`, `projection`, `projection_admm`, `projection_admm_rate`, `projection_cache`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `rollout`,
 `rate_scale`, `sdp`, `zoo_build` (the problem zoo's plants, experts and rates); and the functions and constants in
 `__all__`.
 """
@@ -43,7 +43,7 @@ from ._sdp.lmi import (
     smat,
 )
 from ._sdp.sdp import single_threaded_blas
-from ._train import _progress as progress, direct, mlp, pgd, ren as ren_train
+from ._train import _progress as progress, direct, mlp, pgd, pgd_steps, ren as ren_train
 from ._train._checks import check_n_state
 from ._train._init import INIT_SCALE, init_controllers
 from ._train._iterate import Method, iterate
@@ -73,7 +73,7 @@ __all__ = [
     "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "ico_step", "init_controllers", "is_indefinite",
     "iterate",
     "kyp_bound_holds", "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",
-    "optimizer_metric", "outcome", "output_factor", "output_ratio", "pgd", "progress", "projection", "projection_admm", "projection_admm_rate", "projection_cache", "projection_fo",
+    "optimizer_metric", "outcome", "output_factor", "output_ratio", "pgd", "pgd_steps", "progress", "projection", "projection_admm", "projection_admm_rate", "projection_cache", "projection_fo",
     "ren_certify",
     "ren_controller",
     "ren_map", "ren_train", "rollout", "rate_scale", "scaled", "sdp", "single_threaded_blas", "smat",

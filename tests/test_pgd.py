@@ -15,6 +15,7 @@ from dissil_jax.internal import (
     outcome as _outcome,
     output_factor,
     pgd,
+    pgd_steps,
     projection_fo as first_order,
 )
 
@@ -394,13 +395,13 @@ def test_non_finite_loss_under_a_constraint_keeps_the_last_finite_iterate(getkey
     s2 = (np.mean(np.sum(np.asarray(w.y) ** 2, axis=(1, 2)))
           + np.mean(np.sum(np.asarray(w.x0) ** 2, axis=1)))
     threshold = (hist[2] + hist[3]) / 2 / s2  # the loop sees J / s^2
-    true_loss = pgd._batched_loss
+    true_loss = pgd_steps._batched_loss
 
     def nan_below(K, windows):
         loss, grad = true_loss(K, windows)
         return jnp.where(loss < threshold, jnp.nan, loss), grad
 
-    monkeypatch.setattr(pgd, "_batched_loss", nan_below)
+    monkeypatch.setattr(pgd_steps, "_batched_loss", nan_below)
     # a new function object, so that jit's cache cannot serve the unpatched trace
     monkeypatch.setattr(pgd, "_run_jit", eqx.filter_jit(lambda *a, **k: pgd._run(*a, **k)))
     res = dj.fit_pgd(key, w, QSR, throw=False, **kw)

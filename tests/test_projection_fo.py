@@ -264,7 +264,7 @@ def test_warm_start_from_the_solution_state(getkey, weighted):
 
 
 def test_warm_started_pgd_is_certified(getkey):
-    # PGD with the first-order path carries the ADMM state across steps (its `_PGD.warm`):
+    # PGD with the first-order path carries the ADMM state across steps (its `PGDSteps.warm`):
     # every returned controller passes the independent check.
     from helpers import expert_windows
 

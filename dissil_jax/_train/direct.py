@@ -263,7 +263,7 @@ def certify_or_project(res: FitResult, qsr: QSR, windows: Windows, *, eps: float
             f"replaced by their projections (`projected`), with final losses "
             f"{ratio.min():.3g}-{ratio.max():.3g} times the trained ones. The map's storage "
             "was conditioned beyond the precision; it happens in float32 at high orders: "
-            "train in float64 (`jax.config.update('jax_enable_x64', True)`).", stacklevel=5)
+            "train in float64 (`JAX_ENABLE_X64=1` or `jax_enable_x64`).", stacklevel=5)
     return eqx.tree_at(
         lambda r: (r.controllers, r.P, r.certified, r.projected, r.final_loss, r.result),
         res, (K, P, jnp.asarray(ok), jnp.asarray(projected),
