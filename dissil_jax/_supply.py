@@ -20,7 +20,7 @@ import numpy as np
 import scipy.optimize
 
 from ._outcome import Outcome
-from ._validate import check_int, check_real, real_scalar
+from ._validate import check_int, check_positive, check_real
 
 _SYM_TOL = 1e-9
 
@@ -187,9 +187,7 @@ class QSR(eqx.Module):
         **Returns:** the `QSR` with $S$ of shape `(n_out, n_in)`.
         """
         n_out, n_in = _check_dim("n_out", n_out), _check_dim("n_in", n_in)
-        if not real_scalar(gamma) > 0 or not np.isfinite(real_scalar(gamma)):
-            raise ValueError(f"`gamma` must be a positive finite gain, got {gamma!r}.")
-        gamma = real_scalar(gamma)
+        gamma = check_positive("gamma", gamma)
         return cls(-np.eye(n_out), np.zeros((n_out, n_in)), gamma**2 * np.eye(n_in))
 
     @classmethod

@@ -11,7 +11,7 @@ from .._controller import LTIController
 from .._rate_scale import rate_factor, scaled_rate
 from .._sdp.indefinite import check_feasible
 from .._supply import QSR
-from .._validate import check_int
+from .._validate import check_int, check_positive
 
 
 def check_qsr(K: LTIController, qsr: QSR) -> None:
@@ -87,10 +87,8 @@ def check_metric(K: LTIController, metric) -> None:
 
 def check_options(K: LTIController, P_ref, active, eps, reg, refine, metric=None) -> None:
     check_metric(K, metric)
-    for name, v, lo_ok in (("eps", eps, False), ("reg", reg, True)):
-        if not (np.ndim(v) == 0 and np.isfinite(v) and (v > 0 or (lo_ok and v == 0))):
-            raise ValueError(f"`{name}` must be a finite {'non-negative' if lo_ok else 'positive'}"
-                             f" number, got {v!r}.")
+    check_positive("eps", eps)
+    check_positive("reg", reg, zero=True)
     check_int("refine", refine, minimum=0)
     try:
         boolean = jnp.result_type(active) == jnp.bool_
