@@ -225,7 +225,7 @@ class QSR(eqx.Module):
         """Raise a ValueError naming `qsr` unless it fits a map $\\mathbb R^{n_{in}}\\to\\mathbb R^{n_{out}}$."""
         if self.S.shape != (n_out, n_in):
             raise ValueError(
-                f"`qsr` has S of shape {self.S.shape}, but the controller maps R^{n_in} -> "
+                f"`qsr` has S of shape {self.S.shape}, but the system maps R^{n_in} -> "
                 f"R^{n_out}; S must be {(n_out, n_in)}."
             )
 
@@ -240,8 +240,8 @@ class QSR(eqx.Module):
         if w.min(initial=0.0) < -1e-10 * scale:
             raise ValueError(
                 "`qsr.Q` has a positive eigenvalue "
-                f"({-w.min():.3g}), so -Q has no factor L L'. Only `dj.fit_direct` needs "
-                "Q <= 0; `dj.project`, `dj.fit_pgd` and `dj.fit_ico` accept any symmetric Q."
+                f"({-w.min():.3g}), so -Q has no factor L L'. Only `dj.fit_direct` and "
+                "`dj.fit_ren` need Q <= 0; `dj.project`, `dj.fit_pgd` and `dj.fit_ico` accept any symmetric Q."
             )
         keep = w > 1e-10 * scale
         return V[:, keep] * np.sqrt(w[keep])

@@ -494,21 +494,34 @@ def test_flags_of_certify_and_project_must_be_bools(K11):
         dj.project(K11, qsr, active=1)
 
 
-def test_a_nan_step_in_a_vmapped_pgd_run_ends_as_non_finite():
-    """Under `jax.vmap` a step size cannot be checked eagerly; a NaN one ends its run as
-    `non_finite`, not as the projection's solver failure, and leaves the other lanes
-    alone (each equals its own run)."""
+@pytest.mark.parametrize("trainer", ["pgd", "direct"])
+def test_bad_hyperparameters_in_a_vmapped_run_end_as_non_finite(trainer):
+    """Under `jax.vmap` hyperparameters cannot be checked eagerly. A NaN or negative step
+    (a negative one trained uphill), a NaN or negative initial scale and, for PGD, a decay
+    outside (0, 1] end their run as `non_finite`, not as a projection's solver failure,
+    and leave the other lanes alone (each equals its own run)."""
     rng = np.random.default_rng(0)
     y = jnp.asarray(rng.standard_normal((4, 3, 1)))
     W = dj.Windows(jnp.asarray(rng.standard_normal((4, 2))), y, -0.3 * y)
     key, qsr = jax.random.PRNGKey(0), dj.QSR.passive(1)
-    run = lambda lr: dj.pgd_run(key, W, qsr, learning_rate=lr, max_steps=5, num_inits=1,
-                                throw=False)
-    res = jax.jit(jax.vmap(run))(jnp.array([0.1, jnp.nan]))
-    codes = np.asarray(dji.outcome.codes(res.result))
-    assert codes[1, 0] == dji.outcome.code("non_finite")
-    assert codes[0, 0] != dji.outcome.code("non_finite")
-    alone = jax.jit(run)(0.1)
+    fn = dj.pgd_run if trainer == "pgd" else dj.direct_run
+    decay = {"decay": 0.99} if trainer == "pgd" else {}
+
+    def run(lr, scale, *d):
+        return fn(key, W, qsr, learning_rate=lr, init_scale=scale, max_steps=5, num_inits=1,
+                  throw=False, **dict(zip(decay, d)))
+
+    nan = jnp.nan
+    lanes = [(0.1, 0.3, 0.99), (nan, 0.3, 0.99), (-0.1, 0.3, 0.99), (0.1, nan, 0.99),
+             (0.1, -0.3, 0.99)]
+    if decay:
+        lanes += [(0.1, 0.3, 0.0), (0.1, 0.3, 1.5)]
+    args = [jnp.array(a) for a in zip(*lanes)][:3 if decay else 2]
+    res = jax.jit(jax.vmap(run))(*args)
+    codes = np.asarray(dji.outcome.codes(res.result))[:, 0]
+    assert codes[0] != dji.outcome.code("non_finite")
+    assert (codes[1:] == dji.outcome.code("non_finite")).all(), res.result_names()
+    alone = jax.jit(run)(*(a[0] for a in args))
     np.testing.assert_allclose(res.final_loss[0], alone.final_loss, rtol=1e-9)
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import TypeVar, cast
+
 import jax
 import jax.core
 import jax.numpy as jnp
@@ -12,6 +14,8 @@ from .._data import Windows
 from .._sdp.indefinite import check_feasible
 from .._supply import QSR
 from .._validate import check_flag, check_int
+
+_T = TypeVar("_T")
 
 
 def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
@@ -41,6 +45,15 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
             continue
         if not np.all(np.isfinite(v)) or np.any(np.asarray(v) < 0):
             raise ValueError(f"`{name}` must be finite and non-negative, got {v!r}.")
+
+
+def nan_unless(value: _T, ok) -> _T:
+    """`value`, or NaN where a traced value fails `ok` (a lane of a vmapped sweep, whose value
+    the eager checks cannot see): that lane's run then ends as `non_finite` instead of
+    training with, say, a negative step (uphill)."""
+    if isinstance(value, jax.core.Tracer):
+        return cast(_T, jnp.where(ok(value), value, jnp.nan))
+    return value
 
 
 def check_eager(fn: str, key, windows, throw, alternative: str = "") -> None:

@@ -28,6 +28,7 @@ from ._checks import (
     check_key,
     check_n_state,
     check_optimizer,
+    nan_unless,
 )
 from ._iterate import Method, iterate, where
 from ._progress import reporting
@@ -181,6 +182,8 @@ def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, at
     lr0, scale0 = default_hyperparameters(n_state, windows.n_in)
     learning_rate = lr0 if learning_rate is None else learning_rate
     init_scale = scale0 if init_scale is None else init_scale
+    learning_rate, init_scale = (nan_unless(v, lambda v: v >= 0)
+                                 for v in (learning_rate, init_scale))
     return optimizer, learning_rate, init_scale, n_state, check_margin(margin)
 
 
@@ -204,6 +207,8 @@ def direct_run(
     all False and `certified` is None: the exact check is float64 work on the host, which
     [`fit_direct`][dissil_jax.fit_direct] does after the run (or call
     `dj.certify(res.controllers, qsr, P=res.P)`, which accepts the sweep's batch axes).
+    A traced hyperparameter cannot be checked eagerly: a lane whose `learning_rate` or
+    `init_scale` is NaN or negative ends as `non_finite`.
 
     ```python
     lrs = jnp.array([0.01, 0.03, 0.1])

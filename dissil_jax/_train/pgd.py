@@ -27,13 +27,14 @@ from ._checks import (
     check_key,
     check_n_state,
     check_optimizer,
+    nan_unless,
 )
 from ._init import init_controllers
 from ._iterate import RTOL, iterate
 from ._progress import reporting
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balance_factor, unbalance
-from .pgd_steps import PGDSteps
+from .pgd_steps import PGDSteps, finite_lanes
 from .result import FitResult, fit_timed, raise_if_failed
 from .steps import (
     ADAM_LEARNING_RATE as ADAM_LEARNING_RATE,  # re-exported
@@ -42,7 +43,8 @@ from .steps import (
     paper_rule,
 )
 
-_CONVERGED, _MAX_STEPS = _outcome.code("converged"), _outcome.code("max_steps")
+_CONVERGED, _MAX_STEPS, _NON_FINITE = (
+    _outcome.code(r) for r in ("converged", "max_steps", "non_finite"))
 
 
 def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_inits,
@@ -64,8 +66,11 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
     if qsr is None:
         P0, code0 = None, jnp.full(num_inits, _MAX_STEPS, jnp.int32)
     else:
+        # a non-finite draw (a lane of a sweep with a NaN or negative `init_scale`) is
+        # reported as such, not as its projection's failure
+        drawn = finite_lanes(K0)
         K0, P0 = proj = project(K0, qsr, throw=False, eps=eps, method=method)
-        code0 = _outcome.codes(proj.result)
+        code0 = jnp.where(drawn, _outcome.codes(proj.result), _NON_FINITE).astype(jnp.int32)
     opt = paper_rule(learning_rate, decay) if optimizer is None else optimizer
     weighted = optimizer_metric(jax.vmap(opt.init)(cast(Any, K0)), K0) is not None
     warm = qsr is not None and _first_order.use_first_order(method, K0.n_state, weighted, qsr)
@@ -117,6 +122,8 @@ def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, de
                          f"{decay!r}.")
     if qsr is not None and eps is not None:
         check_eps_room(qsr, eps)
+    learning_rate = nan_unless(learning_rate, lambda v: v >= 0)
+    decay = nan_unless(decay, lambda v: (v > 0) & (v <= 1))
     return optimizer, learning_rate, decay, check_n_state(windows, n_state)
 
 
@@ -137,7 +144,10 @@ def pgd_run(
     check (with `throw=False`, a failed initial projection leaves that initialisation with
     `certified=False` and zero steps). `throw`, `method` and `keep` as in `fit_pgd`: with
     `throw=True` a failure raises a `ValueError` eagerly, a `jax.errors.JaxRuntimeError`
-    under `jax.jit` (an `equinox.EquinoxRuntimeError` under `equinox.filter_jit`).
+    under `jax.jit` (an `equinox.EquinoxRuntimeError` under `equinox.filter_jit`). A
+    traced hyperparameter cannot be checked eagerly: a lane whose `learning_rate` or
+    `init_scale` is NaN or negative, or whose `decay` lies outside (0, 1], ends as
+    `non_finite`.
 
     ```python
     lrs = jnp.logspace(-2, 0, 5)
@@ -152,6 +162,7 @@ def pgd_run(
             optimizer, learning_rate, decay, windows if qsr is None else None, n_state),
         learning_rate=learning_rate, decay=decay, atol=atol, rtol=rtol, init_scale=init_scale,
         n_state=n_state, eps=eps)
+    init_scale = nan_unless(init_scale, lambda v: v >= 0)
     res = _run(key, windows, qsr, learning_rate, decay, init_scale, optimizer=optimizer,
                num_inits=int(num_inits), n_state=n_state, max_steps=int(max_steps),
                atol=atol, rtol=rtol, eps=eps, method=method, keep=check_keep(keep))

@@ -24,6 +24,12 @@ _CONVERGED, _NON_FINITE = (_outcome.code(n) for n in ("converged", "non_finite")
 _batched_loss = jax.vmap(jax.value_and_grad(imitation_loss), in_axes=(0, None))
 
 
+def finite_lanes(K: LTIController) -> jax.Array:
+    """Per controller of a batch: are all its entries finite?"""
+    return jax.vmap(lambda K: jnp.all(jnp.stack(
+        [jnp.all(jnp.isfinite(M)) for M in jax.tree.leaves(K)])))(K)
+
+
 class PGDSteps(Method):
     """Projected gradient steps (GD when `qsr` is None) for the driver loop (`_iterate.py`).
 
@@ -71,8 +77,7 @@ class PGDSteps(Method):
         K_new, P_new = cast(LTIController, optax.apply_updates(K, updates)), P
         # a non-finite step (e.g. a NaN step size of a vmapped sweep) ends its run as such,
         # before its projection could report it as the solver's failure
-        finite = jax.vmap(lambda K: jnp.all(jnp.stack(
-            [jnp.all(jnp.isfinite(M)) for M in jax.tree.leaves(K)])))(K_new)
+        finite = finite_lanes(K_new)
         code = jnp.where(finite, _CONVERGED, _NON_FINITE).astype(jnp.int32)
         if self.qsr is not None:
             active = active & finite
