@@ -20,8 +20,14 @@ units, with `balance=False` (one scale for every signal, as before) and `balance
 4. `--paper`: the paper's examples as they are (the reproduction's windows, initial
    segments, N = 25; their outputs are 4-90x smaller than their inputs) with every
    trainer's defaults.
+5. `--states`: initial states in units of their own (x0 -> a x0: the same controllers in
+   the state coordinates x = a x_b, storages P/a²), so that the ratio rho of the states'
+   size to the outputs' (`dissil_jax.internal.state_ratios`) moves away from one; the
+   `--curve` problems (tuning: chose `STATE_BAND`), then the zoo's held-out problems
+   with x0 scaled by 1/64 and 64 (reported), and the range of rho over the zoo and the
+   paper's examples. Cells as in 1, with the states' balancing off and on.
 
-Usage: python benchmarks/bench_units.py [--curve] [--held-out] [--rate] [--paper]
+Usage: python benchmarks/bench_units.py [--curve] [--held-out] [--rate] [--paper] [--states]
 """
 
 from __future__ import annotations
@@ -36,7 +42,13 @@ jax.config.update("jax_enable_x64", True)
 
 import dissil_jax as dj  # noqa: E402
 from dissil_jax.experiments import realisable_windows, zoo  # noqa: E402
-from dissil_jax.internal import is_indefinite, output_ratio, rate_scale  # noqa: E402
+from dissil_jax.internal import (  # noqa: E402
+    is_indefinite,
+    output_ratio,
+    rate_scale,
+    state_ratios,
+    units,
+)
 
 TRAINERS = {
     "fit_direct": lambda w, q, b, **kw: dj.fit_direct(jr.PRNGKey(7), w, q, balance=b,
@@ -133,6 +145,69 @@ def rate():
             print(f"| {c:g} | `{name}` | {cells[0]} | {cells[1]} |", flush=True)
 
 
+def _no_state_band(fn):
+    """Run `fn()` with the states' balancing off (`STATE_BAND` wide open)."""
+    band = units.STATE_BAND
+    units.STATE_BAND = (0.0, float("inf"))
+    try:
+        return fn()
+    finally:
+        units.STATE_BAND = band
+
+
+def _state_cells(name, w, q, **kw) -> str:
+    off = _no_state_band(lambda: _cell(name, w, q, 1.0, True, **kw))
+    if units.state_factors(w) is None:
+        return off
+    return f"{off}; {_cell(name, w, q, 1.0, True, **kw)}"
+
+
+def _rho(w) -> str:
+    rho = state_ratios(w)
+    return f"{np.nanmin(rho):.2g}-{np.nanmax(rho):.2g}"
+
+
+def states():
+    scales = (1 / 64, 1 / 16, 1 / 4, 1 / 2, 1.0, 4.0, 16.0, 64.0)
+    rates = (("passive", dj.QSR.passive(2), 0), ("passive", dj.QSR.passive(2), 1),
+             ("cone", dj.QSR(-np.eye(2), 0.5 * np.eye(2), 0.3 * np.eye(2)), 0))
+    for label, q, seed in rates:
+        w0, _ = realisable_windows(jr.PRNGKey(seed), q, n_state=4, num_windows=40,
+                                   horizon=4, noise=0.1)
+        ws = [dj.Windows(a * w0.x0, w0.y, w0.u) for a in scales]
+        print(f"\n{label}, seed {seed}: median final loss (states' balancing off; on, "
+              "where it changes the run)")
+        print("| trainer | " + " | ".join(f"rho = {_rho(w)}" for w in ws) + " |")
+        print("|---|" + "---:|" * len(ws))
+        for name in TRAINERS:
+            cells = [_state_cells(name, w, q) for w in ws]
+            print(f"| `{name}` | " + " | ".join(cells) + " |", flush=True)
+    print("\n| problem | a | rho | trainer | base (a = 1) | off; on |")
+    print("|---|---:|---:|---|---:|---:|")
+    for pname in zoo.HELD_OUT:
+        prob = zoo.problem(pname)
+        w0 = prob.train
+        if w0.x0 is None or is_indefinite(prob.qsr):
+            continue
+        kw = dict(n_state=prob.n_state)
+        for name in ("fit_direct", "fit_pgd"):
+            base = _cell(name, w0, prob.qsr, 1.0, True, **kw)
+            for a in (1 / 64, 64.0):
+                w = dj.Windows(a * w0.x0, w0.y, w0.u)
+                print(f"| {pname} | {a:g} | {_rho(w)} | `{name}` | {base} | "
+                      f"{_state_cells(name, w, prob.qsr, **kw)} |", flush=True)
+    from dissil_jax.experiments.protocol import example_spec, training_data
+
+    print("\n| problem | rho |\n|---|---:|")
+    for pname in zoo.TUNING + zoo.HELD_OUT:
+        w = zoo.problem(pname).train
+        print(f"| {pname} | {'at rest' if w.x0 is None else _rho(w)} |")
+    for ex in ("linear", "nonlinear"):
+        for data in ("initial", "sliding"):
+            w = training_data(example_spec(ex), 0, 0, data, 25)[2]
+            print(f"| {ex}, {data} | {_rho(w)} |", flush=True)
+
+
 def paper():
     from dissil_jax.experiments.protocol import example_spec, training_data
 
@@ -154,6 +229,7 @@ if __name__ == "__main__":
     ap.add_argument("--held-out", action="store_true")
     ap.add_argument("--rate", action="store_true")
     ap.add_argument("--paper", action="store_true")
+    ap.add_argument("--states", action="store_true")
     a = ap.parse_args()
     if a.curve:
         curve()
@@ -163,3 +239,5 @@ if __name__ == "__main__":
         rate()
     if a.paper:
         paper()
+    if a.states:
+        states()

@@ -133,6 +133,10 @@ class Windows(eqx.Module):
             )
         if N < 1 or self.y.shape[1] < 1:
             raise ValueError("`Windows` needs at least one window of horizon at least 1.")
+        if self.x0 is not None and self.x0.shape[1] < 1:
+            raise ValueError(f"`x0` has no states (shape {self.x0.shape}): a dynamic controller "
+                             "has at least one; for windows that start at rest pass `x0=None` "
+                             "(and the controller's order as `n_state`).")
         for name in ("y", "u"):
             if getattr(self, name).shape[2] < 1:
                 raise ValueError(f"`{name}` has no channels (shape {getattr(self, name).shape}): "

@@ -90,6 +90,11 @@ def scan_outputs(K, x0, u_in, name: str = "dj.rollout"):
     # the state's dtype is the step's: integer or lower-precision x0 and u_in are promoted
     # (else the scan's carry would change type after one step)
     x0 = None if x0 is None else jnp.asarray(x0)
+    for arg, a in (("u_in", u_in), ("x0", x0)):
+        if a is not None and not (jnp.issubdtype(a.dtype, jnp.floating)
+                                  or jnp.issubdtype(a.dtype, jnp.integer)):
+            raise ValueError(f"`{arg}` must be a real array (floats or integers; the "
+                             f"controller's signals are real), got dtype {a.dtype}.")
     dtype = jnp.result_type(K.A.dtype, u_in.dtype, *(() if x0 is None else (x0.dtype,)))
     if not jnp.issubdtype(dtype, jnp.inexact):
         dtype = K.A.dtype
@@ -125,7 +130,9 @@ def check_window_sizes(K, windows: Windows) -> None:
         raise ValueError(
             f"`windows.x0` has width {windows.n_state} but `K` has {K.n_state} states; the "
             "controller starts at x0, so its order must be x0's width (or build the windows "
-            "with `dj.Windows(None, y, u)` to start a controller of any order at rest)."
+            "with `dj.Windows(None, y, u)` to start a controller of any order at rest; an "
+            "odd REN of `fit_ren(odd=True)`, of twice x0's width, starts at (x0, -x0): "
+            "`dj.Windows(jnp.concatenate([x0, -x0], -1), y, u)`)."
         )
 
 

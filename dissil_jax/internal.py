@@ -7,7 +7,7 @@ layout can change behind this one list (as lineax's `internal`).
 Modules, for monkeypatching in tests and for benchmarks that time one layer alone:
 `certify_fast`, `certify_sdp`, `direct`, `direct_map`, `ico`, `ico_sdp`, `linalg`, `lmi`, `mlp`, `outcome`,
 `pgd`, `pgd_steps`, `progress`, `projection`, `projection_admm`, `projection_admm_rate`, `projection_cache`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `rollout`,
-`rate_scale`, `sdp`, `zoo_build` (the problem zoo's plants, experts and rates); and the functions and constants in
+`rate_scale`, `sdp`, `units` (the trainers' changes of units), `zoo_build` (the problem zoo's plants, experts and rates); and the functions and constants in
 `__all__`.
 """
 
@@ -43,12 +43,20 @@ from ._sdp.lmi import (
     smat,
 )
 from ._sdp.sdp import single_threaded_blas
-from ._train import _progress as progress, direct, mlp, pgd, pgd_steps, ren as ren_train
+from ._train import (
+    _progress as progress,
+    _units as units,
+    direct,
+    mlp,
+    pgd,
+    pgd_steps,
+    ren as ren_train,
+)
 from ._train._checks import check_n_state
 from ._train._init import INIT_SCALE, init_controllers
 from ._train._iterate import Method, iterate
 from ._train._scale import loss_scale, scaled
-from ._train._units import BAND as OUTPUT_BAND, output_factor, output_ratio
+from ._train._units import BAND as OUTPUT_BAND, output_factor, output_ratio, state_ratios
 from ._train.direct import (
     MapDescent,
     _run as direct_run_unchecked,
@@ -76,7 +84,7 @@ __all__ = [
     "optimizer_metric", "outcome", "output_factor", "output_ratio", "pgd", "pgd_steps", "progress", "projection", "projection_admm", "projection_admm_rate", "projection_cache", "projection_fo",
     "ren_certify",
     "ren_controller",
-    "ren_map", "ren_train", "rollout", "rate_scale", "scaled", "sdp", "single_threaded_blas", "smat",
-    "solver_stats", "stacked_factor", "static_point", "svec_len", "vanishing_supply",
+    "ren_map", "ren_train", "rollout", "rate_scale", "units", "scaled", "sdp", "single_threaded_blas", "smat",
+    "solver_stats", "stacked_factor", "state_ratios", "static_point", "svec_len", "vanishing_supply",
     "zoo_build",
 ]

@@ -132,6 +132,18 @@ def _is_passivity(qsr):
         S, 0.5 * np.eye(S.shape[0]))
 
 
+def in_storage_units(K, P):
+    r"""`(K, P)` in the state coordinates $x = T\tilde x$, $T = \operatorname{diag}(P_{ii}^{-1/2})$,
+    where the storage has a unit diagonal: the same dissipation inequality (exactly, in exact
+    arithmetic), for checking realisations whose states have very different units, where
+    a margin relative to the largest term says nothing about the small directions."""
+    A, B, C, D = (np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
+    P = np.asarray(P, np.float64)
+    t = 1.0 / np.sqrt(np.diag(P))
+    return (dj.LTIController(A * t[None, :] / t[:, None], B / t[:, None], C * t[None, :], D),
+            P * t[:, None] * t[None, :])
+
+
 def dissipation_ok(K, qsr, P, rel_margin=1e-12, *, python_control=True):
     """True iff V(x) = x'Px certifies (Q,S,R)-dissipativity of K with a relative margin.
 

@@ -392,6 +392,21 @@ def test_certified_trainers_under_vmap_say_why_they_cannot_be_traced(fit, altern
     assert over(False)(*arrays).shape == (2, 2)
 
 
+@pytest.mark.parametrize("fit, hyper", [("fit_direct", "learning_rate"), ("fit_pgd", "decay"),
+                                        ("fit_ico", "init_scale"), ("fit_ren", "margin")])
+def test_certified_trainers_name_a_traced_hyperparameter(fit, hyper):
+    """A sweep over a hyperparameter alone (key and windows constant) failed deep inside
+    the host check with JAX's TracerArrayConversionError; the error now names it."""
+    rng = np.random.default_rng(0)
+    w = dj.Windows(rng.standard_normal((6, 1)), rng.standard_normal((6, 2, 1)),
+                   rng.standard_normal((6, 2, 1)))
+    run = lambda v: getattr(dj, fit)(jax.random.PRNGKey(0), w, dj.QSR.passive(1),
+                                     num_inits=2, max_steps=2, throw=False,
+                                     **{hyper: v}).final_loss
+    with pytest.raises(ValueError, match=f"`{fit}` cannot run .*its `{hyper}` is traced"):
+        jax.vmap(run)(jnp.array([0.5, 0.9]))
+
+
 def test_decay_of_the_papers_rule_must_decay():
     rng = np.random.default_rng(0)
     w = dj.Windows(rng.standard_normal((6, 1)), rng.standard_normal((6, 2, 1)),
@@ -446,6 +461,12 @@ def test_rollouts_promote_an_integer_or_narrow_start():
             out = roll(C, x0, u_in)
             assert out.dtype == ref.dtype
             np.testing.assert_array_equal(out, ref)
+        # complex signals (tanh of complex numbers) and booleans are refused by name, as
+        # `dj.Windows` refuses them
+        with pytest.raises(ValueError, match="`u_in` must be a real array"):
+            roll(C, None, u.astype(np.complex64))
+        with pytest.raises(ValueError, match="`x0` must be a real array"):
+            roll(C, np.array([True, False]), u)
 
 
 def test_project_shares_one_reference_storage_across_a_batch():

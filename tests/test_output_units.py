@@ -9,11 +9,11 @@ run on such data must equal, bit for bit, the run on the balanced problem mapped
 import jax.random as jr
 import numpy as np
 import pytest
-from helpers import dissipation_ok, index
+from helpers import dissipation_ok, in_storage_units, index
 
 import dissil_jax as dj
 from dissil_jax.experiments import realisable_windows
-from dissil_jax.internal import output_factor, output_ratio, rate_scale
+from dissil_jax.internal import output_factor, output_ratio, rate_scale, units
 
 QSR = dj.QSR(-0.2 * np.eye(2), 0.5 * np.eye(2), 0.3 * np.eye(2))  # a cone: Q, S, R all act
 SCALE = 64.0  # the user's outputs are 64x the base problem's (a change of units)
@@ -93,6 +93,74 @@ def test_unbalanced_outputs_train_as_the_balanced_problem(name):
         return
     for i in range(3):  # the independent float64 check, in the user's units
         assert dissipation_ok(index(res.controllers, i), q_user, res.P[i])
+
+
+STATE_SCALE = np.array([64.0, 1 / 32])  # the user's states: 64x and 1/32 the base's
+
+
+@pytest.mark.parametrize("name", list(FITS))
+def test_states_in_units_of_their_own_train_as_the_balanced_problem(name):
+    """Initial states far larger or smaller than the outputs (x0 -> d x0 per state, the
+    same controllers in the coordinates x = D x_b) train as the base problem: the run
+    equals the base run mapped back bit for bit ((DAD^-1, DB, CD^-1, D), storage
+    D^-1 P D^-1; a REN's multiplier unchanged), and every controller passes an independent
+    check in the user's units. Without the states' balancing the runs learned next to
+    nothing on such data (a new user's trial)."""
+    base = _base()
+    assert units.state_factors(base) is None  # the base problem is in balance
+    user = dj.Windows(base.x0 * STATE_SCALE, base.y, base.u)
+    d = units.state_factors(user)
+    assert d is not None and np.all(np.log2(d) % 1 == 0)  # powers of two: exact
+    # the problem the trainer should solve: the states divided by d
+    balanced = dj.Windows(user.x0 / d, base.y, base.u)
+    assert units.state_factors(balanced) is None
+    res = FITS[name](user, QSR, atol=1e-6)
+    ref = FITS[name](balanced, QSR, atol=1e-6)
+    n = ref.controllers.A.shape[-1]
+    dd = np.tile(d, n // d.size)  # an odd REN would carry two copies of the state
+    left = {"A": dd[:, None] / dd[None, :], "B": dd[:, None], "C": 1 / dd[None, :],
+                   "B1": dd[:, None], "B2": dd[:, None], "C1": 1 / dd[None, :],
+                   "C2": 1 / dd[None, :]}
+    for field in vars(ref.controllers):
+        b = getattr(ref.controllers, field)
+        if isinstance(b, str) or callable(b):
+            continue
+        np.testing.assert_array_equal(getattr(res.controllers, field),
+                                      np.asarray(b) * left.get(field, 1.0))
+    np.testing.assert_array_equal(res.loss_history, ref.loss_history)
+    np.testing.assert_array_equal(res.steps, ref.steps)
+    if name in ("gd", "ico_nc"):
+        assert res.P is None
+        return
+    np.testing.assert_array_equal(res.P, np.asarray(ref.P) / (dd[:, None] * dd[None, :]))
+    assert bool(np.all(res.certified))
+    if name == "ren":
+        np.testing.assert_array_equal(res.multiplier, ref.multiplier)
+        for i in range(3):  # a fresh SDP in the user's units
+            assert dj.certify_ren(index(res.controllers, i), QSR).holds
+        return
+    for i in range(3):  # the independent float64 check of the user's pair (its states
+        # differ in size by 2^11, so in coordinates where the storage's diagonal is one)
+        K_i, P_i = in_storage_units(index(res.controllers, i), res.P[i])
+        assert dissipation_ok(K_i, QSR, P_i)
+
+
+def test_state_factors():
+    """Per state: 1 inside `STATE_BAND` (or for a state that is always zero), else the power
+    of two nearest the ratio of its rms to the outputs' rms; None when every state is in
+    balance or the windows start at rest."""
+    y = np.ones((4, 2, 1))
+    x0 = np.array([[1.0, 100.0, 0.0, 0.19], [-1.0, -100.0, 0.0, -0.19]] * 2)
+    w = dj.Windows(x0, y, y)
+    np.testing.assert_allclose(units.state_ratios(w)[[0, 1, 3]], [1.0, 100.0, 0.19])
+    assert np.isnan(units.state_ratios(w)[2])
+    np.testing.assert_array_equal(units.state_factors(w), [1.0, 128.0, 1.0, 0.25])
+    assert units.state_factors(dj.Windows(x0[:, :1], y, y)) is None
+    assert units.state_factors(dj.Windows(None, y, y)) is None
+    assert units.state_factors(dj.Windows(x0, 0 * y, y)) is None  # outputs all zero
+    lo, hi = units.STATE_BAND
+    assert units.state_factors(dj.Windows(np.full((4, 1), 0.99 * hi), y, y)) is None
+    assert units.state_factors(dj.Windows(np.full((4, 1), 1.01 * lo), y, y)) is None
 
 
 # A supply rate and its multiple 2^20 admit the same controllers, with storages P and

@@ -299,6 +299,13 @@ def test_a_non_dissipative_ren_is_rejected():
     assert given.message.startswith("the given (P, multiplier) does not prove")
     assert cert.message.startswith(("no storage", "undecided"))
     assert str(cert.status) in cert.message
+    # an SDP solved to optimality below zero disproves the certificate and says so (it
+    # said "undecided"): an unstable linear part fails it for every activation
+    unstable = dj.RENController.from_lti(dj.LTIController(
+        np.array([[1.5]]), np.array([[1.0]]), np.array([[1.0]]), np.array([[0.0]])), width=2)
+    bad = dj.certify_ren(unstable, dj.QSR.bounded_gain(100.0, n_in=1, n_out=1))
+    assert not bad.holds and str(bad.status).startswith("infeasible")
+    assert bad.message.startswith("no storage")
     theta = jax.tree.map(lambda a: a[0], rm.init_ren_params(jr.PRNGKey(0), 1, 2, 3, 2, 2, 0.5,
                                                              jnp.float64))
     good = rm.ren_map(theta, dj.QSR.passive(2), 3, "relu")[0]
@@ -677,7 +684,11 @@ print("OK")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=300, env=env)
     assert out.stdout.strip().endswith("OK"), out.stderr[-2000:]
-    for f in (lambda v: 1.0001 * v, lambda v: 1.00001 * jnp.tanh(v)):
+    # a narrow bump in the data's range, and a slope of 1.5 beyond 1e3, passed the earlier
+    # 123-point grid in [-1e3, 1e3] (a new-user audit)
+    bump = lambda v: jax.nn.relu(v) + 5.0 * jax.nn.relu(1.0 - jnp.abs(v - 1.12) / 0.02)
+    steep = lambda v: jax.nn.relu(v) + 0.5 * jax.nn.relu(v - 1001.0)
+    for f in (lambda v: 1.0001 * v, lambda v: 1.00001 * jnp.tanh(v), bump, steep):
         with pytest.raises(ValueError, match="not slope-restricted"):
             ren_controller.check_activation(f)
 

@@ -15,8 +15,13 @@ import numpy as np
 #: The activations known to be slope-restricted in $[0, 1]$ with $\sigma(0) = 0$.
 ACTIVATIONS: dict[str, Callable] = {"relu": jax.nn.relu, "tanh": jnp.tanh}
 
-# The screen of a user-supplied activation: difference quotients on this grid (and at 0).
-_GRID = np.concatenate([-np.logspace(-3, 3, 61)[::-1], [0.0], np.logspace(-3, 3, 61)])
+# The screen of a user-supplied activation: difference quotients on this grid, symmetric
+# about 0: logarithmic from 1e-6 to 1e6, and a uniform step of 1/256 up to 16, where the
+# trainers' normalised data live (a 123-point grid let a spike between two of its points
+# through, an audit's σ(1.12) = 6.12). Exact binary fractions, so float32 keeps them apart.
+_POSITIVE = np.unique(np.concatenate([np.float32(np.logspace(-6, 6, 1201)),
+                                      np.arange(1, 16 * 256 + 1) / 256.0]))
+_GRID = np.concatenate([-_POSITIVE[::-1], [0.0], _POSITIVE])
 # Round-off allowance of the screen, in units of the evaluation's machine epsilon per
 # rounded value: each quotient (s(a) - s(b)) / (a - b) is allowed 8 eps (|s(a)| + |s(b)|)
 # / |a - b|, room for a correctly rounded s and a few ulps of a library's tanh.
@@ -26,9 +31,10 @@ _ULPS = 8.0
 def check_activation(activation, rescreen: bool = False) -> str | Callable:
     """`activation` if it is a known name or passes the sector screen, else a ValueError.
 
-    A name from `ACTIVATIONS` is accepted as is. A callable is evaluated in float64 on a
-    logarithmic grid of 123 points in $[-10^3, 10^3]$: it must give $\\sigma(0) = 0$ and
-    difference quotients of neighbouring points in $[0, 1]$. The screen can refuse but not
+    A name from `ACTIVATIONS` is accepted as is. A callable is evaluated on a grid of
+    about 10,000 points in $[-10^6, 10^6]$ (logarithmic, and a uniform step of $1/256$ in
+    $[-16, 16]$): it must give $\\sigma(0) = 0$ and difference quotients of neighbouring
+    points in $[0, 1]$. The screen can refuse but not
     prove: the certificate assumes the slope restriction everywhere, so a callable is the
     caller's promise, checked where it is cheap to check. A callable that passed is
     remembered (controllers built inside a trace cannot screen), unless `rescreen`.
@@ -97,7 +103,7 @@ def check_activation(activation, rescreen: bool = False) -> str | Callable:
         raise ValueError(
             "`activation` is not slope-restricted in [0, 1] with sigma(0) = 0 (found sigma(0) "
             f"= {zero:.3g}, difference quotients in [{slopes.min():.6g}, {slopes.max():.6g}] "
-            "on a grid in [-1e3, 1e3]); the certificate's sector condition w (v - w) >= 0 "
+            "on a grid in [-1e6, 1e6]); the certificate's sector condition w (v - w) >= 0 "
             "needs it. Rescale it (e.g. sigma(v)/L for slopes in [0, L]) or use 'relu'/'tanh'.")
     _remember(activation)
     return activation

@@ -74,7 +74,8 @@ def _ren_message(holds, status) -> str:
     if str(status).startswith("infeasible"):
         return ("no storage and diagonal multiplier satisfy the REN certificate (the solver "
                 f"reported `{status}`): the controller is not certifiably dissipative by this "
-                "sector certificate, which is sufficient, not necessary")
+                "sector certificate, which is sufficient, not necessary (an unstable or "
+                "too-high-gain linear part fails it for every activation)")
     return (f"undecided: the SDP solver stopped at `{status}` and its storage does not pass "
             "the float64 check; that does not show that none exists (an ill-conditioned "
             "storage may be beyond float64: pass a known pair as `P` and `multiplier`)")
@@ -287,8 +288,20 @@ def _solve(G: LTIController, qsr: QSR, q: int):
             return None, None, f"solver_error: {err}"
     if P.value is None:
         return None, None, str(prob.status)
+    status = str(prob.status)
+    # Solved to optimality with t* clearly below 0 (beyond the solver's tolerances, ~1e-8
+    # on these unit-size data): no pair with M < 0, P > 0, Λ > 0 exists, since any would
+    # give t* >= min(its margins, 1) > 0.
+    if status == "optimal" and t.value is not None and t.value < -_DISPROOF * max(
+            1.0, float(np.abs(K0).max(initial=0.0))):
+        status = f"infeasible (solved to optimality at t* = {float(t.value):.3g} < 0)"
     return (unbalanced_storage(np.asarray(P.value), ts),
-            d * np.asarray(lam.value if q else np.zeros(0)).reshape(q), str(prob.status))
+            d * np.asarray(lam.value if q else np.zeros(0)).reshape(q), status)
+
+
+# The optimum t* below which an SDP solved to optimality disproves the certificate (the
+# solver's own tolerances are ~1e-8 relative).
+_DISPROOF = 1e-6
 
 
 def certify_ren(K: RENController, qsr: QSR, *, P=None, multiplier=None,

@@ -80,7 +80,11 @@ class RENController(eqx.Module):
     [`LTIController`][dissil_jax.LTIController]). $\\sigma$ acts elementwise, is
     slope-restricted in $[0, 1]$ and has $\\sigma(0) = 0$, so $w_i(v_i - w_i)\\ge0$ (the sector
     condition the certificate uses). $D_{11}$ is strictly lower triangular: neuron $i$ sees
-    only neurons $j < i$, so the layer is solved explicitly in $q$ sweeps.
+    only neurons $j < i$, so the layer is solved explicitly in $q$ sweeps. A `D11` with
+    entries on or above the diagonal is refused, except when it is traced (built inside
+    `jax.jit`, where its values are unknown): the layer then uses its strictly lower part,
+    `jnp.tril(D11, -1)`, and [`certify_ren`][dissil_jax.certify_ren] refuses the
+    controller until it is built with that part.
 
     Width 0 is the LTI controller $(A, B_2, C_2, D_{22})$: see
     [`from_lti`][dissil_jax.RENController.from_lti] and

@@ -13,7 +13,7 @@ import optax
 from .._data import Windows
 from .._sdp.indefinite import check_feasible
 from .._supply import QSR
-from .._validate import check_flag, check_int
+from .._validate import check_flag, check_int, real_scalar
 
 _T = TypeVar("_T")
 
@@ -43,8 +43,9 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
                              "array).")
         if isinstance(v, jax.core.Tracer):
             continue
-        if not np.all(np.isfinite(v)) or np.any(np.asarray(v) < 0):
-            raise ValueError(f"`{name}` must be finite and non-negative, got {v!r}.")
+        x = real_scalar(v)  # NaN for a string, None, a complex number, ...
+        if not (np.isfinite(x) and x >= 0):
+            raise ValueError(f"`{name}` must be a finite non-negative number, got {v!r}.")
 
 
 def nan_unless(value: _T, ok) -> _T:
@@ -56,21 +57,26 @@ def nan_unless(value: _T, ok) -> _T:
     return value
 
 
-def check_eager(fn: str, key, windows, throw, alternative: str = "") -> None:
-    """Refuse a traced `key` or traced windows (`fn` under `jax.jit` or `jax.vmap`) and a
-    `throw` that is not a bool, naming them: the certified trainers check every controller
-    in float64 on the host, which a trace cannot do."""
+def check_eager(fn: str, key, windows, throw, alternative: str = "", **hyper) -> None:
+    """Refuse a traced `key`, traced windows or a traced hyperparameter among `hyper` (`fn`
+    under `jax.jit` or `jax.vmap`) and a `throw` that is not a bool, naming them: the
+    certified trainers check every controller in float64 on the host, which a trace cannot
+    do."""
     check_flag("throw", throw)
-    data = (key,) if not isinstance(windows, Windows) else (key, windows.y, windows.u,
-                                                             windows.x0)
-    if any(isinstance(a, jax.core.Tracer) for a in data):
+    data = {"key": key}
+    if isinstance(windows, Windows):
+        data["windows"] = (windows.y, windows.u, windows.x0)
+    traced = [name for name, v in {**data, **hyper}.items()
+              if any(isinstance(a, jax.core.Tracer) for a in jax.tree.leaves(v))]
+    if traced:
+        names = " and ".join(f"`{n}`" for n in traced)
         raise ValueError(
-            f"`{fn}` cannot run under `jax.jit` or `jax.vmap` (its `key` or `windows` are "
-            "traced): it solves convex programs or checks certificates in float64 on the "
-            "host. It "
-            "trains `num_inits` initialisations in one vmapped run already"
-            + (f"; for sweeps inside JAX use `{alternative}`." if alternative else
-               "; call it once per key for more."))
+            f"`{fn}` cannot run under `jax.jit` or `jax.vmap` (its {names} "
+            f"{'is' if len(traced) == 1 else 'are'} traced): it solves convex programs or "
+            "checks certificates in float64 on the host. It trains `num_inits` "
+            "initialisations in one vmapped run already"
+            + (f"; for sweeps inside JAX use `{alternative}`, which is traceable."
+               if alternative else "; call it once per value for more."))
 
 
 def check_key(key) -> None:

@@ -1,4 +1,5 @@
-"""Balancing the units of the controller's output against those of its input (`fit_*`).
+"""Balancing the units of the controller's output against its input's, and of its initial
+states against its input's (`fit_*`).
 
 The trainers divide the windows by one data scale $s$ (`_scale.py`), which makes them
 invariant when $x_0$, $y$ and $u$ change units *together*. The controller's input
@@ -33,23 +34,56 @@ Inside the band nothing changes: every problem of the zoo has $0.22\\le r\\le 2.
 their results stay bit for bit those of the defaults' tuning. (The paper's examples have
 $r$ = 0.011-0.23; the reproduction passes `balance=False`.) The jittable cores (`pgd_run`, `direct_run`, `dj.sweep`) do not balance:
 their windows may be traced.
+
+**The states.** The same single scale $s$ also assumes that the initial states $\\hat x_0$
+are of the outputs' size $y$. They need not be: a plant whose output is $y = 100x$, or
+states in mm beside outputs in m, leaves $\\hat x_0/s$ tiny, the best controller's $C$ of
+size 100 in the normalised units, and the runs learn next to nothing (a new user's trial:
+the median final loss 0.91 of the zero controller's, against $6\\cdot10^{-5}$ in matching
+units, every run certified and no warning). With
+
+$$\\rho_i = \\frac{\\operatorname{rms}_{\\text{windows}}\\,\\hat x_{0,i}}
+{\\operatorname{rms}_{\\text{windows, steps, outputs}}\\,y},$$
+
+the trainers take $d_i = 2^{\\operatorname{round}(\\log_2\\rho_i)}$ for every state with
+$\\rho_i$ outside `STATE_BAND` $= [1/5, 5]$, the outputs' band ($d_i = 1$ for the
+others), and train on the initial states $\\hat x_{0,i}/d_i$. That is a change of the controller's state coordinates,
+$\\hat x = D\\hat x_b$ with $D = \\operatorname{diag}(d)$, which every controller allows:
+the one found, $(A_b, B_b, C_b, D_b)$ with storage $P_b$, is returned as $(DA_bD^{-1},
+DB_b, C_bD^{-1}, D_b)$ with storage $D^{-1}P_bD^{-1}$ (a REN: $A$, $B_1$, $B_2$ times $D$
+on the left, $A$, $C_1$, $C_2$ times $D^{-1}$ on the right, $\\Lambda$ unchanged), and the
+losses are unchanged. Its dissipation matrix is the balanced one under the congruence
+$\\operatorname{diag}(D^{-1}, I)$, exact in floating point; the float64 check is repeated in
+the user's units all the same (`unbalance`). $d$ is chosen first, and $c$ on the windows
+with $\\hat x_0/d$. Every problem of the zoo and the paper's examples have $0.23\\le
+\\rho_i\\le3.8$ (`benchmarks/bench_units.py --states`), so their results are unchanged.
 """
 
 from __future__ import annotations
 
-from typing import overload
+from typing import NamedTuple, overload
 
 import equinox as eqx
 import jax
 import jax.core
+import jax.numpy as jnp
 import numpy as np
 
+from .. import _outcome
 from .._data import Windows
+from .._rate_scale import nearest_power_of_two
+from .._ren.certify import certified_batch
+from .._ren.controller import RENController
+from .._sdp.lmi import kyp_certified
 from .._supply import QSR
 from .._validate import check_flag
+from .result import raise_if_failed
 
 #: The ratios r of output to input size that the trainers take as they are.
 BAND = (0.2, 5.0)
+
+#: The ratios rho_i of a state's size to the outputs' that the trainers take as they are.
+STATE_BAND = (0.2, 5.0)
 
 # 2**±500: c**2 and the scaled data stay finite in float64 for any finite windows.
 _MAX_EXPONENT = 500
@@ -79,42 +113,149 @@ def output_factor(windows: Windows) -> float:
     return float(2.0 ** np.clip(np.round(np.log2(r)), -_MAX_EXPONENT, _MAX_EXPONENT))
 
 
-def balance_factor(windows: Windows, balance) -> float:
-    """`output_factor(windows)` when `balance` is True, 1 when False; a `ValueError`
+def state_ratios(windows: Windows) -> np.ndarray:
+    """$\\rho_i$ of the module docstring, per state (NaN where a state or every output is
+    zero; empty for windows at rest)."""
+    if windows.x0 is None:
+        return np.zeros(0)
+    x0, y = (np.asarray(a, np.float64) for a in (windows.x0, windows.y))
+    ry = np.sqrt(np.mean(y**2)) if y.size else 0.0
+    rx = np.sqrt(np.mean(x0**2, axis=0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = rx / ry
+    return np.where((rx > 0) & np.isfinite(rho), rho, np.nan)
+
+
+def state_factors(windows: Windows) -> np.ndarray | None:
+    """The factors $d_i$ of the module docstring, or None when every $\\rho_i$ is in
+    `STATE_BAND` (or undefined)."""
+    rho = state_ratios(windows)
+    out = np.isfinite(rho) & ((rho < STATE_BAND[0]) | (rho > STATE_BAND[1]))
+    if not out.any():
+        return None
+    return np.where(out, nearest_power_of_two(np.where(out, rho, 1.0)), 1.0)
+
+
+class Units(NamedTuple):
+    """The exact changes of units of a `fit_*` call (powers of two): the outputs divided by
+    `c`, the initial states' components by `d` (None: unchanged)."""
+
+    c: float = 1.0
+    d: np.ndarray | None = None
+
+    @property
+    def none(self) -> bool:
+        """No change of units."""
+        return self.c == 1.0 and self.d is None
+
+    def controllers(self, K):
+        """Controllers (LTI or REN, batched or not) of the balanced problem in the user's
+        units: $\\hat x = D\\hat x_b$ and $\\hat y = c\\,\\hat y_b$."""
+        if self.d is not None:
+            d = self._d(K.n_state)
+            names = (("A", "B1", "B2", "C1", "C2") if isinstance(K, RENController)
+                     else ("A", "B", "C"))
+            rows, cols = d[:, None], 1.0 / d[None, :]
+            scale = {"A": rows * cols, "B": rows, "B1": rows, "B2": rows, "C": cols,
+                     "C1": cols, "C2": cols}
+            K = eqx.tree_at(lambda k: tuple(getattr(k, n) for n in names), K,
+                            tuple(_times(getattr(K, n), scale[n]) for n in names))
+        if self.c != 1.0:
+            names = ("C2", "D21", "D22") if isinstance(K, RENController) else ("C", "D")
+            K = eqx.tree_at(lambda k: tuple(getattr(k, n) for n in names), K,
+                            tuple(self.c * getattr(K, n) for n in names))
+        return K
+
+    def storages(self, P):
+        """Storages of the balanced problem in the user's units: $D^{-1}P_bD^{-1}$."""
+        if self.d is None or P is None:
+            return P
+        d = self._d(P.shape[-1])
+        return _times(P, 1.0 / (d[:, None] * d[None, :]))
+
+    def _d(self, n: int) -> np.ndarray:
+        # an odd REN (`fit_ren(odd=True)`) has two copies of the state: (x, -x)
+        assert self.d is not None and n % self.d.size == 0
+        return np.tile(self.d, n // self.d.size)
+
+
+def _times(M, factors: np.ndarray):
+    """`M` times `factors` (broadcast over its last two axes), in `M`'s dtype: powers of
+    two, so exact."""
+    return M * jnp.asarray(factors, M.dtype) if isinstance(M, jax.Array) else M * factors
+
+
+def balance_factor(windows: Windows, balance) -> Units:
+    """The `Units` of the module docstring when `balance` is True (the states' factors $d$
+    first, then $c$ of the windows with $\\hat x_0/d$), none when False; a `ValueError`
     naming `balance` for anything else, or for traced windows (`fit_gd` under `jax.jit` or
-    `jax.vmap` over the windows): the factor is a power of two chosen from the data on the
-    host."""
+    `jax.vmap` over the windows): the factors are powers of two chosen from the data on
+    the host."""
     if not check_flag("balance", balance):
-        return 1.0
+        return Units()
     if any(isinstance(a, jax.core.Tracer) for a in (windows.x0, windows.y, windows.u)):
         raise ValueError("`balance=True` chooses the outputs' units from the data on the host, "
                          "which traced `windows` (a trainer under `jax.jit` or `jax.vmap` over "
                          "its windows) do not allow: pass `balance=False` there.")
-    return output_factor(windows)
+    d = state_factors(windows)
+    return Units(output_factor(_divided(windows, Units(1.0, d))), d)
+
+
+def _divided(windows: Windows, units: Units) -> Windows:
+    """The windows $(\\hat x_0/d, y, u/c)$ (exact)."""
+    x0 = windows.x0
+    if units.d is not None:  # (d is only chosen for windows that start at a state)
+        assert x0 is not None
+        x0 = x0 / jnp.asarray(units.d, x0.dtype)
+    return Windows(x0, windows.y, windows.u / units.c if units.c != 1.0 else windows.u)
 
 
 @overload
-def balance(windows: Windows, qsr: QSR, c: float) -> tuple[Windows, QSR]: ...
+def balance(windows: Windows, qsr: QSR, units: Units) -> tuple[Windows, QSR]: ...
 @overload
-def balance(windows: Windows, qsr: None, c: float) -> tuple[Windows, None]: ...
-def balance(windows: Windows, qsr: QSR | None, c: float) -> tuple[Windows, QSR | None]:
-    """The windows $(x_0, y, u/c)$ and the supply rate $(c^2Q, cS, R)$ (None stays None)."""
-    if c == 1.0:
+def balance(windows: Windows, qsr: None, units: Units) -> tuple[Windows, None]: ...
+def balance(windows: Windows, qsr: QSR | None, units: Units) -> tuple[Windows, QSR | None]:
+    """The windows $(\\hat x_0/d, y, u/c)$ and the supply rate $(c^2Q, cS, R)$ (None stays
+    None)."""
+    if units.none:
         return windows, qsr
-    balanced = Windows(windows.x0, windows.y, windows.u / c)
-    if qsr is not None:
+    c = units.c
+    if qsr is not None and c != 1.0:
         qsr = QSR(c * c * qsr.Q, c * qsr.S, qsr.R)
-    return balanced, qsr
+    return _divided(windows, units), qsr
 
 
-def unbalance(res, c: float):
+def unbalance(res, units: Units, qsr: QSR | None = None, throw: bool = False):
     """A `FitResult` (LTI or REN controllers) of the balanced problem in the user's units:
-    the controllers' output matrices times $c$, losses times $c^2$; storages unchanged."""
-    if c == 1.0:
+    controllers by `Units.controllers`, storages by `Units.storages` (a REN's multiplier
+    unchanged), losses times $c^2$.
+
+    With the states' units changed, `certified` is checked again against the user's `qsr`
+    (float64; the same matrix up to exact scalings by powers of two, so the verdict agrees
+    except at round-off), and a pair that fails it becomes `not_certified` (raised with
+    `throw`)."""
+    if units.none:
+        return res
+    c = units.c
+    res = eqx.tree_at(lambda r: (r.controllers, r.loss_history, r.final_loss), res,
+                      (units.controllers(res.controllers), res.loss_history * c**2,
+                       res.final_loss * c**2))
+    if units.d is None or res.P is None:
+        return res
+    res = eqx.tree_at(lambda r: r.P, res, units.storages(res.P))
+    if qsr is None or res.certified is None:
         return res
     K = res.controllers
-    names = ("C2", "D21", "D22") if hasattr(K, "D22") else ("C", "D")
-    K = eqx.tree_at(lambda k: tuple(getattr(k, n) for n in names), K,
-                    tuple(c * getattr(K, n) for n in names))
-    return eqx.tree_at(lambda r: (r.controllers, r.loss_history, r.final_loss), res,
-                       (K, res.loss_history * c**2, res.final_loss * c**2))
+    if isinstance(K, RENController):
+        ok = certified_batch(K, qsr, np.asarray(res.P, np.float64),
+                             np.asarray(res.multiplier, np.float64))
+    else:
+        ok = kyp_certified(K.A, K.B, K.C, K.D, qsr, res.P)
+    lost = np.asarray(res.certified) & ~np.asarray(ok)
+    if not lost.any():
+        return res
+    codes = np.where(lost, _outcome.code("not_certified"), _outcome.codes(res.result))
+    res = eqx.tree_at(lambda r: (r.certified, r.result), res,
+                      (jnp.asarray(~lost & np.asarray(res.certified)),
+                       _outcome.item(np.asarray(codes, np.int32))))
+    return raise_if_failed(res) if throw else res

@@ -297,7 +297,8 @@ def fit_direct(
     training is unconstrained gradient descent on $J_s(K(\\theta))$, the imitation loss
     ([`imitation_loss`][dissil_jax.imitation_loss]) of the windows in normalised units
     (as [`fit_pgd`][dissil_jax.fit_pgd]: scaling $x_0$, $y$, $u$ by $c>0$ changes nothing,
-    and outputs whose units are far from the inputs' are rescaled exactly, `balance`;
+    and outputs or states whose units are far from the inputs' are rescaled exactly,
+    `balance`;
     losses and `atol` are in the user's units), all in one compiled `lax.while_loop`
     without leaving the device (no LAPACK call in the loop either: its factorisations are
     loop-based, see [Thread-pool deadlocks](scaling.md#thread-pool-deadlocks)). The run
@@ -351,7 +352,9 @@ def fit_direct(
       final iterate (`kept_step` records which step), as in `fit_pgd`.
     - `balance`: as in `fit_pgd` (default True): when the outputs' size is more than 5x
       above or below the inputs', train on outputs rescaled by a power of two and the
-      matching supply rate, and map the result back exactly.
+      matching supply rate; when an initial state's size is more than 5x above or below
+      the outputs' $y$, train in state coordinates rescaled by a power of two; map the
+      result back exactly.
     - `progress`: as in `fit_pgd` (default True: a line on standard error every 10 s once
       training has taken 10 s).
 
@@ -364,13 +367,16 @@ def fit_direct(
     ```
     """
     check_key(key)
-    check_eager("fit_direct", key, windows, throw, "dj.direct_run")
+    check_eager("fit_direct", key, windows, throw, "dj.direct_run",
+                learning_rate=learning_rate, init_scale=init_scale, atol=atol, rtol=rtol,
+                margin=margin, fallback_eps=fallback_eps)
     optimizer, learning_rate, init_scale, n_state, margin = _options(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, margin=margin)
     fallback_eps = check_positive("fallback_eps", fallback_eps)  # used after training
-    c = balance_factor(windows, balance)  # outputs' units against inputs' (`_units.py`)
-    windows, qsr = balanced(windows, qsr, c)
+    units = balance_factor(windows, balance)  # outputs' and states' units (`_units.py`)
+    user_qsr, (windows, qsr) = qsr, balanced(windows, qsr, units)
+    c = units.c
     rate = solved_rate(qsr, margin, windows.y.dtype)  # traced: one compilation per shape
     with reporting("fit_direct", max_steps, check_flag("progress", progress), c**2) as token:
         return unbalance(fit_timed(
@@ -383,4 +389,4 @@ def fit_direct(
                                 margin=margin, keep=check_keep(keep), progress=token),
             (learning_rate, init_scale), windows.y.dtype,
             lambda res: certify_or_project(res, qsr, windows, eps=fallback_eps),
-            throw), c)
+            throw), units, user_qsr, throw)

@@ -272,7 +272,8 @@ def fit_ren(
                          f"{type(optimizer).__name__}.")
     given = dict(learning_rate=learning_rate, init_scale=init_scale)
     check_key(key)
-    check_eager("fit_ren", key, windows, throw)
+    check_eager("fit_ren", key, windows, throw, learning_rate=learning_rate,
+                init_scale=init_scale, atol=atol, rtol=rtol, margin=margin)
     check_fit_args(windows, qsr, num_inits, max_steps, atol=atol, rtol=rtol,
                    **{k: v for k, v in given.items() if v is not None})
     if is_indefinite(qsr):
@@ -288,8 +289,9 @@ def fit_ren(
     init_scale = scale0 if init_scale is None else init_scale
     start = time.perf_counter()
     dtype = windows.y.dtype
-    c = balance_factor(windows, balance)  # outputs' units against inputs' (`_units.py`)
-    windows, qsr = balanced(windows, qsr, c)
+    units = balance_factor(windows, balance)  # outputs' and states' units (`_units.py`)
+    user_qsr, (windows, qsr) = qsr, balanced(windows, qsr, units)
+    c = units.c
     with reporting("fit_ren", max_steps, check_flag("progress", progress), c**2) as token:
         res = _run_jit(key, windows, *solved_rate(qsr, margin, dtype, ren_rate),
                        jnp.asarray(learning_rate, dtype),
@@ -305,4 +307,4 @@ def fit_ren(
                                                               dtype))
     if throw and not bool(np.all(res.certified)):
         raise ValueError(_uncertified_message(res, num_inits))
-    return unbalance(raise_if_failed(res) if throw else res, c)
+    return unbalance(raise_if_failed(res) if throw else res, units, user_qsr, throw)

@@ -160,6 +160,9 @@ def fit_timed(run, hyper, dtype, finish, throw: bool) -> FitResult:
     start = time.perf_counter()
     res = jax.block_until_ready(run(*(jnp.asarray(v, dtype) for v in hyper)))
     res = finish(res)
-    res = eqx.tree_at(lambda r: r.wall_time, res,
-                      jnp.asarray(time.perf_counter() - start, dtype))
+    # traced (`fit_gd` under a user's `jax.jit`): a time measured while tracing would be
+    # frozen into the compiled function, so NaN as in every traced sweep
+    traced = isinstance(res.final_loss, jax.core.Tracer)
+    res = eqx.tree_at(lambda r: r.wall_time, res, jnp.asarray(
+        jnp.nan if traced else time.perf_counter() - start, dtype))
     return raise_if_failed(res) if throw else res

@@ -23,6 +23,7 @@ from .._iterate import RTOL
 from .._progress import HostProgress
 from .._scale import loss_scale, scaled
 from .._units import balance as balanced, balance_factor, unbalance
+from ..pgd_steps import finite_lanes
 from ..result import FitResult, raise_if_failed
 from .sdp import ICOProblem
 from .solver import ICOSolver
@@ -136,11 +137,13 @@ def _not_started(pb: ICOProblem, theta, P, outcome, max_steps):
 def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps, prox,
          window_cone, callback, throw, balance, progress=True):
     check_key(key)
-    check_eager("fit_ico" if qsr is not None else "fit_ico_nc", key, windows, throw)
+    check_eager("fit_ico" if qsr is not None else "fit_ico_nc", key, windows, throw,
+                init_scale=init_scale, eps=eps, prox=prox, atol=atol, rtol=rtol)
     _check_args(windows, qsr, num_inits, max_steps, atol, rtol, init_scale)
     eps, prox = check_positive("eps", eps), check_positive("prox", prox, zero=True)
-    c = balance_factor(windows, balance)  # outputs' units against inputs' (`_units.py`)
-    windows, qsr = balanced(windows, qsr, c)
+    units = balance_factor(windows, balance)  # outputs' and states' units (`_units.py`)
+    user_qsr, (windows, qsr) = qsr, balanced(windows, qsr, units)
+    c = units.c
     atol = atol / c**2
     k = 1.0  # a rate far from unit size is solved divided by k, P multiplied back (exact)
     if qsr is not None:
@@ -150,6 +153,9 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
     dtype = windows.y.dtype
     start = time.perf_counter()
     K0 = init_controllers(key, num_inits, windows, init_scale, dtype)
+    if not bool(np.all(np.asarray(finite_lanes(K0)))):
+        raise ValueError(f"`init_scale` = {init_scale!r} draws controllers whose entries "
+                         "overflow; pass a smaller one.")
     code0 = np.full(num_inits, _MAX_STEPS, np.int32)
     if qsr is not None:
         # paper Alg. 1 "Init": random, then projected (eq. 13)
@@ -168,9 +174,8 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
     def in_controller_units(i, step, theta, P, J):
         reports.step(i, step, c**2 * s2 * J)
         if callback is not None:
-            A, B, C, D = pb.mats(theta)
-            callback(i, step, LTIController(A, B, c * C, c * D), None if P is None else k * P,
-                     c**2 * s2 * J)
+            callback(i, step, units.controllers(LTIController(*pb.mats(theta))),
+                     None if P is None else units.storages(k * P), c**2 * s2 * J)
 
     def one(i):
         out = (_run_one(pb, thetas[i], None if qsr is None else P0[i], max_steps=max_steps,
@@ -208,7 +213,7 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
         # Every accepted step lowers the loss (the guard above), so the last is the best.
         kept_step=jnp.asarray([r["steps"] for r in results], jnp.int32),
     )
-    return unbalance(raise_if_failed(res) if throw else res, c)
+    return unbalance(raise_if_failed(res) if throw else res, units, user_qsr, throw)
 
 
 def fit_ico(
