@@ -25,7 +25,8 @@ units, with `balance=False` (one scale for every signal, as before) and `balance
    size to the outputs' (`dissil_jax.internal.state_ratios`) moves away from one; the
    `--curve` problems (tuning: chose `STATE_BAND`), then the zoo's held-out problems
    with x0 scaled by 1/64 and 64 (reported), and the range of rho over the zoo and the
-   paper's examples. Cells as in 1, with the states' balancing off and on.
+   paper's examples. Cells as in 1, with the states' balancing off and on. Then what
+   balancing the large side too would do, on plants and on an expert's own coordinates.
 
 Usage: python benchmarks/bench_units.py [--curve] [--held-out] [--rate] [--paper] [--states]
 """
@@ -155,11 +156,70 @@ def _no_state_band(fn):
         units.STATE_BAND = band
 
 
-def _state_cells(name, w, q, **kw) -> str:
+def _state_cells(name, w, q, band=None, **kw) -> str:
+    """Off; on (with the default `STATE_BAND`, or `band` for the measurement of another)."""
     off = _no_state_band(lambda: _cell(name, w, q, 1.0, True, **kw))
-    if units.state_factors(w) is None:
-        return off
-    return f"{off}; {_cell(name, w, q, 1.0, True, **kw)}"
+    default = units.STATE_BAND
+    units.STATE_BAND = band or default
+    try:
+        if units.state_factors(w) is None:
+            return off
+        return f"{off}; {_cell(name, w, q, 1.0, True, **kw)}"
+    finally:
+        units.STATE_BAND = default
+
+
+def _natural(seed: int, scale: float):
+    """An expert in its own coordinates (O(1) matrices, gain 0.7, random inputs), windows
+    starting at `scale` N(0, I): states far from the outputs' size by where they start,
+    not by their units (a new-user audit's data)."""
+    rng = np.random.default_rng(seed)
+    n = p = m = 2
+    A = rng.standard_normal((n, n))
+    A *= 0.8 / np.abs(np.linalg.eigvals(A)).max()
+    B, C, D = (rng.standard_normal(s) for s in ((n, p), (m, n), (m, p)))
+    z = np.exp(1j * np.linspace(0.0, np.pi, 400))
+    g = max(np.linalg.norm(C @ np.linalg.solve(zi * np.eye(n) - A, B) + D, 2) for zi in z)
+    C, D = 0.7 * C / g, 0.7 * D / g
+    x0, y = scale * rng.standard_normal((40, n)), rng.standard_normal((40, 5, p))
+    u, x = np.zeros((40, 5, m)), x0.copy()
+    for k in range(5):
+        u[:, k] = -(x @ C.T + y[:, k] @ D.T) + 0.05 * rng.standard_normal((40, m))
+        x = x @ A.T + y[:, k] @ B.T
+    return dj.Windows(x0, y, u), dj.QSR.bounded_gain(1.0, n_in=p, n_out=m)
+
+
+def _plant(C, seed: int, A=None, B=None):
+    """SISO plant windows (an LQR expert, 25 windows of two steps) with output matrix C."""
+    from bench_tight_gain import _problem
+
+    A = np.array([[0.8, 0.2], [-0.1, 0.7]]) if A is None else A
+    B = np.array([[1.0], [0.5]]) if B is None else B
+    return _problem(A, B, C, seed)[0], dj.QSR.passive(1)
+
+
+def both_sides():
+    """What balancing the large side too would do (the two-sided band [1/5, 5]), on data
+    whose natural coordinates are the given ones: plants with small or large output
+    matrices, and an expert's windows that start far from rest."""
+    import control
+
+    np.random.seed(0)  # python-control's drss draws from numpy's global generator
+    s = control.drss(4, 1, 1, strictly_proper=True)
+    c2 = np.array([[1.0, -0.5]])
+    cases = [("plant, 2 states, C x 0.01", _plant(0.01 * c2, 0)),
+             ("plant, 2 states, C x 100", _plant(100.0 * c2, 0)),
+             ("plant, drss order 4, C x 0.01", _plant(0.01 * s.C, 1, s.A, s.B)),
+             ("plant, drss order 4, C as drawn", _plant(s.C, 1, s.A, s.B))]
+    cases += [(f"expert's coordinates, start x {a:g}, seed {k}", _natural(k, a))
+              for k in (1, 2) for a in (30.0, 0.01)]
+    print("\n| data | rho | trainer | off; on (both sides balanced) |\n|---|---:|---|---:|")
+    for label, (w, q) in cases:
+        for name in TRAINERS:
+            if name == "fit_gd" and label.startswith("plant"):
+                continue
+            print(f"| {label} | {_rho(w)} | `{name}` | "
+                  f"{_state_cells(name, w, q, band=(0.2, 5.0))} |", flush=True)
 
 
 def _rho(w) -> str:
@@ -241,3 +301,4 @@ if __name__ == "__main__":
         paper()
     if a.states:
         states()
+        both_sides()

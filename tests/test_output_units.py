@@ -95,13 +95,13 @@ def test_unbalanced_outputs_train_as_the_balanced_problem(name):
         assert dissipation_ok(index(res.controllers, i), q_user, res.P[i])
 
 
-STATE_SCALE = np.array([64.0, 1 / 32])  # the user's states: 64x and 1/32 the base's
+STATE_SCALE = np.array([1 / 64, 1 / 32])  # the user's states: 1/64 and 1/32 the base's
 
 
 @pytest.mark.parametrize("name", list(FITS))
 def test_states_in_units_of_their_own_train_as_the_balanced_problem(name):
-    """Initial states far larger or smaller than the outputs (x0 -> d x0 per state, the
-    same controllers in the coordinates x = D x_b) train as the base problem: the run
+    """Initial states far smaller than the outputs (x0 -> d x0 per state, the same
+    controllers in the coordinates x = D x_b) train as the base problem: the run
     equals the base run mapped back bit for bit ((DAD^-1, DB, CD^-1, D), storage
     D^-1 P D^-1; a REN's multiplier unchanged), and every controller passes an independent
     check in the user's units. Without the states' balancing the runs learned next to
@@ -139,28 +139,30 @@ def test_states_in_units_of_their_own_train_as_the_balanced_problem(name):
         for i in range(3):  # a fresh SDP in the user's units
             assert dj.certify_ren(index(res.controllers, i), QSR).holds
         return
-    for i in range(3):  # the independent float64 check of the user's pair (its states
-        # differ in size by 2^11, so in coordinates where the storage's diagonal is one)
-        K_i, P_i = in_storage_units(index(res.controllers, i), res.P[i])
+    for i in range(3):  # the independent float64 check of the user's pair, in coordinates
+        # where the storage's diagonal is one
+        K_i, P_i = in_storage_units(index(res.controllers, i), res.P[i])  # (states 2^6 apart)
         assert dissipation_ok(K_i, QSR, P_i)
 
 
 def test_state_factors():
-    """Per state: 1 inside `STATE_BAND` (or for a state that is always zero), else the power
-    of two nearest the ratio of its rms to the outputs' rms; None when every state is in
+    """Per state: 1 unless it is more than 5x smaller than the outputs (or always zero),
+    else the power of two nearest the ratio of its rms to the outputs' rms; states far
+    larger are left as they are (`_units.py` says why); None when every state is in
     balance or the windows start at rest."""
     y = np.ones((4, 2, 1))
-    x0 = np.array([[1.0, 100.0, 0.0, 0.19], [-1.0, -100.0, 0.0, -0.19]] * 2)
+    x0 = np.array([[1.0, 100.0, 0.0, 0.19, 0.003], [-1.0, -100.0, 0.0, -0.19, -0.003]] * 2)
     w = dj.Windows(x0, y, y)
-    np.testing.assert_allclose(units.state_ratios(w)[[0, 1, 3]], [1.0, 100.0, 0.19])
+    np.testing.assert_allclose(units.state_ratios(w)[[0, 1, 3, 4]], [1.0, 100.0, 0.19, 0.003])
     assert np.isnan(units.state_ratios(w)[2])
-    np.testing.assert_array_equal(units.state_factors(w), [1.0, 128.0, 1.0, 0.25])
-    assert units.state_factors(dj.Windows(x0[:, :1], y, y)) is None
+    np.testing.assert_array_equal(units.state_factors(w), [1.0, 1.0, 1.0, 0.25, 2.0**-8])
+    assert units.state_factors(dj.Windows(x0[:, :3], y, y)) is None
     assert units.state_factors(dj.Windows(None, y, y)) is None
     assert units.state_factors(dj.Windows(x0, 0 * y, y)) is None  # outputs all zero
     lo, hi = units.STATE_BAND
-    assert units.state_factors(dj.Windows(np.full((4, 1), 0.99 * hi), y, y)) is None
+    assert hi == float("inf")
     assert units.state_factors(dj.Windows(np.full((4, 1), 1.01 * lo), y, y)) is None
+    assert units.state_factors(dj.Windows(np.full((4, 1), 0.99 * lo), y, y)) is not None
 
 
 # A supply rate and its multiple 2^20 admit the same controllers, with storages P and

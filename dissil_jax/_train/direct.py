@@ -352,9 +352,9 @@ def fit_direct(
       final iterate (`kept_step` records which step), as in `fit_pgd`.
     - `balance`: as in `fit_pgd` (default True): when the outputs' size is more than 5x
       above or below the inputs', train on outputs rescaled by a power of two and the
-      matching supply rate; when an initial state's size is more than 5x above or below
-      the outputs' $y$, train in state coordinates rescaled by a power of two; map the
-      result back exactly.
+      matching supply rate; when an initial state is more than 5x smaller than the
+      outputs' $y$, train in state coordinates rescaled by a power of two; map the result
+      back exactly.
     - `progress`: as in `fit_pgd` (default True: a line on standard error every 10 s once
       training has taken 10 s).
 

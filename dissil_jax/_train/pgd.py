@@ -255,11 +255,11 @@ def fit_pgd(
     $(c^2Q, cS, R)$ that the same controllers satisfy in those units, and the result is
     mapped back exactly: $(A, B, cC, cD)$ with the same $P$
     ([concepts](concepts.md#units-of-the-outputs)). **Nor do the states' own units**: an
-    initial state $\\hat x_{0,i}$ whose size is more than 5x above or below the outputs'
-    $y$ is divided by the power of two $d_i$ nearest that ratio, a change of the
-    controller's state coordinates; the result is mapped back exactly, $(DAD^{-1}, DB,
-    CD^{-1}, D)$ with storage $D^{-1}PD^{-1}$, and checked again in the user's units
-    ([concepts](concepts.md#units-of-the-states)).
+    initial state $\\hat x_{0,i}$ more than 5x smaller than the outputs' $y$ (a plant
+    measured in large units) is divided by the power of two $d_i$ nearest that ratio, a
+    change of the controller's state coordinates; the result is mapped back exactly,
+    $(DAD^{-1}, DB, CD^{-1}, D)$ with storage $D^{-1}PD^{-1}$, and checked again in the
+    user's units ([concepts](concepts.md#units-of-the-states)).
 
     **Arguments:**
 
