@@ -222,3 +222,17 @@ def test_rate_factor():
     assert f(dj.QSR.bounded_gain(1e-4, n_in=1, n_out=1)) == 1.0  # largest entry |Q| = 1
     # the cone [100, 101]: entries up to 1.01e4 but room 0.25, so the margin stays small
     assert f(dj.QSR.conic(100.0, 101.0, dim=1)) == 0.25
+
+
+def test_a_storage_that_overflows_in_the_users_units_says_so():
+    """float32 states 1e30 times smaller than the outputs: the balanced run is certified, but
+    its storage D^-1 P D^-1 overflows float32 in the user's units. The runs are
+    `not_certified` (never returned as certified), and `throw` names the cause (it gave the
+    solver's generic advice)."""
+    base = _base()
+    w = dj.Windows(np.asarray(base.x0, np.float32) * np.float32([1e-30, 1.0]),
+                   np.asarray(base.y, np.float32), np.asarray(base.u, np.float32))
+    res = dj.fit_direct(jr.PRNGKey(0), w, QSR, num_inits=2, max_steps=20, throw=False)
+    assert not np.any(np.asarray(res.certified))
+    with pytest.raises(ValueError, match="storages that overflow float32 in your units"):
+        dj.fit_direct(jr.PRNGKey(0), w, QSR, num_inits=2, max_steps=20)

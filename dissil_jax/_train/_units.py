@@ -182,7 +182,8 @@ class Units(NamedTuple):
         if self.d is None or P is None:
             return P
         d = self._d(P.shape[-1])
-        return _times(P, 1.0 / (d[:, None] * d[None, :]))
+        with np.errstate(over="ignore"):  # an overflow is reported by `unbalance`
+            return _times(P, 1.0 / (d[:, None] * d[None, :]))
 
     def _d(self, n: int) -> np.ndarray:
         # an odd REN (`fit_ren(odd=True)`) has two copies of the state: (x, -x)
@@ -265,6 +266,15 @@ def unbalance(res, units: Units, qsr: QSR | None = None, throw: bool = False):
     lost = np.asarray(res.certified) & ~np.asarray(ok)
     if not lost.any():
         return res
+    P = np.asarray(res.P)
+    overflow = lost & ~np.isfinite(P.reshape(P.shape[0], -1)).all(1)
+    if throw and overflow.any():
+        raise ValueError(
+            f"{int(overflow.sum())} of {lost.size} certified runs have storages that overflow "
+            f"{P.dtype} in your units: some states are about {1 / units.d.min():.0e} times "
+            "smaller than the outputs, and the storage of the balanced problem, P, becomes "
+            "D^-1 P D^-1 (`balance`, docs: Units of the states). Train in float64 "
+            "(`JAX_ENABLE_X64=1`) or put those states in units nearer the outputs'.")
     codes = np.where(lost, _outcome.code("not_certified"), _outcome.codes(res.result))
     res = eqx.tree_at(lambda r: (r.certified, r.result), res,
                       (jnp.asarray(~lost & np.asarray(res.certified)),

@@ -267,8 +267,12 @@ def certify_or_project(res: FitResult, qsr: QSR, windows: Windows, *, eps: float
             f"float64 check with the map's storage (in {np.dtype(P.dtype).name}) and were "
             f"replaced by their projections (`projected`), with final losses "
             f"{ratio.min():.3g}-{ratio.max():.3g} times the trained ones. The map's storage "
-            "was conditioned beyond the precision; it happens in float32 at high orders: "
-            "train in float64 (`JAX_ENABLE_X64=1` or `jax_enable_x64`).", stacklevel=5)
+            "was conditioned beyond the precision. "
+            + ("It happens in float32 at high orders: train in float64 (`JAX_ENABLE_X64=1` "
+               "or `jax_enable_x64`)." if np.dtype(P.dtype).itemsize < 8 else
+               "In float64 it happens on rates far from balanced (|Q| far above or below "
+               "R, a tight gain bound): compare with `dj.fit_pgd` or `dj.fit_ico`, or "
+               "pass a larger `margin`."), stacklevel=5)
     return eqx.tree_at(
         lambda r: (r.controllers, r.P, r.certified, r.projected, r.final_loss, r.result),
         res, (K, P, jnp.asarray(ok), jnp.asarray(projected),
