@@ -81,18 +81,26 @@ def test_unbalanced_outputs_train_as_the_balanced_problem(name):
     np.testing.assert_array_equal(res.loss_history, c**2 * np.asarray(ref.loss_history))
     np.testing.assert_array_equal(res.final_loss, c**2 * np.asarray(ref.final_loss))
     np.testing.assert_array_equal(res.steps, ref.steps)
+    _check_storages(name, res, ref.P, getattr(ref, "multiplier", None), q_user)
+
+
+def _check_storages(name, res, P, multiplier, qsr, coordinates=lambda K, P: (K, P)):
+    """The storages (and a REN's multipliers) are the expected ones, and every controller
+    passes an independent check in the user's units (a fresh SDP for a REN; from the
+    definition, in `coordinates`, for the LTI controllers)."""
     if name in ("gd", "ico_nc"):
         assert res.P is None
         return
-    np.testing.assert_array_equal(res.P, ref.P)
+    np.testing.assert_array_equal(res.P, P)
     assert bool(np.all(res.certified))
     if name == "ren":
-        np.testing.assert_array_equal(res.multiplier, ref.multiplier)
-        for i in range(3):  # a fresh SDP in the user's units
-            assert dj.certify_ren(index(res.controllers, i), q_user).holds
+        np.testing.assert_array_equal(res.multiplier, multiplier)
+        for i in range(3):
+            assert dj.certify_ren(index(res.controllers, i), qsr).holds
         return
-    for i in range(3):  # the independent float64 check, in the user's units
-        assert dissipation_ok(index(res.controllers, i), q_user, res.P[i])
+    for i in range(3):
+        K_i, P_i = coordinates(index(res.controllers, i), res.P[i])
+        assert dissipation_ok(K_i, qsr, P_i)
 
 
 STATE_SCALE = np.array([1 / 64, 1 / 32])  # the user's states: 1/64 and 1/32 the base's
@@ -129,20 +137,10 @@ def test_states_in_units_of_their_own_train_as_the_balanced_problem(name):
                                       np.asarray(b) * left.get(field, 1.0))
     np.testing.assert_array_equal(res.loss_history, ref.loss_history)
     np.testing.assert_array_equal(res.steps, ref.steps)
-    if name in ("gd", "ico_nc"):
-        assert res.P is None
-        return
-    np.testing.assert_array_equal(res.P, np.asarray(ref.P) / (dd[:, None] * dd[None, :]))
-    assert bool(np.all(res.certified))
-    if name == "ren":
-        np.testing.assert_array_equal(res.multiplier, ref.multiplier)
-        for i in range(3):  # a fresh SDP in the user's units
-            assert dj.certify_ren(index(res.controllers, i), QSR).holds
-        return
-    for i in range(3):  # the independent float64 check of the user's pair, in coordinates
-        # where the storage's diagonal is one
-        K_i, P_i = in_storage_units(index(res.controllers, i), res.P[i])  # (states 2^6 apart)
-        assert dissipation_ok(K_i, QSR, P_i)
+    # the user's states differ in size by 2^6: checked where the storage's diagonal is one
+    _check_storages(name, res, None if ref.P is None else
+                    np.asarray(ref.P) / (dd[:, None] * dd[None, :]), getattr(ref, "multiplier", None), QSR,
+                    in_storage_units)
 
 
 def test_state_factors():

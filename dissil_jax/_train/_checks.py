@@ -57,6 +57,19 @@ def nan_unless(value: _T, ok) -> _T:
     return value
 
 
+def finite_lanes(K) -> jax.Array:
+    """Per controller of a batch: are all its entries finite?"""
+    return jax.vmap(lambda K: jnp.all(jnp.stack(
+        [jnp.all(jnp.isfinite(M)) for M in jax.tree.leaves(K)])))(K)
+
+
+def check_finite_draw(K0, init_scale) -> None:
+    """A ValueError naming `init_scale` when an initial draw overflows (host trainers)."""
+    if not bool(np.all(np.asarray(finite_lanes(K0)))):
+        raise ValueError(f"`init_scale` = {init_scale!r} draws controllers whose entries "
+                         "overflow; pass a smaller one.")
+
+
 def check_eager(fn: str, key, windows, throw, alternative: str = "", **hyper) -> None:
     """Refuse a traced `key`, traced windows or a traced hyperparameter among `hyper` (`fn`
     under `jax.jit` or `jax.vmap`) and a `throw` that is not a bool, naming them: the

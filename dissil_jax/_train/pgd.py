@@ -27,6 +27,7 @@ from ._checks import (
     check_key,
     check_n_state,
     check_optimizer,
+    finite_lanes,
     nan_unless,
 )
 from ._init import init_controllers
@@ -34,7 +35,7 @@ from ._iterate import RTOL, iterate
 from ._progress import reporting
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balance_factor, unbalance
-from .pgd_steps import PGDSteps, finite_lanes
+from .pgd_steps import PGDSteps
 from .result import FitResult, fit_timed, raise_if_failed
 from .steps import (
     ADAM_LEARNING_RATE as ADAM_LEARNING_RATE,  # re-exported

@@ -16,18 +16,13 @@ from .._projection.handle import RateHandle
 from .._projection.project import project, project_first_order_warm
 from .._rollout import imitation_loss
 from .._supply import QSR
+from ._checks import finite_lanes
 from ._iterate import Method
 from .steps import optimizer_metric
 
 _CONVERGED, _NON_FINITE = (_outcome.code(n) for n in ("converged", "non_finite"))
 
 _batched_loss = jax.vmap(jax.value_and_grad(imitation_loss), in_axes=(0, None))
-
-
-def finite_lanes(K: LTIController) -> jax.Array:
-    """Per controller of a batch: are all its entries finite?"""
-    return jax.vmap(lambda K: jnp.all(jnp.stack(
-        [jnp.all(jnp.isfinite(M)) for M in jax.tree.leaves(K)])))(K)
 
 
 class PGDSteps(Method):

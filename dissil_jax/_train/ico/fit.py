@@ -17,13 +17,12 @@ from ..._rate_scale import rate_factor, scaled_rate
 from ..._sdp import lmi as _lmi, sdp as _sdp
 from ..._supply import QSR
 from ..._validate import check_flag, check_positive
-from .._checks import check_eager, check_fit_args, check_key
+from .._checks import check_eager, check_finite_draw, check_fit_args, check_key
 from .._init import INIT_SCALE, init_controllers
 from .._iterate import RTOL
 from .._progress import HostProgress
 from .._scale import loss_scale, scaled
 from .._units import balance as balanced, balance_factor, unbalance
-from ..pgd_steps import finite_lanes
 from ..result import FitResult, raise_if_failed
 from .sdp import ICOProblem
 from .solver import ICOSolver
@@ -143,8 +142,7 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
     eps, prox = check_positive("eps", eps), check_positive("prox", prox, zero=True)
     units = balance_factor(windows, balance)  # outputs' and states' units (`_units.py`)
     user_qsr, (windows, qsr) = qsr, balanced(windows, qsr, units)
-    c = units.c
-    atol = atol / c**2
+    atol, c = atol / units.c**2, units.c
     k = 1.0  # a rate far from unit size is solved divided by k, P multiplied back (exact)
     if qsr is not None:
         check_eps_room(qsr, eps)
@@ -153,9 +151,7 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
     dtype = windows.y.dtype
     start = time.perf_counter()
     K0 = init_controllers(key, num_inits, windows, init_scale, dtype)
-    if not bool(np.all(np.asarray(finite_lanes(K0)))):
-        raise ValueError(f"`init_scale` = {init_scale!r} draws controllers whose entries "
-                         "overflow; pass a smaller one.")
+    check_finite_draw(K0, init_scale)
     code0 = np.full(num_inits, _MAX_STEPS, np.int32)
     if qsr is not None:
         # paper Alg. 1 "Init": random, then projected (eq. 13)
