@@ -96,9 +96,6 @@ BAND = (0.2, 5.0)
 #: only states far smaller than the outputs are rescaled (module docstring).
 STATE_BAND = (0.2, float("inf"))
 
-# 2**±500: c**2 and the scaled data stay finite in float64 for any finite windows.
-_MAX_EXPONENT = 500
-
 
 def _power(a) -> float:
     """Mean over windows of the summed squares of `a` (`[N, ...]`), in float64."""
@@ -121,7 +118,7 @@ def output_factor(windows: Windows) -> float:
     r = output_ratio(windows)
     if not np.isfinite(r) or BAND[0] <= r <= BAND[1]:
         return 1.0
-    return float(2.0 ** np.clip(np.round(np.log2(r)), -_MAX_EXPONENT, _MAX_EXPONENT))
+    return float(nearest_power_of_two(r))
 
 
 def state_ratios(windows: Windows) -> np.ndarray:
