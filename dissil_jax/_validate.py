@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+import warnings
 from typing import Any, cast
 
 import jax.core
@@ -105,3 +107,12 @@ def check_precision(name: str, dtype) -> None:
         raise ValueError(f"`{name}` has dtype {dtype}; pass float32 or float64 (e.g. "
                          f"`{name}.astype(np.float32)`): half precision is too coarse for "
                          "the certificates.")
+
+
+def warn_user(message: str) -> None:
+    """`warnings.warn(message)`, attributed to the first caller outside this package (the
+    user's line), however deep inside the library it is raised."""
+    frame, level = sys._getframe(0), 1
+    while frame is not None and frame.f_globals.get("__name__", "").startswith("dissil_jax"):
+        frame, level = frame.f_back, level + 1
+    warnings.warn(message, stacklevel=level)

@@ -15,6 +15,7 @@ from . import (
     _direct_map as direct_map,
     _linalg as linalg,
     _outcome as outcome,
+    _progress as progress,
     _rate_scale as rate_scale,
     _rollout as rollout,
 )
@@ -44,7 +45,6 @@ from ._sdp.lmi import (
 )
 from ._sdp.sdp import single_threaded_blas
 from ._train import (
-    _progress as progress,
     _units as units,
     direct,
     mlp,

@@ -225,6 +225,24 @@ def test_the_storage_search_balances_the_states():
                                                           np.ones((1, 2))), [1.0, 1.0])
 
 
+def test_states_beyond_float64s_range_are_refused_with_the_reason():
+    """B = 2^e, C = 2^-e: certified up to e = 498 (the storage, of size 2^-2e, still fits
+    float64); at e = 600 it cannot, and `certify` said only that the check failed, amid
+    numpy overflow warnings."""
+    qsr = dj.QSR(-29.867, 3.556, 0.601)
+    for e in (200, 498):
+        d = 2.0**e
+        cert = dj.certify(dj.LTIController([[0.5]], [[0.1 * d]], [[0.1 / d]], [[0.05]]), qsr)
+        assert cert.holds
+        assert dissipation_ok(dj.LTIController([[0.5]], [[0.1]], [[0.1]], [[0.05]]), qsr,
+                              cert.P * d**2, python_control=False)
+    d = 2.0**600
+    with pytest.warns(UserWarning, match="beyond float64's range"), \
+            np.errstate(over="ignore", invalid="ignore"):
+        assert not dj.certify(dj.LTIController([[0.5]], [[0.1 * d]], [[0.1 / d]], [[0.05]]),
+                              qsr).holds
+
+
 def _kyp_eigenvalues(K, qsr, P):
     """lambda_max of the KYP matrix and lambda_min of P, written out here (no library code)."""
     A, B, C, D = (np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))

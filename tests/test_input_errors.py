@@ -2,6 +2,8 @@
 truncation, nor an error from deep inside JAX or scipy); and `certify` of a static
 controller, which has no storage to search."""
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -559,6 +561,23 @@ def test_hyperparameters_must_be_scalars_also_in_a_sweep():
         jax.vmap(run)(jnp.full((2, 2), 0.1))
     with pytest.raises(ValueError, match="`init_scale` must be a scalar"):
         dj.pgd_run(key, W, qsr, init_scale=np.array([0.1, 0.2]), max_steps=2, num_inits=1)
+
+
+def test_zero_init_scale_with_several_inits_warns_at_the_callers_line():
+    """`init_scale=0` trained `num_inits` copies of one run without a word; the warning
+    points at the user's call, not at the library's internals."""
+    rng = np.random.default_rng(0)
+    y = jnp.asarray(rng.standard_normal((4, 3, 1)))
+    W = dj.Windows(jnp.asarray(rng.standard_normal((4, 2))), y, -0.3 * y)
+    key, qsr = jax.random.PRNGKey(0), dj.QSR.passive(1)
+    for fn in (dj.direct_run, dj.pgd_run):
+        with pytest.warns(UserWarning, match="`init_scale` = 0 draws 3 identical") as rec:
+            fn(key, W, qsr, init_scale=0.0, max_steps=1, num_inits=3)
+        assert rec[0].filename == __file__
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # one initialisation, or a positive scale: no warning
+        dj.direct_run(key, W, qsr, init_scale=0.0, max_steps=1, num_inits=1)
+        dj.direct_run(key, W, qsr, init_scale=0.1, max_steps=1, num_inits=3)
 
 
 def test_margins_and_weights_of_ico_and_the_direct_fallback_are_checked():

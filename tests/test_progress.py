@@ -2,6 +2,8 @@
 ICO's host loop) once a run has taken `DELAY` seconds, silent with `progress=False`, under
 a user's `jax.vmap`, and for runs shorter than the delay."""
 
+import time
+
 import jax
 import jax.random as jr
 import numpy as np
@@ -40,8 +42,11 @@ def test_long_runs_report_from_the_compiled_loop(immediate, capsys, name):
     # one callback per step (every max_steps // 100 steps, at least 1), from step 0 on;
     # step 0's says that compilation is over (its time counted towards the first report,
     # where a "step 0" line read as if training had not moved)
-    assert err.splitlines()[0].startswith(f"{name}: compiled and started after ")
-    assert err.splitlines()[0].endswith("3 runs of at most 60 steps")
+    # (the heartbeat's lines, while compiling and checking, come as the machine's speed has
+    # it; `test_the_heartbeat_says_what_a_run_does_between_reports` checks them)
+    first = [line for line in err.splitlines() if "after" in line or " step" in line][0]
+    assert first.startswith(f"{name}: compiled and started after ")
+    assert first.endswith("3 runs of at most 60 steps")
     assert len(lines) == 60, lines[:3]
     assert lines[0].startswith(f"{name}: step 1 of at most 60, 3 of 3 runs training")
     assert lines[-1].startswith(f"{name}: step 60 of at most 60, 0 of 3 runs training")
@@ -49,6 +54,65 @@ def test_long_runs_report_from_the_compiled_loop(immediate, capsys, name):
     # (printed to 3 significant digits)
     best = float(lines[-1].split("lowest loss ")[1].split(",")[0])
     np.testing.assert_allclose(best, float(np.min(res.final_loss)), rtol=0.01)
+
+
+def test_the_heartbeat_says_what_a_run_does_between_reports(monkeypatch, capsys):
+    """A run silent for minutes before its loop's first step (compiling; projecting the
+    first iterates at a high order, three minutes for `fit_pgd` at order 48) or after its
+    last (the float64 check) looked hung: a heartbeat thread says what it does, once the
+    run is past the delay, at most once an interval, and not while the loop reports."""
+    monkeypatch.setattr(progress, "DELAY", 0.05)
+    monkeypatch.setattr(progress, "INTERVAL", 0.05)
+    monkeypatch.setattr(progress, "_BEAT", 0.01)
+    with progress.reporting("fit_x", 10, True) as token:
+        time.sleep(0.3)
+        before = capsys.readouterr().err.splitlines()
+        progress._dispatch(token, np.int32(0), np.ones(2), np.zeros(2, bool))
+        time.sleep(0.3)  # stepping (no call back in this while): the loop's lines only
+        stepping = capsys.readouterr().err.splitlines()
+        progress.phase(token, progress.CHECKING)
+        time.sleep(0.3)
+        after = capsys.readouterr().err.splitlines()
+    time.sleep(0.1)
+    assert capsys.readouterr().err == ""  # the thread ends with the run
+    assert 2 <= len(before) <= 8, before  # ~0.3 s / 0.05 s, with room for a slow machine
+    assert all(line.startswith("fit_x: compiling the training loop and preparing the runs, ")
+               for line in before)
+    assert len(stepping) == 1 and stepping[0].startswith("fit_x: compiled and started after")
+    assert 2 <= len(after) <= 8, after
+    assert all(line.startswith(f"fit_x: {progress.CHECKING}, ") for line in after)
+    with progress.reporting("fit_x", 10, False) as token:  # progress=False: no thread
+        time.sleep(0.2)
+    monkeypatch.setattr(progress, "DELAY", 60.0)
+    with progress.reporting("fit_x", 10, True) as token:  # within the delay: silent
+        time.sleep(0.2)
+    assert capsys.readouterr().err == ""
+
+
+def test_certify_says_it_is_searching_unless_asked_not_to(monkeypatch, capsys):
+    """`certify(max_margin=True)` at order 64 searched for eleven minutes without a word;
+    its heartbeat names the work, `progress=False` silences it, and inside a trainer's run
+    (which reports already) it is silent."""
+    monkeypatch.setattr(progress, "DELAY", 0.0)
+    monkeypatch.setattr(progress, "INTERVAL", 0.0)
+    monkeypatch.setattr(progress, "_BEAT", 0.002)
+    rng = np.random.default_rng(0)
+    n = 12
+    K = dj.LTIController(0.5 * rng.standard_normal((n, n)) / np.sqrt(n),
+                         rng.standard_normal((n, 1)), 0.01 * rng.standard_normal((1, n)),
+                         np.array([[0.05]]))
+    qsr = dj.QSR(-29.867, 3.556, 0.601)
+    assert dj.certify(K, qsr, max_margin=True, progress=False).holds
+    assert capsys.readouterr().err == ""
+    assert dj.certify(K, qsr, max_margin=True).holds  # an SDP: far longer than 2 ms
+    lines = capsys.readouterr().err.splitlines()
+    assert lines and all(line.startswith(
+        "certify: searching a storage for a controller of order 12, ") for line in lines)
+    with progress.reporting("fit_x", 10, True):
+        capsys.readouterr()
+        progress.INTERVAL = 1e9  # the trainer's own heartbeat stays quiet here
+        assert dj.certify(K, qsr, max_margin=True).holds
+    assert "certify:" not in capsys.readouterr().err
 
 
 def test_ico_reports_from_its_host_loop(immediate, capsys):

@@ -637,6 +637,36 @@ def test_fit_ren_on_large_data_is_certified_and_dissipative():
     assert cert.holds and cert.multiplier.min() > 1e3 * np.abs(cert.P).max()
 
 
+def test_certify_ren_balances_states_and_neurons_together():
+    """States in units 2^100 and 2^300 away from the neurons' (x = 2^e z): the neuron
+    balancing ran first, in the unbalanced states, and Clarabel failed (`solver_error`); the
+    two balancings now alternate, states first. The storage, mapped back to unit
+    coordinates, decreases along the REN's own steps. At 2^600 no storage fits float64 in
+    the given coordinates: refused, with a warning that says why (the raw scipy/cvxpy
+    errors it raised before said nothing of the cause)."""
+    rng = np.random.default_rng(0)
+    qsr = SUPPLY_RATES["strict"]
+    K = _random_ren(rng, n=2, q=3, scale=0.3, activation="relu")
+    assert dj.certify_ren(K, qsr).holds  # the premise
+    for e in (100, 300):
+        d = 2.0**e
+        Kd = eqx.tree_at(lambda k: (k.B1, k.B2, k.C1, k.C2), K,
+                         (K.B1 * d, K.B2 * d, K.C1 / d, K.C2 / d))
+        cert = dj.certify_ren(Kd, qsr)
+        assert cert.holds, cert.status
+        P = np.asarray(cert.P) * d**2  # V(x) = (d x)' P_d (d x): exact in powers of two
+        for _ in range(200):
+            x, u = rng.standard_normal(2), rng.standard_normal(2)
+            xn, y, _, _ = _np_step(K, x, u)
+            s = supply_from_definition(qsr.Q, qsr.S, qsr.R, u[None], y[None])[0]
+            assert xn @ P @ xn - x @ P @ x - s <= 1e-9 * (1 + x @ P @ x + u @ u)
+    d = 2.0**600
+    Kd = eqx.tree_at(lambda k: (k.B1, k.B2, k.C1, k.C2), K,
+                     (K.B1 * d, K.B2 * d, K.C1 / d, K.C2 / d))
+    with pytest.warns(UserWarning, match="beyond float64's range"):
+        assert not dj.certify_ren(Kd, qsr).holds
+
+
 def test_certify_ren_refuses_what_the_layer_does_not_run():
     """A D11 with entries on the diagonal (set by `tree_at`, or built under `jit` where the
     constructor cannot check it) is refused: the layer runs only tril(D11, -1), so a

@@ -40,6 +40,7 @@ import numpy as np
 
 from .._sdp.lmi import kyp_margin, kyp_matrix
 from .._supply import QSR
+from .._validate import warn_user
 from . import fast as _certify_fast, sdp as _certify_sdp
 
 #: At most this many SDPs are re-solved (the best approximate storage with each of
@@ -65,14 +66,24 @@ def state_scale(A, B, C, sweeps: int = 30) -> np.ndarray:
     for _ in range(sweeps):
         Ab = A * d[None, :] / d[:, None]
         off = Ab - np.diag(np.diag(Ab))
-        col = np.sqrt((off**2).sum(0) + ((C * d[None, :]) ** 2).sum(0))
-        row = np.sqrt((off**2).sum(1) + ((B / d[:, None]) ** 2).sum(1))
+        col = safe_norms(np.concatenate([off, C * d[None, :]], 0), 0)
+        row = safe_norms(np.concatenate([off, B / d[:, None]], 1), 1)
         ok = (col > 0) & (row > 0) & np.isfinite(col) & np.isfinite(row)
-        step = 2.0 ** np.round(np.log2(np.where(ok, row / np.where(ok, col, 1.0), 1.0)) / 2)
+        # in logarithms: the ratio itself overflows for states 2^600 apart
+        step = 2.0 ** np.round(np.where(ok, np.log2(np.where(ok, row, 1.0))
+                                        - np.log2(np.where(ok, col, 1.0)), 0.0) / 2)
         if np.all(step == 1.0):
             break
         d = d * step
     return d
+
+
+def safe_norms(M, axis: int) -> np.ndarray:
+    """2-norms along `axis`, scaled before squaring so that entries beyond
+    $\\sqrt{\\text{max}}$ (states in units $2^{\\pm600}$ apart) do not overflow to inf."""
+    top = np.max(np.abs(M), axis=axis, keepdims=True, initial=0.0)
+    unit = np.where((top > 0) & np.isfinite(top), top, 1.0)
+    return np.squeeze(unit, axis) * np.sqrt(((M / unit) ** 2).sum(axis))
 
 
 def balanced_states(A, B, C, t):
@@ -82,7 +93,26 @@ def balanced_states(A, B, C, t):
 
 def unbalanced_storage(P, t):
     """A storage of the balanced realisation in the original states."""
-    return P / (t[:, None] * t[None, :])
+    with np.errstate(over="ignore", under="ignore"):  # `check_storage_range` warns of it
+        return P / (t[:, None] * t[None, :])
+
+
+def check_storage_range(t) -> None:
+    """Warn when the states' balancing units `t` are so far apart that a storage in the
+    given coordinates leaves float64's range (its entries scale like $1/(t_it_j)$): no
+    certificate can then be checked in them."""
+    span = float(np.max(np.abs(np.log2(t)), initial=0.0))
+    if 2 * span > _STORAGE_RANGE:
+        warn_user(f"The controller's states are in units up to 2^{span:.0f} away from those "
+                  "of its inputs and outputs: a storage in these coordinates has entries beyond float64's "
+                  "range, so the certificate's check cannot succeed in them. Rescale the "
+                  "states (x = Tz, T diagonal) to units of one size and certify that "
+                  "realisation.")
+
+
+#: log2 of the factor 1/(t_i t_j) beyond which a unit-size storage leaves float64's range
+#: (2^1023 is its largest power of two).
+_STORAGE_RANGE = 1000.0
 
 
 def _positive_definite(P) -> bool:

@@ -3,6 +3,7 @@ multiplier $\\Lambda$ (S-procedure), found by an SDP and checked by eigenvalues 
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import equinox as eqx
@@ -10,13 +11,16 @@ import jax
 import jax.core
 import numpy as np
 
-from .._certify.certify import (
+from .._certify.certify import storage_arg
+from .._certify.coordinates import (
     balanced_states,
+    check_storage_range,
+    safe_norms,
     state_scale,
-    storage_arg,
     unbalanced_storage,
 )
 from .._controller import LTIController
+from .._progress import working
 from .._rate_scale import nearest_power_of_two, out_of_band, rate_factor
 from .._sdp import sdp as _sdp
 from .._sdp.lmi import (
@@ -29,7 +33,7 @@ from .._sdp.lmi import (
     kyp_scale_of,
 )
 from .._supply import QSR
-from .._validate import check_tolerance
+from .._validate import check_flag, check_tolerance
 from .controller import RENController
 
 
@@ -158,10 +162,12 @@ def _neuron_scale(G: LTIController, q: int, sweeps: int = 30) -> np.ndarray:
     for _ in range(sweeps):
         Gd = _unit_multiplier(G, d)
         B, C, D = (np.asarray(M, np.float64) for M in (Gd.B, Gd.C, Gd.D))
-        out = np.sqrt((B[:, :q] ** 2).sum(0) + (D[:, :q] ** 2).sum(0))
-        inp = np.sqrt((C[:q] ** 2).sum(1) + (D[:q] ** 2).sum(1))
+        out = safe_norms(np.concatenate([B[:, :q], D[:, :q]], 0), 0)
+        inp = safe_norms(np.concatenate([C[:q], D[:q]], 1), 1)
         ok = (out > 0) & (inp > 0) & np.isfinite(out) & np.isfinite(inp)
-        step = np.sqrt(np.where(ok, out / np.where(ok, inp, 1.0), 1.0))  # damped
+        # damped; in logarithms, as the ratio may overflow
+        step = np.exp2(np.where(ok, np.log2(np.where(ok, out, 1.0))
+                                - np.log2(np.where(ok, inp, 1.0)), 0.0) / 2)
         if np.all(np.abs(np.log(step)) < 1e-3):
             break
         d = d * step
@@ -249,10 +255,21 @@ def _solve(G: LTIController, qsr: QSR, q: int):
     `(P, λ, status)` in the controller's own units."""
     import cvxpy as cp
 
-    d = _neuron_scale(G, q)
-    G = _unit_multiplier(G, d)  # solved in balanced neuron units; Λ = d Λ̃ below
+    # Solved in balanced neuron units (Λ = d Λ̃ below) and balanced states (P = P̃ / (ts ts')
+    # below). Each balancing sees the other's units (a state in units 2^100 too large makes
+    # its B1 column dominate every neuron's effect), so they alternate, states first.
+    d = np.ones(q)
+    for _ in range(4):  # rounds
+        Gd = _unit_multiplier(G, d)
+        ts = state_scale(*(np.asarray(M, np.float64) for M in (Gd.A, Gd.B, Gd.C)))
+        Gs = LTIController(*balanced_states(*(np.asarray(M, np.float64)
+                                              for M in (G.A, G.B, G.C)), ts), G.D)
+        d, d_old = _neuron_scale(Gs, q), d
+        if np.allclose(d, d_old, rtol=1e-3):
+            break
+    check_storage_range(ts)
+    G = _unit_multiplier(G, d)
     A, B, C, D = (np.asarray(M, np.float64) for M in (G.A, G.B, G.C, G.D))
-    ts = state_scale(A, B, C)  # and balanced states: P = P̃ / (ts ts') below
     A, B, C = balanced_states(A, B, C, ts)
     n = B.shape[0]
     k = n + B.shape[1]
@@ -305,7 +322,7 @@ _DISPROOF = 1e-6
 
 
 def certify_ren(K: RENController, qsr: QSR, *, P=None, multiplier=None,
-                tol: float = VERIFY_RTOL) -> RENCertificate:
+                tol: float = VERIFY_RTOL, progress: bool = True) -> RENCertificate:
     """Certify $(Q,S,R)$-dissipativity of a REN controller with a storage and a sector
     multiplier (S-procedure).
 
@@ -327,7 +344,8 @@ def certify_ren(K: RENController, qsr: QSR, *, P=None, multiplier=None,
 
     **Arguments:** the controller `K` (leading batch axes allowed), the supply rate `qsr`,
     optionally `P` (`[*batch, n, n]`) and `multiplier` (the diagonal of $\\Lambda$,
-    `[*batch, q]`), and the relative round-off allowance `tol`.
+    `[*batch, q]`), the relative round-off allowance `tol`, and `progress` (default True:
+    when the SDPs take more than 10 s, a line on standard error every 10 s says so).
 
     **Returns:** a [`RENCertificate`][dissil_jax.RENCertificate].
     """
@@ -356,13 +374,17 @@ def certify_ren(K: RENController, qsr: QSR, *, P=None, multiplier=None,
                              f"got {lam.shape}.")
         lam = np.broadcast_to(lam, batch + (q,))
     status = np.full(batch, "given", dtype=object)
+    progress = check_flag("progress", progress)
     if P is None:  # one SDP per controller
         P, lam = np.full(batch + (n, n), np.nan), np.full(batch + (q,), np.nan)
-        for idx in np.ndindex(*batch):
-            Gi = LTIController(*(M[idx] for M in (G.A, G.B, G.C, G.D)))
-            Pi, li, status[idx] = _solve(Gi, qsr, q)
-            if Pi is not None:
-                P[idx], lam[idx] = Pi, li
+        what = (f"solving {math.prod(batch)} SDPs" if batch else "solving the SDP") + \
+            f" for a storage of order {n} and {q} multipliers"
+        with working("certify_ren", what, progress):
+            for idx in np.ndindex(*batch):
+                Gi = LTIController(*(M[idx] for M in (G.A, G.B, G.C, G.D)))
+                Pi, li, status[idx] = _solve(Gi, qsr, q)
+                if Pi is not None:
+                    P[idx], lam[idx] = Pi, li
     Ps, lams = np.array(P, np.float64), np.array(lam, np.float64)
     margin, holds = _margin_and_holds(G, qsr, Ps, lams, tol)  # one batched check
     if not batch:

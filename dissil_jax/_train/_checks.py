@@ -13,7 +13,7 @@ import optax
 from .._data import Windows
 from .._sdp.indefinite import check_feasible
 from .._supply import QSR
-from .._validate import check_flag, check_int, real_scalar
+from .._validate import check_flag, check_int, real_scalar, warn_user
 
 _T = TypeVar("_T")
 
@@ -46,6 +46,10 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
         x = real_scalar(v)  # NaN for a string, None, a complex number, ...
         if not (np.isfinite(x) and x >= 0):
             raise ValueError(f"`{name}` must be a finite non-negative number, got {v!r}.")
+        if name == "init_scale" and x == 0 and num_inits > 1:
+            warn_user(f"`init_scale` = 0 draws {num_inits} identical initialisations, which "
+                      "train to the same controller: pass `num_inits=1`, or a positive "
+                      "`init_scale` for distinct runs.")
 
 
 def nan_unless(value: _T, ok) -> _T:

@@ -50,7 +50,7 @@ import jax
 import jax.numpy as jnp
 
 from .. import _outcome
-from ._progress import report
+from .._progress import report
 
 #: The trainers' default stopping rule: `atol = 0` and these `rtol`, relative to the run's
 #: initial loss, so that when a run stops does not depend on the data's units. Chosen on

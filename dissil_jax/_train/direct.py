@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -15,12 +14,13 @@ import optax
 from .. import _outcome
 from .._data import Windows
 from .._direct_map import MARGIN, MapRate, check_margin, direct_map, init_params, solved_rate
+from .._progress import reporting
 from .._projection.project import project
 from .._rollout import imitation_loss
 from .._sdp import lmi as _lmi
 from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
-from .._validate import check_flag, check_positive
+from .._validate import check_flag, check_positive, warn_user
 from ._checks import (
     check_eager,
     check_fit_args,
@@ -31,7 +31,6 @@ from ._checks import (
     nan_unless,
 )
 from ._iterate import Method, iterate, where
-from ._progress import reporting
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balance_factor, unbalance
 from .result import FitResult, fit_timed, raise_if_failed
@@ -262,7 +261,7 @@ def certify_or_project(res: FitResult, qsr: QSR, windows: Windows, *, eps: float
         projected[idx] = ok[idx] = True
     if projected.any():  # a projection can undo the training: say so
         ratio = final[projected] / np.asarray(res.final_loss)[projected]
-        warnings.warn(
+        warn_user(
             f"{int(projected.sum())} of {projected.size} trained controllers failed the exact "
             f"float64 check with the map's storage (in {np.dtype(P.dtype).name}) and were "
             f"replaced by their projections (`projected`), with final losses "
@@ -272,7 +271,7 @@ def certify_or_project(res: FitResult, qsr: QSR, windows: Windows, *, eps: float
                "or `jax_enable_x64`)." if np.dtype(P.dtype).itemsize < 8 else
                "In float64 it happens on rates far from balanced (|Q| far above or below "
                "R, a tight gain bound): compare with `dj.fit_pgd` or `dj.fit_ico`, or "
-               "pass a larger `margin`."), stacklevel=5)
+               "pass a larger `margin`."))
     return eqx.tree_at(
         lambda r: (r.controllers, r.P, r.certified, r.projected, r.final_loss, r.result),
         res, (K, P, jnp.asarray(ok), jnp.asarray(projected),
@@ -393,4 +392,4 @@ def fit_direct(
                                 margin=margin, keep=check_keep(keep), progress=token),
             (learning_rate, init_scale), windows.y.dtype,
             lambda res: certify_or_project(res, qsr, windows, eps=fallback_eps),
-            throw), units, user_qsr, throw)
+            throw, token), units, user_qsr, throw)

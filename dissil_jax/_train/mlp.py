@@ -17,10 +17,10 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from .. import _outcome
 from .._data import Windows
+from .._progress import reporting
 from .._validate import check_flag, check_int
 from ._checks import check_fit_args, check_key
 from ._iterate import RTOL_MLP, Method, iterate
-from ._progress import reporting
 from .result import FitResult, fit_timed
 
 _CONVERGED, _MAX_STEPS = _outcome.code("converged"), _outcome.code("max_steps")

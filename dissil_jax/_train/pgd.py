@@ -12,6 +12,7 @@ import numpy as np
 
 from .. import _outcome
 from .._data import Windows
+from .._progress import reporting
 from .._projection import first_order as _first_order
 from .._projection.args import check_eps_room
 from .._projection.first_order import trainer_rate
@@ -32,7 +33,6 @@ from ._checks import (
 )
 from ._init import init_controllers
 from ._iterate import RTOL, iterate
-from ._progress import reporting
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balance_factor, unbalance
 from .pgd_steps import PGDSteps
@@ -202,11 +202,11 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
         ok = np.asarray(res.certified) & _lmi.certified(K.A, K.B, K.C, K.D, qsr, res.P)
         return eqx.tree_at(lambda r: r.certified, res, jnp.asarray(ok))
 
-    rate, k = trainer_rate(qsr, method, n_state, windows.y.dtype)
     # no reports from `fit_gd` under a user's `jax.jit` or `jax.vmap` (its only host work)
     traced = any(isinstance(a, jax.core.Tracer) for a in jax.tree.leaves((key, windows)))
     name = "fit_gd" if qsr is None else "fit_pgd"
     with reporting(name, max_steps, progress and not traced, c**2) as token:
+        rate, k = trainer_rate(qsr, method, n_state, windows.y.dtype)
         return unbalance(fit_timed(
             lambda *h: _run_jit(key, windows, rate, *h, optimizer=optimizer,
                                 num_inits=int(num_inits), n_state=n_state,
@@ -216,8 +216,8 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
                                 rtol=jnp.asarray(rtol, windows.y.dtype),
                                 eps=float(eps), method=method, keep=check_keep(keep),
                                 progress=None if traced else token, k=k),
-            (learning_rate, decay, init_scale), windows.y.dtype, certify, throw), units,
-            user_qsr, throw)
+            (learning_rate, decay, init_scale), windows.y.dtype, certify, throw,
+            None if qsr is None else token), units, user_qsr, throw)
 
 
 def fit_pgd(
@@ -314,7 +314,8 @@ def fit_pgd(
     - `progress`: report long training on standard error (default True): nothing during
       the first 10 s, then a line at most every 10 s with the step, the runs still
       training and the lowest loss so far (from inside the compiled loop, through
-      `jax.debug.callback`); False for silence.
+      `jax.debug.callback`), and before the loop's first step and after its last (compiling,
+      the float64 check) a line that says which; False for silence.
 
     **Initialisation.** The paper draws "each matrix element from a normal distribution"
     and projects the draw (paper §4.1); `init_scale=1.0` is that N(0, 1), which the

@@ -17,6 +17,7 @@ import optax
 from .. import _outcome
 from .._data import Windows
 from .._direct_map import MARGIN, MapRate, check_margin, solved_rate
+from .._progress import CHECKING, phase, reporting
 from .._ren.activation import check_activation
 from .._ren.certify import certified_batch, certify_ren
 from .._ren.controller import block_diag2, ren_imitation_loss, ren_odd_loss
@@ -26,7 +27,6 @@ from .._supply import QSR
 from .._validate import check_flag, check_int
 from ._checks import check_eager, check_fit_args, check_keep, check_key, check_n_state
 from ._iterate import iterate
-from ._progress import reporting
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balance_factor, unbalance
 from .direct import MAX_STEPS, RTOL_DIRECT, MapDescent, default_hyperparameters, map_loss
@@ -302,7 +302,8 @@ def fit_ren(
                        direct_input=bool(direct_input), odd=bool(odd), keep=check_keep(keep),
                        progress=token)
         jax.block_until_ready(res)
-    res = _certify_all(res, qsr)
+        phase(token, CHECKING)
+        res = _certify_all(res, qsr)
     res = eqx.tree_at(lambda r: r.wall_time, res, jnp.asarray(time.perf_counter() - start,
                                                               dtype))
     if throw and not bool(np.all(res.certified)):

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from .. import _outcome
+from .. import _outcome, _progress as progress
 from .._outcome import Outcome
 
 
@@ -153,12 +153,15 @@ def raise_if_failed(res: _Result) -> _Result:
     return res
 
 
-def fit_timed(run, hyper, dtype, finish, throw: bool) -> FitResult:
+def fit_timed(run, hyper, dtype, finish, throw: bool, token=None) -> FitResult:
     """The host side shared by the `fit_*` trainers: `run(*hyper)` (the compiled run, its
-    hyperparameters cast to the data's `dtype`), then `finish` (the float64 check), the wall
-    time, and `throw`."""
+    hyperparameters cast to the data's `dtype`), then `finish` (the float64 check, which
+    the progress reporter of `token` announces when it is long), the wall time, and
+    `throw`."""
     start = time.perf_counter()
     res = jax.block_until_ready(run(*(jnp.asarray(v, dtype) for v in hyper)))
+    if token is not None:
+        progress.phase(token, progress.CHECKING)
     res = finish(res)
     # traced (`fit_gd` under a user's `jax.jit`): a time measured while tracing would be
     # frozen into the compiled function, so NaN as in every traced sweep

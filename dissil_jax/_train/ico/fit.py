@@ -11,6 +11,7 @@ import numpy as np
 from ... import _outcome
 from ..._controller import LTIController
 from ..._data import Windows
+from ..._progress import HostProgress
 from ..._projection.args import check_eps_room
 from ..._projection.project import project
 from ..._rate_scale import rate_factor, scaled_rate
@@ -20,7 +21,6 @@ from ..._validate import check_flag, check_positive
 from .._checks import check_eager, check_finite_draw, check_fit_args, check_key
 from .._init import INIT_SCALE, init_controllers
 from .._iterate import RTOL
-from .._progress import HostProgress
 from .._scale import loss_scale, scaled
 from .._units import balance as balanced, balance_factor, unbalance
 from ..result import FitResult, raise_if_failed

@@ -83,7 +83,7 @@ def step_with_fallbacks(pb: ICOProblem, solver: ICOSolver, theta, P, w_tilde):
     # Re-centre the linearisation point on the maximum-margin P of the exact
     # certificate and try once more, if that P has more of the SDP's margin (near the
     # optimum it can have orders of magnitude less, and the step is then refused).
-    cert = certify(LTIController(*pb.mats(theta)), pb.qsr, max_margin=True)
+    cert = certify(LTIController(*pb.mats(theta)), pb.qsr, max_margin=True, progress=False)
     if cert.holds:
         P_c = np.asarray(cert.P, np.float64)
         if pb.kyp_margin(theta, P_c) > pb.kyp_margin(theta, P):

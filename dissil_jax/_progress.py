@@ -1,4 +1,5 @@
-"""Progress reports of long training runs, printed from inside the compiled loop.
+"""Progress reports of long runs: training, printed from inside the compiled loop, and
+long host work such as a certificate's SDP at a high order.
 
 A trainer's loop is one `lax.while_loop`, silent until it returns. With `progress=True`
 (the trainers' default) the loop calls back to the host every `every(max_steps)` steps;
@@ -9,7 +10,13 @@ then one line at most every `INTERVAL` seconds, on standard error:
     fit_ren: step 240 of at most 600, 61 of 100 runs training, lowest loss 3.1e-03, 14 s
 
 (ICO's host loops give the steps of their slowest and furthest running runs, "steps
-12-150".)
+12-150".) Before the loop's first call back and after its last, a trainer may work for
+minutes without a step to report (compiling the loop, a first projection at a high order,
+the float64 check of every result); a heartbeat thread then says what it is doing, at the
+same delay and interval:
+
+    fit_pgd: compiling the training loop and preparing the runs, 20 s
+    fit_pgd: checking every result's certificate in float64, 130 s
 
 The compiled loop receives a traced token (`reporting`), so calls with another reporter
 reuse the compiled run; token 0 reports nothing. ICO's runs are host loops on worker
@@ -50,8 +57,29 @@ class _Reporter:
         self.last = -float("inf")
         # a loop vmapped by its caller (the MLP) calls back once per lane, in order
         self.lanes, self.parts = int(lanes), []
+        # what the run does while the loop has no step to report (None: it is stepping)
+        self.phase: str | None = "compiling the training loop and preparing the runs"
+        self.lock = threading.Lock()  # the loop's call backs against the heartbeat thread
+
+    def heartbeat(self) -> None:
+        """A line saying what the run does, when it has reported nothing for a while."""
+        with self.lock:
+            self._heartbeat()
+
+    def _heartbeat(self) -> None:
+        now = time.perf_counter()
+        if (self.phase is None or now - self.start < DELAY
+                or now - self.last < INTERVAL):
+            return
+        self.last = now
+        print(f"{self.name}: {self.phase}, {now - self.start:.0f} s", file=sys.stderr,
+              flush=True)
 
     def __call__(self, k, loss, done):
+        with self.lock:
+            self._report(k, loss, done)
+
+    def _report(self, k, loss, done):
         loss = self.scale * np.asarray(loss, np.float64).ravel()
         done = np.asarray(done).ravel()
         if loss.size < self.lanes:  # one lane of a vmapped loop: gather the step's lanes
@@ -61,7 +89,9 @@ class _Reporter:
             loss, done = (np.concatenate(a) for a in zip(*self.parts))
             self.parts = []
         now = time.perf_counter()
-        if now - self.start < DELAY or now - self.last < INTERVAL:
+        first, self.phase = self.phase is not None and np.ndim(k) == 0, None
+        # the loop's first call back is reported even right after a heartbeat's line
+        if now - self.start < DELAY or (now - self.last < INTERVAL and not first):
             return
         self.last = now
         finite = loss[np.isfinite(loss)]
@@ -106,12 +136,49 @@ def reporting(name: str, max_steps: int, enabled: bool, scale: float = 1.0, lane
         return
     with _LOCK:
         token = next(_IDS)
-        _REPORTERS[token] = _Reporter(name, max_steps, scale, lanes)
+        _REPORTERS[token] = reporter = _Reporter(name, max_steps, scale, lanes)
     try:
-        yield jnp.asarray(token, jnp.int32)
+        with _heartbeat(reporter):
+            yield jnp.asarray(token, jnp.int32)
     finally:
         with _LOCK:
             del _REPORTERS[token]
+
+
+@contextlib.contextmanager
+def _heartbeat(reporter: _Reporter):
+    """A thread that calls `reporter.heartbeat()` every `_BEAT` seconds while the block
+    runs."""
+    stop = threading.Event()
+
+    def beat():
+        while not stop.wait(_BEAT):
+            reporter.heartbeat()
+
+    thread = threading.Thread(target=beat, name=f"{reporter.name}-progress", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
+
+
+def phase(token, text: str) -> None:
+    """Tell the reporter of `token` what the run does now that its loop has ended (the
+    heartbeat prints it when the run is long); nothing for token 0 (no reports)."""
+    with _LOCK:
+        reporter = _REPORTERS.get(int(token))
+    if reporter is not None:
+        with reporter.lock:
+            reporter.phase = text
+            reporter.last = time.perf_counter()  # the loop's last line was just now
+
+
+#: Seconds between the heartbeat thread's looks at its reporter.
+_BEAT = 1.0
+#: What every certified trainer does after its loop.
+CHECKING = "checking every result's certificate in float64"
 
 
 class HostProgress:
@@ -138,3 +205,19 @@ class HostProgress:
     def done(self, i: int) -> None:
         with self._lock:
             self._done[i] = True
+
+
+@contextlib.contextmanager
+def working(name: str, text: str, enabled: bool = True):
+    """Host work without steps (`certify`'s SDPs): the heartbeat says `text` once the block
+    has run past the delay, then every interval, until it ends; silent inside a run that
+    reports already (a trainer's float64 check)."""
+    with _LOCK:
+        inside = bool(_REPORTERS)  # a trainer's own check: its heartbeat speaks already
+    if not enabled or inside:
+        yield
+        return
+    reporter = _Reporter(name, 0)
+    reporter.phase = text
+    with _heartbeat(reporter):
+        yield
