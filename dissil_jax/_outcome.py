@@ -146,6 +146,17 @@ def worst(codes_, bad) -> Outcome:
     return item(jnp.max(jnp.where(bad, codes_, -1)))
 
 
+#: What an outcome of ICO's runs means where the projection's advice does not apply: its
+#: step SDP holds the windows' data, and has no `init_scale`.
+_ICO_MESSAGES = {
+    "solver_failed": (
+        "Clarabel failed to solve ICO's SDP (max iterations or numerical trouble). Its data "
+        "are the windows themselves: windows in which one signal is negligible beside the "
+        "others (plant outputs y near zero beside the states and inputs: a dead sensor) "
+        "leave it degenerate. Check the data, pass a larger `eps`, or train with `dj.fit_pgd` or "
+        "`dj.fit_direct`, which solve no SDP of the data"),
+}
+
 #: What an outcome of [`certify`][dissil_jax.certify] means, for the items it returns. An
 #: `Outcome` item has one sentence whoever returns it; these replace the advice of the
 #: projection and the trainers (`eps`, `init_scale`, `P_ref`), arguments `certify` lacks.
@@ -176,9 +187,11 @@ _CERTIFY_MESSAGES = {
 def message(name: str, caller: str | None = None) -> str:
     """The sentence of the item called `name`: the item's own, or with `caller="certify"`
     what it means for [`certify`][dissil_jax.certify] (whose arguments differ from those
-    the projection's and trainers' advice names)."""
+    the projection's and trainers' advice names), with `caller="ico"` for ICO's step SDP."""
     if caller == "certify" and name in _CERTIFY_MESSAGES:
         return _CERTIFY_MESSAGES[name]
-    if caller not in (None, "certify"):
-        raise ValueError(f"`caller` must be None or 'certify', got {caller!r}.")
+    if caller == "ico" and name in _ICO_MESSAGES:
+        return _ICO_MESSAGES[name]
+    if caller not in (None, "certify", "ico"):
+        raise ValueError(f"`caller` must be None, 'certify' or 'ico', got {caller!r}.")
     return Outcome[getattr(Outcome, name)]

@@ -65,7 +65,44 @@ def solve(prob, what: str, A) -> None:
             status = f"failed ({err})"
     if status not in ("optimal", "optimal_inaccurate"):
         ended = "failed" if status.startswith("failed") else f"is {status}"
-        raise ValueError(f"the {what} SDP {ended} in Clarabel. {hint(what, A)}")
+        raise SolverFailure(f"the {what} SDP {ended} in Clarabel. {hint(what, A)}")
+
+
+class SolverFailure(ValueError):
+    """A plant SDP, or the strict certificate of its result, failed (`solve`,
+    `_plant_qsr._backed_off`): for a stable plant, worth one more try in a balanced
+    realisation (`balanced_realisation`)."""
+
+
+def balanced_realisation(A, B, C, D):
+    """The balanced realisation $(T^{-1}AT, T^{-1}B, CT, D)$ of a stable, minimal plant
+    (controllability and observability Gramians both equal to the diagonal of its Hankel
+    singular values; the square-root method), or None when there is none (unstable, or not
+    minimal to working precision).
+
+    A supply rate is a property of the plant's input-output map, so it can be computed on
+    any realisation. A lightly damped plant sampled fast and written in companion form
+    (`control.tf2ss`, then `control.c2d`: two modes with damping 0.02 at 100 samples a
+    second) has states of very different sizes along non-diagonal directions, and
+    Clarabel failed on its cone SDP; the balanced realisation of the same plant solved."""
+    import scipy.linalg as sla
+
+    if A.shape[0] == 0 or radius(A) >= 1:
+        return None
+    try:
+        Wc = sla.solve_discrete_lyapunov(A, B @ B.T)
+        Wo = sla.solve_discrete_lyapunov(A.T, C.T @ C)
+        Lc = np.linalg.cholesky((Wc + Wc.T) / 2)
+        Lo = np.linalg.cholesky((Wo + Wo.T) / 2)
+        U, hsv, Vt = np.linalg.svd(Lo.T @ Lc)
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    if not (np.all(np.isfinite(hsv)) and hsv[-1] > 1e-12 * hsv[0]):
+        return None
+    root = hsv ** -0.5
+    T = Lc @ Vt.T * root[None, :]
+    Ti = root[:, None] * U.T @ Lo.T
+    return Ti @ A @ T, Ti @ B, C @ T, D
 
 
 def value(x) -> np.ndarray:
@@ -102,8 +139,10 @@ def hint(what: str, A) -> str:
                 "discrete-time.")
     if what == "cone":
         return (f"The plant `A` is stable (spectral radius {rad:.4g} < 1), so a cone "
-                "exists and the solver failed on the numbers: a balanced realisation of the "
-                "plant may help.")
+                "exists and the solver failed on the numbers, in the realisation given and "
+                "in its balanced realisation (if it has one: a non-minimal plant has none). "
+                "Remove the plant's uncontrollable or unobservable modes "
+                "(`control.minreal`), or scale its input and output.")
     return (f"The plant `A` is stable (spectral radius {rad:.4g} < 1), so the plant "
             f"itself has no such {what}: it is not passive enough (e.g. a strictly proper "
             "plant that is not passive has no output passivity index); `dj.lti_cone_qsr` "

@@ -14,6 +14,8 @@ accepted: their rates follow from $D$ alone.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from . import _plant_common as common
@@ -102,8 +104,29 @@ def _backed_off(A, B, C, D, make, value: float, backoff: float, what: str,
         _vanishing_supply(A, B, C, D, qsr) or
         f"The plant `A` is stable (spectral radius {common.radius(A):.4g} < 1), so it may be "
         "nearly lossless.")
-    raise ValueError(f"could not certify the {what} strictly near its optimum "
+    raise common.SolverFailure(f"could not certify the {what} strictly near its optimum "
                      f"{value * unit:.6g}. {hint}")
+
+
+def _balanced_retry(fn):
+    """`fn(plant, ...)`, and when its SDP or certificate fails on the numbers, `fn` once more
+    on the plant's balanced realisation (`balanced_realisation`; the rate is the same for
+    every realisation); the first error if that fails too, or if there is none."""
+
+    @functools.wraps(fn)
+    def wrapper(plant, **kwargs):
+        try:
+            return fn(plant, **kwargs)
+        except common.SolverFailure as err:
+            balanced = common.balanced_realisation(*common.abcd(plant))
+            if balanced is None:
+                raise
+            try:
+                return fn(balanced, **kwargs)
+            except common.SolverFailure:
+                raise err from None
+
+    return wrapper
 
 
 def _scaled(plant, square: str | None = None):
@@ -128,6 +151,7 @@ def _square(A, B, C, D, what: str) -> None:
                          "needs a square plant (S = I/2).")
 
 
+@_balanced_retry
 def input_passivity_qsr(plant, *, backoff: float = 1e-3) -> QSR:
     """Largest input-feedforward passivity index $\\nu$: $Q = 0$, $S = \\tfrac12I$, $R = -\\nu I$.
 
@@ -148,6 +172,7 @@ def input_passivity_qsr(plant, *, backoff: float = 1e-3) -> QSR:
                        units.g, units.g)
 
 
+@_balanced_retry
 def output_passivity_qsr(plant, *, backoff: float = 1e-3) -> QSR:
     """Largest output-feedback passivity index $\\rho$: $Q = -\\rho I$, $S = \\tfrac12I$, $R = 0$.
 
@@ -163,6 +188,7 @@ def output_passivity_qsr(plant, *, backoff: float = 1e-3) -> QSR:
                        units.g, 1 / units.g)
 
 
+@_balanced_retry
 def passivity_indices(plant, *, nu: float | None = None, backoff: float = 1e-3) -> QSR:
     """Joint passivity indices $(\\rho, \\nu)$: $Q = -\\rho I$, $S = \\tfrac12I$, $R = -\\nu I$.
 
@@ -195,6 +221,7 @@ def passivity_indices(plant, *, nu: float | None = None, backoff: float = 1e-3) 
                        units, g, 1 / g)
 
 
+@_balanced_retry
 def lti_cone_qsr(plant, *, backoff: float = 1e-3) -> QSR:
     """Tightest interior cone of an LTI plant: $Q = -I$, $S$, $R = r^2I - S^\\top S$.
 

@@ -260,7 +260,8 @@ class ClosedLoopCertificate(eqx.Module):
     - `result`: the [`Outcome`][dissil_jax.Outcome], `solved` when Theorem 1's condition
       holds, `no_multiplier` when no $\\alpha$ tried satisfies it;
     - `alpha`: the best multiplier found (the one minimising $\\lambda_{\\max}$);
-    - `holds` (read-only): `result == Outcome.solved`, a `bool`.
+    - `holds` (read-only): `result == Outcome.solved`, a `bool`;
+    - `message` (read-only): what `result` means here, as a sentence.
 
     It unpacks like the pair `(holds, alpha)`.
     """
@@ -271,6 +272,18 @@ class ClosedLoopCertificate(eqx.Module):
     @property
     def holds(self) -> bool:
         return bool(self.result == Outcome.solved)
+
+    @property
+    def message(self) -> str:
+        """What `result` means for Theorem 1 (the `Outcome` item's own sentence is the
+        projection's and the certificates')."""
+        if self.holds:
+            return (f"Theorem 1 holds: M(alpha) is negative definite at alpha = "
+                    f"{self.alpha:.6g} beyond round-off (a float64 eigenvalue check), so the "
+                    "loop is l2-stable")
+        return ("no multiplier found: lambda_max(M(alpha)) is not negative for any alpha "
+                f"scanned (least at alpha = {self.alpha:.6g}); the two supply rates do not "
+                "certify the loop, which may still be stable")
 
     def __iter__(self) -> Iterator[Any]:
         return iter((self.holds, self.alpha))
@@ -385,9 +398,12 @@ def stabilising_qsr(plant_qsr: QSR, *, alpha: float = 1.0, margins=(1e-2, 1e-2))
                              f"got {M!r}.")
         M = M.astype(np.float64)
         M = M * np.eye(d) if M.ndim == 0 else _as_matrix(name, M, (d, d))
-        if not np.allclose(M, M.T) or np.linalg.eigvalsh(M).min() <= 0:
+        if not np.allclose(M, M.T):
+            raise ValueError(f"`{name}` must be symmetric (a quadratic form's matrix); "
+                             f"pass ({name} + {name}.T) / 2.")
+        if np.linalg.eigvalsh(M).min() <= 0:
             raise ValueError(f"`{name}` must be positive (definite), got eigenvalues "
-                             f"{np.linalg.eigvalsh((M + M.T) / 2)}.")
+                             f"{np.linalg.eigvalsh(M)}.")
         mats.append(M)
     M1, M2 = mats
     return QSR(

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import sys
+import threading
 import warnings
 from typing import Any, cast
 
+import jax
 import jax.core
 import jax.numpy as jnp
 import numpy as np
@@ -116,3 +118,25 @@ def warn_user(message: str) -> None:
     while frame is not None and frame.f_globals.get("__name__", "").startswith("dissil_jax"):
         frame, level = frame.f_back, level + 1
     warnings.warn(message, stacklevel=level)
+
+
+def check_callback_dtype(dtype, fn: str) -> None:
+    """Refuse 64-bit data for host callbacks (`jax.pure_callback`) inside a compiled loop
+    when float64 is enabled only on this thread (`with jax.enable_x64(True):`, a
+    thread-local setting): in a loop the callbacks run on XLA's threads, where JAX casts
+    their float64 results to float32 and then fails on the declared dtype, deep inside the
+    compiled run (a single `dj.project` call runs its callback on the calling thread)."""
+    if np.dtype(dtype).itemsize < 8:
+        return
+    seen = []  # the setting a thread without a local one sees: the global one
+    thread = threading.Thread(target=lambda: seen.append(bool(jax.config.jax_enable_x64)))
+    thread.start()
+    thread.join()
+    if not seen[0]:
+        raise ValueError(
+            f"`{fn}` projects inside its compiled training loop through host callbacks, "
+            "which run on XLA's threads, and `jax.enable_x64(True)` sets float64 for the "
+            f"calling thread only: the {np.dtype(dtype).name} projections would come back "
+            "as float32. Enable float64 for the whole process "
+            "(`jax.config.update('jax_enable_x64', True)` or the environment variable "
+            "JAX_ENABLE_X64=1), or pass float32 data.")

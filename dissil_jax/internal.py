@@ -23,6 +23,7 @@ from ._certify import fast as certify_fast, sdp as certify_sdp
 from ._certify.coordinates import state_scale as certify_state_scale
 from ._frequency import vanishing_supply
 from ._lru import LRU
+from ._plant_common import balanced_realisation
 from ._projection import (
     admm as projection_admm,
     admm_rate as projection_admm_rate,
@@ -75,7 +76,7 @@ from .experiments._paper import FIGURES, TABLES
 from .experiments.zoo import _build as zoo_build
 
 __all__ = [
-    "ConvexifiedLMI", "FIGURES", "LRU", "ICOProblem", "ICOSolver", "INIT_SCALE", "Iterate",
+    "balanced_realisation", "ConvexifiedLMI", "FIGURES", "LRU", "ICOProblem", "ICOSolver", "INIT_SCALE", "Iterate",
     "METRIC_FLOOR", "MapDescent", "Method", "OUTPUT_BAND", "TABLES", "certified", "certify_fast", "certify_sdp", "certify_state_scale",
     "check_feasible", "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct", "gd_learning_rate",
     "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "ico_step", "init_controllers", "is_indefinite",

@@ -273,3 +273,18 @@ def test_a_run_without_a_certified_step_stalls_at_its_last_iterate(monkeypatch):
     monkeypatch.setattr(ICOSolver, "solve", bad_P_from(1))
     with pytest.raises(ValueError, match="not_certified"):
         dj.fit_ico(jr.PRNGKey(1), windows, qsr, num_inits=1, max_steps=6, atol=0.0, rtol=0.0)
+
+
+def test_a_failed_ico_sdp_gets_icos_own_advice():
+    """Plant outputs of zero (a dead sensor) leave ICO's SDP degenerate and Clarabel fails;
+    the error gave the projection's advice ("entries of 1e5 and more ... pass a smaller
+    `init_scale`"), which names an argument ICO does not have. PGD trains on the same
+    windows."""
+    rng = np.random.default_rng(0)
+    W = dj.Windows(rng.standard_normal((12, 2)), np.zeros((12, 2, 1)),
+                   rng.standard_normal((12, 2, 1)))
+    with pytest.raises(ValueError, match="solver_failed") as err:
+        dj.fit_ico(jr.PRNGKey(0), W, dj.QSR.passive(1), num_inits=2, max_steps=5)
+    assert "ICO's SDP" in str(err.value) and "dead sensor" in str(err.value)
+    assert "init_scale" not in str(err.value)
+    assert dj.fit_pgd(jr.PRNGKey(0), W, dj.QSR.passive(1), num_inits=2, max_steps=5).certified.all()

@@ -7,6 +7,7 @@ import warnings
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 import dissil_jax as dj
@@ -546,6 +547,24 @@ def test_bad_hyperparameters_in_a_vmapped_run_end_as_non_finite(trainer):
     assert (codes[1:] == dji.outcome.code("non_finite")).all(), res.result_names()
     alone = jax.jit(run)(*(a[0] for a in args))
     np.testing.assert_allclose(res.final_loss[0], alone.final_loss, rtol=1e-9)
+    if trainer == "pgd":  # a failed lane is not a certified result (a bad step's lane kept
+        # its projected draw and read `certified=True`, against the sweep tutorial)
+        assert np.asarray(res.certified)[:, 0].tolist() == [True] + [False] * (len(lanes) - 1)
+    # `dj.certify` of the whole sweep, as `direct_run`'s docstring suggests: the non-finite
+    # lanes (NaN controllers) are judged `non_finite`, the others as they are; it raised
+    # numpy's LinAlgError for the whole batch
+    cert = dj.certify(res.controllers, qsr, P=res.P)
+    finite = np.all(np.isfinite(np.asarray(res.controllers.A)), axis=(-2, -1))
+    assert not finite.all()  # the premise: some lanes' controllers are NaN
+    np.testing.assert_array_equal(np.asarray(cert.holds), finite & np.asarray(
+        dj.certify(jax.tree.map(lambda a: jnp.where(jnp.isnan(a), 0.0, a), res.controllers),
+                   qsr, P=jnp.where(jnp.isnan(res.P), 1.0, res.P)).holds))
+    assert set(np.asarray(cert.source)[~finite]) == {"non-finite"}
+    assert "NaN or inf" in np.asarray(cert.message, dtype=object)[~finite][0]
+    searched = dj.certify(res.controllers, qsr)
+    assert (np.asarray(searched.holds)[~finite] == False).all()  # noqa: E712
+    with pytest.raises(ValueError, match="`K` contains NaN or inf"):
+        dj.certify(jax.tree.map(lambda a: a[~finite][0], res.controllers), qsr)
 
 
 def test_hyperparameters_must_be_scalars_also_in_a_sweep():
@@ -578,6 +597,32 @@ def test_zero_init_scale_with_several_inits_warns_at_the_callers_line():
         warnings.simplefilter("error")  # one initialisation, or a positive scale: no warning
         dj.direct_run(key, W, qsr, init_scale=0.0, max_steps=1, num_inits=1)
         dj.direct_run(key, W, qsr, init_scale=0.1, max_steps=1, num_inits=3)
+        # an optimizer of one's own: the default rule's (unused) step is not checked
+        dj.direct_run(key, W, qsr, optimizer=optax.sgd(0.1), max_steps=1, num_inits=1)
+        dj.pgd_run(key, W, qsr, optimizer=optax.sgd(0.1), max_steps=1, num_inits=1)
+    # a zero step trains nothing: said so (it passed silently)
+    for fn in (dj.direct_run, dj.pgd_run, dj.fit_ren):
+        with pytest.warns(UserWarning, match="`learning_rate` = 0 takes no step"):
+            fn(key, W, qsr, learning_rate=0.0, max_steps=1, num_inits=1)
+
+
+@pytest.mark.parametrize("fit", [dj.fit_direct, dj.fit_ren])
+def test_a_step_too_large_to_train_warns(fit):
+    """A learning rate far too large made the loss climb from the first step (55 -> 7e13
+    for `fit_ren`); the run ended as `max_steps` with its initial controller and no word.
+    The trainers now warn; a run that trains does not."""
+    rng = np.random.default_rng(0)
+    y = jnp.asarray(rng.standard_normal((6, 3, 1)))
+    W = dj.Windows(jnp.asarray(rng.standard_normal((6, 1))), y, -0.3 * y)
+    key, qsr = jax.random.PRNGKey(0), dj.QSR.passive(1)
+    kw = dict(width=2) if fit is dj.fit_ren else {}
+    with pytest.warns(UserWarning, match="2 of 2 runs returned their initial controller"):
+        res = fit(key, W, qsr, learning_rate=1e6, num_inits=2, max_steps=20, **kw)
+    assert (np.asarray(res.kept_step) == 0).all() and (np.asarray(res.steps) > 0).all()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = fit(key, W, qsr, num_inits=2, max_steps=20, **kw)
+    assert (np.asarray(res.kept_step) > 0).all()
 
 
 def test_margins_and_weights_of_ico_and_the_direct_fallback_are_checked():

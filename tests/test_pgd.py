@@ -1,5 +1,10 @@
 """`dj.fit_pgd`, `dj.pgd_run` and `dj.fit_gd` (paper Alg. 2) against plain Python loops."""
 
+import os
+import subprocess
+import sys
+import textwrap
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -456,3 +461,37 @@ def test_kept_step_of_a_batch_equals_python_loop(getkey):
         assert kept[i] == best
         assert float(res.final_loss[i]) == pytest.approx(hist[best], rel=rtol)
     assert np.any(kept < steps)  # some run's best iterate is not its last
+
+
+def test_float64_enabled_on_one_thread_only_is_refused_by_name():
+    """`with jax.enable_x64(True):` (x64 off for the process) made `fit_pgd` fail deep in
+    its compiled loop ("Incorrect output dtype ... Expected: float64, Actual: float32"): the
+    projections' host callbacks run on XLA's threads, which the thread-local setting does
+    not reach. A clear error says so; a single `dj.project` call in the same context (its
+    callback on the calling thread) and float32 data still work. In a fresh process,
+    where x64 is not enabled globally as in this suite."""
+    script = textwrap.dedent("""
+        import jax, jax.numpy as jnp, numpy as np, dissil_jax as dj
+        y = jnp.asarray(np.random.default_rng(0).standard_normal((6, 3, 1)))
+        qsr = dj.QSR.passive(1)
+        with jax.enable_x64(True):
+            W = dj.Windows(jnp.asarray(y[:, 0]), jnp.asarray(y, jnp.float64),
+                           -0.5 * jnp.asarray(y, jnp.float64))
+            try:
+                dj.fit_pgd(jax.random.PRNGKey(0), W, qsr, num_inits=1, max_steps=2)
+                print("no error")
+            except ValueError as e:
+                print("refused:", "jax_enable_x64" in str(e) and "fit_pgd" in str(e))
+            K = dj.LTIController(0.5 * jnp.eye(1), jnp.ones((1, 1)), jnp.ones((1, 1)),
+                                 -3.0 * jnp.ones((1, 1)))
+            print("project:", dj.project(K, qsr).controller.A.dtype)
+        W32 = dj.Windows(y[:, 0], y, -0.5 * y)
+        print("float32:", bool(dj.fit_pgd(jax.random.PRNGKey(0), W32, qsr, num_inits=1,
+                                          max_steps=2).certified.all()))
+    """)
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=600, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.splitlines()[-3:] == ["refused: True", "project: float64",
+                                             "float32: True"], proc.stdout

@@ -6,7 +6,7 @@ import pytest
 from helpers import frequency_supply_min
 
 import dissil_jax as dj
-from dissil_jax.internal import vanishing_supply
+from dissil_jax.internal import balanced_realisation, vanishing_supply
 from dissil_jax.systems import mass_spring_chain
 
 pytestmark = pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
@@ -335,3 +335,31 @@ def test_plant_rate_errors_name_a_vanishing_supply():
     # a rate with R != 0 describes both
     for plant in (tustin, zoh):
         assert isinstance(dj.input_passivity_qsr(plant), dj.QSR)
+
+
+def test_cone_of_a_lightly_damped_companion_form_plant():
+    """Two modes with damping 0.02 (1 and 2 rad/s) sampled at 100 Hz, in the companion form
+    `control.tf2ss` and `control.c2d` give: Clarabel failed on the cone SDP in that
+    realisation ("the cone SDP failed"), although the plant is stable. The rate of a plant
+    does not depend on its realisation, so the tools retry in the balanced realisation;
+    the cone they return holds on a frequency grid fine enough for the resonances
+    (peaks 4e-4 rad/sample wide)."""
+    import control as ct
+
+    g = ct.tf([1.0], [1, 0.04, 1]) * ct.tf([4.0], [1, 0.08, 4])
+    sd = ct.c2d(ct.ss(g), 0.01)
+    plant = tuple(np.asarray(M, np.float64) for M in (sd.A, sd.B, sd.C, sd.D))
+    with pytest.raises(ValueError, match="cone SDP failed"):  # the premise, as given
+        dj.lti_cone_qsr.__wrapped__(plant)
+    cone = dj.lti_cone_qsr(plant)
+    omegas = np.concatenate([np.linspace(0.0, 0.05, 40001), np.linspace(0.05, np.pi, 4001)])
+    assert frequency_supply_min(*plant, cone, omegas) >= 0
+    # tight: a cone 2 % narrower fails at the resonance
+    r2 = cone.R + cone.S.T @ cone.S
+    smaller = dj.QSR(cone.Q, cone.S, cone.R - 0.02 * r2)
+    assert frequency_supply_min(*plant, smaller, omegas) < 0
+    # and a plant that is not minimal has no balanced realisation: the error stays
+    A, B, C, D = plant
+    assert balanced_realisation(
+        np.block([[A, np.zeros((4, 1))], [np.zeros((1, 4)), 0.5]]),
+        np.vstack([B, 0.0]), np.hstack([C, [[0.0]]]), D) is None

@@ -102,8 +102,8 @@ def test_paper_controller_supply_rate_and_certificate():
                                [-29.867, 3.556, 0.601], rtol=1e-12)
     np.testing.assert_allclose(_theorem1(plant, ctrl, 1.0), np.diag([-0.399, -0.534]),
                                atol=1e-12)
-    holds, alpha = dj.closed_loop_certificate(plant, ctrl)
-    assert holds
+    holds, alpha = cert = dj.closed_loop_certificate(plant, ctrl)
+    assert holds and cert.message.startswith("Theorem 1 holds")
     # the returned multiplier really certifies, and is at least as good as alpha = 1
     lam = np.linalg.eigvalsh(_theorem1(plant, ctrl, alpha))[-1]
     assert lam <= -0.399 + 1e-9
@@ -115,9 +115,12 @@ def test_paper_controller_supply_rate_and_certificate():
 
 def test_closed_loop_certificate_rejects_impossible_pair():
     # Two gains whose product exceeds one: the small-gain condition must fail for every alpha.
-    holds, _ = dj.closed_loop_certificate(dj.QSR.bounded_gain(2.0, n_in=1, n_out=1),
-                                          dj.QSR.bounded_gain(0.6, n_in=1, n_out=1))
+    cert = dj.closed_loop_certificate(dj.QSR.bounded_gain(2.0, n_in=1, n_out=1),
+                                      dj.QSR.bounded_gain(0.6, n_in=1, n_out=1))
+    holds, _ = cert
     assert not holds
+    assert cert.message.startswith("no multiplier found")  # Theorem 1's words, not the
+    # projection's ("solved and verified ...")
     holds, _ = dj.closed_loop_certificate(dj.QSR.bounded_gain(2.0, n_in=1, n_out=1),
                                           dj.QSR.bounded_gain(0.4, n_in=1, n_out=1))
     assert holds
@@ -163,7 +166,9 @@ def test_stabilising_qsr_argument_errors():
     for margins, match in [
         (0.1, "`margins`"), ((0.1, 0.2, 0.3), "`margins`"),
         ((np.eye(3), np.eye(3)), r"`margins\[0\]`"), ((np.eye(2), np.eye(2)), r"`margins\[1\]`"),
-        ((np.array([[1.0, 0.5], [0.0, 1.0]]), np.eye(3)), r"`margins\[0\]`"),
+        # not symmetric, with positive eigenvalues: the message said "must be positive
+        # (definite), got eigenvalues [0.5 1.5]"
+        ((np.array([[1.0, 1.0], [0.0, 1.0]]), np.eye(3)), r"`margins\[0\]` must be symmetric"),
         ((-np.eye(2), np.eye(3)), r"`margins\[0\]`"), ((np.eye(2), 0.0), r"`margins\[1\]`"),
         ((np.nan, 1.0), r"`margins\[0\]`"), ((np.ones((1, 2, 2)), np.eye(3)), r"`margins\[0\]`"),
         ((np.diag([1.0, 0.0]), np.eye(3)), r"`margins\[0\]`"),

@@ -5,8 +5,6 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
-import jax
-import jax.core
 import numpy as np
 
 from .. import _outcome
@@ -18,6 +16,7 @@ from .._sdp.lmi import VERIFY_RTOL, kyp_bound_holds, kyp_margin, kyp_matrix, kyp
 from .._supply import QSR
 from .._validate import check_flag, check_tolerance
 from . import coordinates as _coordinates, fast as _certify_fast, sdp as _certify_sdp
+from .args import controller_arrays, storage_arg
 from .coordinates import (
     balanced_states,
     check_storage_range,
@@ -91,6 +90,9 @@ _DISPROOF = "disproved: "
 
 def _message(code, source) -> str:
     """The sentence of `Certificate.message` for one controller."""
+    if str(source) == _NON_FINITE_SOURCE:
+        return ("the controller, or the storage given for it, has NaN or inf entries (a "
+                "sweep's lane that ended `non_finite`, say): nothing to certify")
     if str(source).startswith(_DISPROOF):
         return ("no storage exists: a necessary condition for dissipativity fails ("
                 f"{str(source)[len(_DISPROOF):]}), so the controller is not strictly "
@@ -113,44 +115,6 @@ _INACCURATE = ("optimal_inaccurate", "max_iterations")
 def _outcome_of_sdp(status: str) -> Outcome:
     """The SDP's status string as an `Outcome` (no storage was found)."""
     return getattr(Outcome, "infeasible" if status.startswith("infeasible") else "solver_failed")
-
-
-def _controller_arrays(K: LTIController, qsr: QSR):
-    if not isinstance(K, LTIController):
-        raise ValueError(f"`K` must be a `dj.LTIController`, got {type(K).__name__}.")
-    if not isinstance(qsr, QSR):
-        raise ValueError(f"`qsr` must be a `dj.QSR`, got {type(qsr).__name__}.")
-    qsr.check_sizes(K.n_in, K.n_out)
-    if any(isinstance(M, jax.core.Tracer) for M in (K.A, K.B, K.C, K.D)):
-        raise ValueError("`certify` cannot run under `jax.jit` or `jax.vmap` (`K` is traced): "
-                         "it checks the certificate in float64 on the host. Call it on the "
-                         "result, outside the transformation (a batched `K` is certified "
-                         "member by member).")
-    return tuple(np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D))
-
-
-# Asymmetry of a given storage tolerated as round-off, relative to its largest entry:
-# a P computed in float32 (eps ~ 1.2e-7) and not symmetrised passes.
-_SYMMETRY_RTOL = 1e-5
-
-
-def storage_arg(name, P, batch, n):
-    """`P` checked (shape, finite, symmetric) and broadcast to the batch."""
-    P = np.asarray(P, np.float64)
-    if P.shape not in ((n, n), batch + (n, n)):
-        expected = f"{n}x{n}" + (f" or {batch + (n, n)}" if batch else "")
-        raise ValueError(f"`{name}` must be {expected}, got {P.shape}.")
-    if not np.all(np.isfinite(P)):
-        raise ValueError(f"`{name}` contains NaN or inf.")
-    if n:
-        asym = np.max(np.abs(P - np.swapaxes(P, -1, -2)), axis=(-2, -1))
-        size = np.max(np.abs(P), axis=(-2, -1))
-        if np.any(asym > _SYMMETRY_RTOL * size):
-            raise ValueError(
-                f"`{name}` must be symmetric (the storage is V(x) = x'Px): max |P - P'| = "
-                f"{np.max(asym):.3g} exceeds the round-off allowance {_SYMMETRY_RTOL:g} "
-                "max |P|; pass (P + P.T) / 2 if the asymmetry is meant to be dropped.")
-    return np.broadcast_to(P, batch + (n, n)) if batch else P
 
 
 def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hint=None,
@@ -233,13 +197,23 @@ def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hi
     cert.holds.shape, cert.P.shape, cert.source[0]   # (8,), (8, n, n), 'riccati'
     ```
     """
-    A, B, C, D = _controller_arrays(K, qsr)
+    A, B, C, D = controller_arrays(K, qsr)
     batch, n = K.batch_shape, K.n_state
     tol = check_tolerance("rtol", rtol)
     max_margin = check_flag("max_margin", max_margin)
     progress = check_flag("progress", progress)
+    bad = ~np.all([np.all(np.isfinite(M), axis=(-2, -1)) for M in (A, B, C, D)], axis=0)
+    if not batch and bad:
+        raise ValueError("`K` contains NaN or inf: no certificate can hold for it (a batch's "
+                         "non-finite members, such as a sweep's `non_finite` lanes, are "
+                         "judged `non_finite` one by one).")
     if P is not None:
-        return _verdict(A, B, C, D, qsr, storage_arg("P", P, batch, n), tol, "given")
+        P = storage_arg("P", P, batch, n, members=True)
+        bad = bad | ~np.all(np.isfinite(P), axis=(-2, -1))
+        if np.any(bad):  # judged on placeholders, then marked
+            A, B, C, D = (np.where(bad[..., None, None], 0.0, M) for M in (A, B, C, D))
+            P = np.where(bad[..., None, None], np.eye(n), P)
+        return _non_finite(_verdict(A, B, C, D, qsr, P, tol, "given"), bad)
     if hint is not None:
         hint = storage_arg("hint", hint, batch, n)
     what = (f"searching a storage for {math.prod(batch)} controllers" if batch else
@@ -249,12 +223,31 @@ def certify(K: LTIController, qsr: QSR, *, P=None, rtol: float = VERIFY_RTOL, hi
             return _search(A, B, C, D, qsr, tol, hint, max_margin)
         certs = [_search(A[i], B[i], C[i], D[i], qsr, tol,
                          None if hint is None else hint[i], max_margin)
-                 for i in np.ndindex(*batch)]
+                 if not bad[i] else _non_finite_member(n) for i in np.ndindex(*batch)]
     stack = lambda name, dtype: np.array([getattr(c, name) for c in certs], dtype).reshape(
         batch + ((n, n) if name == "P" else ()))
     codes = np.array([_outcome.codes(c.result) for c in certs], np.int32).reshape(batch)
     return Certificate(_outcome.item(codes), stack("P", np.float64),
                        stack("margin", np.float64), stack("source", str))
+
+
+#: `source` of a batch member with NaN or inf entries (in `K`, or in a given `P`).
+_NON_FINITE_SOURCE = "non-finite"
+
+
+def _non_finite_member(n: int) -> Certificate:
+    return Certificate(Outcome.non_finite, np.full((n, n), np.nan), -np.inf,
+                       _NON_FINITE_SOURCE)
+
+
+def _non_finite(cert: Certificate, bad) -> Certificate:
+    """`cert` with the members `bad` marked `non_finite` (P NaN, margin -inf)."""
+    if not np.any(bad):
+        return cert
+    codes = np.where(bad, _outcome.code("non_finite"), _outcome.codes(cert.result))
+    return Certificate(_outcome.item(codes), np.where(bad[..., None, None], np.nan, cert.P),
+                       np.where(bad, -np.inf, cert.margin),
+                       np.where(bad, _NON_FINITE_SOURCE, cert.source))
 
 
 def _candidates(A, B, C, D, qsr, hint, t):

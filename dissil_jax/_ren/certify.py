@@ -11,7 +11,7 @@ import jax
 import jax.core
 import numpy as np
 
-from .._certify.certify import storage_arg
+from .._certify.args import storage_arg
 from .._certify.coordinates import (
     balanced_states,
     check_storage_range,

@@ -46,6 +46,9 @@ def check_fit_args(windows, qsr, num_inits, max_steps, **nonnegative) -> None:
         x = real_scalar(v)  # NaN for a string, None, a complex number, ...
         if not (np.isfinite(x) and x >= 0):
             raise ValueError(f"`{name}` must be a finite non-negative number, got {v!r}.")
+        if name == "learning_rate" and x == 0 and max_steps > 0:
+            warn_user("`learning_rate` = 0 takes no step: every run returns its initial "
+                      "controller.")
         if name == "init_scale" and x == 0 and num_inits > 1:
             warn_user(f"`init_scale` = 0 draws {num_inits} identical initialisations, which "
                       "train to the same controller: pass `num_inits=1`, or a positive "

@@ -167,8 +167,9 @@ def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, at
         raise ValueError("`qsr` is required: the direct map parameterises the (Q,S,R)-"
                          "dissipative controllers; use `dj.fit_gd` for unconstrained training.")
     if check_optimizer(optimizer, "Adam's step", learning_rate=learning_rate):
-        learning_rate = 0.0  # unused
-    given = dict(learning_rate=learning_rate, init_scale=init_scale)
+        learning_rate = 0.0  # unused (and not checked)
+    given = dict(learning_rate=None if optimizer is not None else learning_rate,
+                 init_scale=init_scale)
     check_fit_args(windows, qsr, num_inits, max_steps, atol=atol, rtol=rtol,
                    **{k: v for k, v in given.items() if v is not None})
     if is_indefinite(qsr):

@@ -20,7 +20,7 @@ from .._projection.project import project
 from .._rate_scale import rate_factor, scaled_rate
 from .._sdp import lmi as _lmi
 from .._supply import QSR
-from .._validate import check_flag
+from .._validate import check_callback_dtype, check_flag
 from ._checks import (
     check_eager,
     check_fit_args,
@@ -63,6 +63,8 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
         # a rate far from unit size is solved divided by a power of two, P multiplied back
         k = 1.0 if qsr is None else rate_factor(qsr)
         qsr = None if qsr is None else scaled_rate(qsr, k)
+    if qsr is not None:
+        check_callback_dtype(windows.y.dtype, "pgd_run` or `fit_pgd")
     K0 = init_controllers(key, num_inits, windows, init_scale, n_state=n_state)
     if qsr is None:
         P0, code0 = None, jnp.full(num_inits, _MAX_STEPS, jnp.int32)
@@ -82,9 +84,11 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
     hist, loss = hist * s2, loss * s2
     return FitResult(
         controllers=K, P=None if P is None else P * k,
-        # the initial projection's verdict, of a controller that stayed finite
-        certified=None if qsr is None else jnp.asarray(~_outcome.failed(code0)
-                                                       & finite_lanes(K)),
+        # the initial projection's verdict, of a controller that stayed finite, in a run
+        # that did not fail (a lane that ended `non_finite`, e.g. through a bad
+        # hyperparameter of a sweep, is not counted as a certified result)
+        certified=None if qsr is None else jnp.asarray(
+            ~_outcome.failed(code0) & finite_lanes(K) & (reason != _NON_FINITE)),
         loss_history=hist, final_loss=loss, converged=reason == _CONVERGED, steps=steps,
         wall_time=jnp.asarray(jnp.nan, hist.dtype), result=_outcome.item(reason),
         kept_step=kept)
@@ -117,8 +121,9 @@ def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, de
         learning_rate = decay = 0.0  # unused
     learning_rate = LEARNING_RATE if learning_rate is None else learning_rate
     decay = DECAY if decay is None else decay
-    check_fit_args(windows, qsr, num_inits, max_steps, learning_rate=learning_rate, decay=decay,
-                   atol=atol, rtol=rtol, init_scale=init_scale)
+    rule = dict(learning_rate=learning_rate, decay=decay) if optimizer is None else {}
+    check_fit_args(windows, qsr, num_inits, max_steps, atol=atol, rtol=rtol,
+                   init_scale=init_scale, **rule)
     if optimizer is None and not isinstance(decay, jax.core.Tracer) and not 0.0 < decay <= 1.0:
         # the paper's step decays: eta_k = eta_0 decay^k
         raise ValueError(f"`decay` must be in (0, 1] (the step eta_0 decay^k decays), got "
@@ -150,7 +155,7 @@ def pgd_run(
     under `jax.jit` (an `equinox.EquinoxRuntimeError` under `equinox.filter_jit`). A
     traced hyperparameter cannot be checked eagerly: a lane whose `learning_rate` or
     `init_scale` is NaN or negative, or whose `decay` lies outside (0, 1], ends as
-    `non_finite`.
+    `non_finite`, and every lane that ends `non_finite` has `certified=False`.
 
     ```python
     lrs = jnp.logspace(-2, 0, 5)

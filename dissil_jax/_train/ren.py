@@ -30,7 +30,7 @@ from ._iterate import iterate
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balance_factor, unbalance
 from .direct import MAX_STEPS, RTOL_DIRECT, MapDescent, default_hyperparameters, map_loss
-from .result import FitResult, raise_if_failed
+from .result import FitResult, raise_if_failed, warn_if_untrained
 
 _CONVERGED, _NOT_CERTIFIED, _NON_FINITE = (
     _outcome.code(r) for r in ("converged", "not_certified", "non_finite"))
@@ -306,6 +306,7 @@ def fit_ren(
         res = _certify_all(res, qsr)
     res = eqx.tree_at(lambda r: r.wall_time, res, jnp.asarray(time.perf_counter() - start,
                                                               dtype))
+    warn_if_untrained(res)
     if throw and not bool(np.all(res.certified)):
         raise ValueError(_uncertified_message(res, num_inits))
     return unbalance(raise_if_failed(res) if throw else res, units, user_qsr, throw)

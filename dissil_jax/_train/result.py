@@ -14,6 +14,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .. import _outcome, _progress as progress
 from .._outcome import Outcome
+from .._validate import warn_user
 
 
 class FitResult(eqx.Module):
@@ -123,7 +124,7 @@ class FitResult(eqx.Module):
 _Result = TypeVar("_Result", bound="FitResult")
 
 
-def raise_if_failed(res: _Result) -> _Result:
+def raise_if_failed(res: _Result, caller: str | None = None) -> _Result:
     """The trainers' `throw=True`: raise if a run ended other than `converged`/`max_steps`.
 
     Eagerly a `ValueError` that counts the reasons; under `jax.jit` a `JaxRuntimeError`
@@ -141,7 +142,7 @@ def raise_if_failed(res: _Result) -> _Result:
         counts = {n: int((names == n).sum()) for n in sorted(set(names))}
         # One explanation (and its fix) per kind of failure, and what the failed runs kept:
         # only the constrained trainers have certified iterates to fall back on.
-        why = "; ".join(f"{n}: {_outcome.message(n).rstrip('.')}" for n in counts)
+        why = "; ".join(f"{n}: {_outcome.message(n, caller).rstrip('.')}" for n in counts)
         # The certified trainers (they have a storage P) keep each run's best iterate; the
         # unconstrained baselines return the iterate at which they stopped.
         kept = ("kept its best certified iterate (`kept_step`)" if res.P is not None
@@ -168,4 +169,25 @@ def fit_timed(run, hyper, dtype, finish, throw: bool, token=None) -> FitResult:
     traced = isinstance(res.final_loss, jax.core.Tracer)
     res = eqx.tree_at(lambda r: r.wall_time, res, jnp.asarray(
         jnp.nan if traced else time.perf_counter() - start, dtype))
+    if not traced:
+        warn_if_untrained(res)
     return raise_if_failed(res) if throw else res
+
+
+def warn_if_untrained(res: FitResult) -> None:
+    """Warn when runs that took steps returned their initial controller (`kept_step` 0
+    with `keep="best"`): no step lowered the loss, the mark of a step too large for the
+    problem (a loss rising from 55 to 7e13 ended as `max_steps`, without a word)."""
+    if res.kept_step is None:
+        return
+    kept, steps = np.asarray(res.kept_step), np.asarray(res.steps)
+    hist = np.asarray(res.loss_history, np.float64)
+    with np.errstate(invalid="ignore"):  # NaN after a run stopped
+        rose = np.any(hist[:, 1:] > hist[:, :1], axis=1)  # not a zero step's flat loss
+    untrained = (kept == 0) & (steps > 0) & rose & ~np.asarray(_outcome.failed(
+        _outcome.codes(res.result)))
+    if untrained.any():
+        warn_user(f"{int(untrained.sum())} of {untrained.size} runs returned their initial "
+                  "controller: none of their steps lowered the loss below it. The step is "
+                  "probably too large for this problem (the loss rose from the first step "
+                  "on): pass a smaller `learning_rate`, or check the `optimizer`'s.")

@@ -209,7 +209,7 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
         # Every accepted step lowers the loss (the guard above), so the last is the best.
         kept_step=jnp.asarray([r["steps"] for r in results], jnp.int32),
     )
-    return unbalance(raise_if_failed(res) if throw else res, units, user_qsr, throw)
+    return unbalance(raise_if_failed(res, "ico") if throw else res, units, user_qsr, throw)
 
 
 def fit_ico(
