@@ -84,11 +84,13 @@ def _run(key, windows, qsr, learning_rate, decay, init_scale, *, optimizer, num_
     hist, loss = hist * s2, loss * s2
     return FitResult(
         controllers=K, P=None if P is None else P * k,
-        # the initial projection's verdict, of a controller that stayed finite, in a run
-        # that did not fail (a lane that ended `non_finite`, e.g. through a bad
-        # hyperparameter of a sweep, is not counted as a certified result)
+        # the initial projection's verdict, of a controller that stayed finite, in a lane
+        # whose hyperparameters are valid (a sweep's bad value, made NaN by `nan_unless`,
+        # ends its lane `non_finite` and not certified; a run whose loss overflowed late
+        # keeps its best iterate, certified)
         certified=None if qsr is None else jnp.asarray(
-            ~_outcome.failed(code0) & finite_lanes(K) & (reason != _NON_FINITE)),
+            ~_outcome.failed(code0) & finite_lanes(K)
+            & jnp.isfinite(jnp.asarray(learning_rate)) & jnp.isfinite(jnp.asarray(decay))),
         loss_history=hist, final_loss=loss, converged=reason == _CONVERGED, steps=steps,
         wall_time=jnp.asarray(jnp.nan, hist.dtype), result=_outcome.item(reason),
         kept_step=kept)
@@ -155,7 +157,7 @@ def pgd_run(
     under `jax.jit` (an `equinox.EquinoxRuntimeError` under `equinox.filter_jit`). A
     traced hyperparameter cannot be checked eagerly: a lane whose `learning_rate` or
     `init_scale` is NaN or negative, or whose `decay` lies outside (0, 1], ends as
-    `non_finite`, and every lane that ends `non_finite` has `certified=False`.
+    `non_finite` with `certified=False`.
 
     ```python
     lrs = jnp.logspace(-2, 0, 5)
