@@ -271,6 +271,7 @@ class ClosedLoopCertificate(eqx.Module):
 
     @property
     def holds(self) -> bool:
+        """`result == Outcome.solved`: Theorem 1's condition holds at `alpha`."""
         return bool(self.result == Outcome.solved)
 
     @property

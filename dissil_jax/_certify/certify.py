@@ -65,6 +65,7 @@ class Certificate(eqx.Module):
 
     @property
     def holds(self) -> bool | np.ndarray:
+        """`result == Outcome.solved`: a `bool`, or a boolean array when batched."""
         ok = np.asarray(self.result == Outcome.solved)
         return bool(ok) if ok.ndim == 0 else ok
 

@@ -81,10 +81,12 @@ class MLPController(eqx.Module):
 
     @property
     def n_in(self) -> int:
+        """The controller's input width $p$ (the plant's outputs)."""
         return int(self.mlp.in_size)  # built from an int, never "scalar"
 
     @property
     def n_out(self) -> int:
+        """The controller's output width $m$ (the plant's inputs)."""
         return int(self.mlp.out_size)
 
     @property

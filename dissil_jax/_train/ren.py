@@ -173,7 +173,7 @@ def default_ren_hyperparameters(n_state: int, n_in: int) -> tuple[float, float]:
     the order.
 
     Chosen on the problem zoo's tuning half by the smallest worst-case ratio of the median
-    final loss to the best candidate's (`benchmarks/bench_ren.py --defaults`): $(0.1, 0.1)$
+    final loss to the best candidate's (`benchmarks/bench_ren.py --defaults tuning`): $(0.1, 0.1)$
     1.19, the uncapped rule at order $\\hat n$ 1.29 (its $(0.3, 0.5)$ on every zoo problem),
     at order $\\hat n + q$ 1.39, other fixed points 1.39-287. On the held-out half: 1.25,
     1.98 and 2.31."""
@@ -201,7 +201,7 @@ def fit_ren(
     or when $|J_k - J_{k-1}| <$ `atol` $+$ `rtol`$\\,|J_0|$ (defaults 600, 0 and 1e-8,
     [`fit_direct`][dissil_jax.fit_direct]'s: on the problem zoo's tuning half 150 steps at
     1e-6 left the median loss up to 58x higher, and on its held-out half up to 1.8x, for
-    at most 2.2 s of training at width 4, `benchmarks/bench_ren.py --zoo`); the driver
+    at most 2.2 s of training at width 4, `benchmarks/bench_ren.py --zoo tuning`); the driver
     loop of every gradient trainer, with the REN map in place of the LTI one.
 
     **Certified at the end:** each returned `(K, P, multiplier)` is checked in float64 by
@@ -224,7 +224,7 @@ def fit_ren(
       map's free parameters); the defaults are `fit_direct`'s rule at the controller's
       order $\\hat n$ capped at 0.1, i.e. $(0.1, 0.1)$ up to $\\hat n + p = 27$
       (`default_ren_hyperparameters`: the smallest worst-case regret on the problem zoo's
-      tuning half, `benchmarks/bench_ren.py --defaults`).
+      tuning half, `benchmarks/bench_ren.py --defaults tuning`).
     - `width` $q\\ge0$: the number of neurons (0 gives an LTI controller, as a REN).
     - `direct_input`: train the neurons' direct input $D_{12}$ (static; default False,
       $D_{12} = 0$: the network then sees the plant output through the state only).

@@ -73,6 +73,7 @@ class FitResult(eqx.Module):
 
     @property
     def initial_loss(self) -> Float[Array, " inits"]:
+        """`[num_inits]` the initial controllers' losses (column 0 of `loss_history`)."""
         return self.loss_history[..., 0]
 
     @property
@@ -82,6 +83,7 @@ class FitResult(eqx.Module):
 
     @property
     def num_inits(self) -> int:
+        """The number of initialisations (runs) in this result."""
         return self.final_loss.shape[-1]
 
     def best(self) -> Any:

@@ -94,7 +94,8 @@ def _sweep(args) -> int:
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     text = sweep_markdown(sweeps)
-    (out / f"lr_sweep_{args.example}.md").write_text(text)
+    (out / f"lr_sweep_{args.example}.md").write_text(
+        f"# Step-size sweep: the {args.example} example\n\n{text}")
     write_json(out / f"lr_sweep_{args.example}.json", sweeps)
     print(text)
     return 0
