@@ -6,7 +6,7 @@ layout can change behind this one list (as lineax's `internal`).
 
 Modules, for monkeypatching in tests and for benchmarks that time one layer alone:
 `certify_fast`, `certify_sdp`, `direct`, `direct_map`, `ico`, `ico_sdp`, `linalg`, `lmi`, `mlp`, `outcome`,
-`pgd`, `pgd_steps`, `progress`, `projection`, `projection_admm`, `projection_admm_rate`, `projection_cache`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `rollout`,
+`pgd`, `pgd_steps`, `progress`, `projection`, `projection_admm`, `projection_admm_rate`, `projection_cache`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `ren_units`, `rollout`,
 `rate_scale`, `sdp`, `units` (the trainers' changes of units), `zoo_build` (the problem zoo's plants, experts and rates); and the functions and constants in
 `__all__`.
 """
@@ -32,7 +32,12 @@ from ._projection import (
     project as projection,
 )
 from ._projection.project import solver_stats
-from ._ren import certify as ren_certify, controller as ren_controller, map as ren_map
+from ._ren import (
+    certify as ren_certify,
+    controller as ren_controller,
+    map as ren_map,
+    units as ren_units,
+)
 from ._sdp import lmi, sdp
 from ._sdp.indefinite import check_feasible, is_indefinite, static_point
 from ._sdp.lmi import (
@@ -85,7 +90,7 @@ __all__ = [
     "optimizer_metric", "outcome", "output_factor", "output_ratio", "pgd", "pgd_steps", "progress", "projection", "projection_admm", "projection_admm_rate", "projection_cache", "projection_fo",
     "ren_certify",
     "ren_controller",
-    "ren_map", "ren_train", "rollout", "rate_scale", "units", "scaled", "sdp", "single_threaded_blas", "smat",
+    "ren_map", "ren_train", "ren_units", "rollout", "rate_scale", "units", "scaled", "sdp", "single_threaded_blas", "smat",
     "solver_stats", "stacked_factor", "state_ratios", "static_point", "svec_len", "vanishing_supply",
     "zoo_build",
 ]

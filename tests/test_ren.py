@@ -26,6 +26,7 @@ from dissil_jax.internal import (
     ren_controller,
     ren_map as rm,
     ren_train,
+    ren_units,
 )
 
 I2 = np.eye(2)
@@ -568,7 +569,7 @@ def test_unbalanced_ren_realisations_are_decided_by_componentwise_bounds():
     G = ren_certify.augmented_lti(Kt)
     mats = (G.A, G.B, G.C, G.D)
     for form, q in ((mats, ren_certify.augmented_qsr(qsr, lam)),
-                    ((lambda u: (u.A, u.B, u.C, u.D))(ren_certify._unit_multiplier(G, lam)),
+                    ((lambda u: (u.A, u.B, u.C, u.D))(ren_units.unit_multiplier(G, lam)),
                      ren_certify.augmented_qsr(qsr, np.ones(4)))):
         # the premise: neither relative test proves it
         assert dji.kyp_margin(*form, q, Pt) < dji.lmi.VERIFY_RTOL * dji.kyp_scale(*form, q, Pt)

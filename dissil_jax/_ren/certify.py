@@ -15,8 +15,6 @@ from .._certify.args import storage_arg
 from .._certify.coordinates import (
     balanced_states,
     check_storage_range,
-    safe_norms,
-    state_scale,
     unbalanced_storage,
 )
 from .._controller import LTIController
@@ -35,6 +33,7 @@ from .._sdp.lmi import (
 from .._supply import QSR
 from .._validate import check_flag, check_tolerance
 from .controller import RENController
+from .units import COORDINATES, coordinates, unit_multiplier
 
 
 class RENCertificate(eqx.Module):
@@ -148,47 +147,6 @@ def _check_args(K, qsr):
                          "matrix would be of another system); pass jnp.tril(D11, -1).")
 
 
-def _neuron_scale(G: LTIController, q: int, sweeps: int = 30) -> np.ndarray:
-    """Neuron units in which each neuron's input and effect have one size.
-
-    In the units $\\tilde w = d^{1/2}w$, $\\tilde v = d^{1/2}v$ (`_unit_multiplier` with
-    $d$), neuron $i$'s column of $[B_1; D_{11}; D_{21}]$ (its effect on
-    $(x^+, v, \\hat y)$) and its row of $[C_1\\ D_{11}\\ D_{12}]$ (its input) are balanced
-    to equal 2-norms by a few damped sweeps (the $D_{11}$ entries couple the neurons, as in
-    matrix balancing). A multiplier found there is $\\tilde\\Lambda = \\Lambda/d$, and the
-    SDP is well scaled: a REN trained on data of size $s$ and returned in those units has
-    $\\Lambda\\sim s^2$ against $P\\sim1$, which Clarabel failed on from $s = 10^3$."""
-    d = np.ones(q)
-    for _ in range(sweeps):
-        Gd = _unit_multiplier(G, d)
-        B, C, D = (np.asarray(M, np.float64) for M in (Gd.B, Gd.C, Gd.D))
-        out = safe_norms(np.concatenate([B[:, :q], D[:, :q]], 0), 0)
-        inp = safe_norms(np.concatenate([C[:q], D[:q]], 1), 1)
-        ok = (out > 0) & (inp > 0) & np.isfinite(out) & np.isfinite(inp)
-        # damped; in logarithms, as the ratio may overflow
-        step = np.exp2(np.where(ok, np.log2(np.where(ok, out, 1.0))
-                                - np.log2(np.where(ok, inp, 1.0)), 0.0) / 2)
-        if np.all(np.abs(np.log(step)) < 1e-3):
-            break
-        d = d * step
-    return d
-
-
-def _unit_multiplier(G: LTIController, lam) -> LTIController:
-    """The augmented system in neuron units where $\\Lambda = I$: $w = \\Lambda^{-1/2}\\tilde w$,
-    $\\tilde v = \\Lambda^{1/2}v$. Its KYP matrix under `augmented_qsr(qsr, 1)` is
-    $T^\\top M(P,\\Lambda)T$ with $T = \\operatorname{diag}(I, \\Lambda^{-1/2}, I)$, a congruence,
-    so it is negative definite exactly when $M$ is."""
-    q = lam.shape[-1]
-    r = np.sqrt(lam)
-    B, C, D = (np.array(M, np.float64) for M in (G.B, G.C, G.D))
-    B[..., :, :q] /= r[..., None, :]
-    C[..., :q, :] *= r[..., :, None]
-    D[..., :q, :] *= r[..., :, None]
-    D[..., :, :q] /= r[..., None, :]
-    return LTIController(G.A, B, C, D)
-
-
 def _augmented_arrays(qsr: QSR, lam):
     """`augmented_qsr` for a batch of multipliers `lam` (`[*batch, q]`): its $(Q, S, R)$ as
     batched arrays and its `rate_factor` per member."""
@@ -241,34 +199,22 @@ def _margin_and_holds(G: LTIController, qsr: QSR, P, lam, tol):
         holds |= finite & positive & kyp_bound_holds(A, B, C, D, Q, S, R, P)
     retry = finite & ~holds & (lam.shape[-1] > 0) & positive
     if np.any(retry):
-        unit = _unit_multiplier(LTIController(A, B, C, D), np.where(retry[..., None], lam, 1.0))
+        unit = unit_multiplier(LTIController(A, B, C, D), np.where(retry[..., None], lam, 1.0))
         umats = (unit.A, unit.B, unit.C, unit.D)
         uaug = augmented_qsr(qsr, np.ones(lam.shape[-1]))
         holds |= retry & (kyp_margin(*umats, uaug, P) > tol * kyp_scale(*umats, uaug, P))
     return np.where(finite, margin, -np.inf), holds
 
 
-def _solve(G: LTIController, qsr: QSR, q: int):
+def _solve(G: LTIController, qsr: QSR, q: int, d, ts):
     """$\\max t$ s.t. $M(P,\\Lambda)\\preceq -tI$, $P\\succeq tI$, $\\Lambda\\succeq tI$,
-    $t\\le1$, in balanced neuron units (`_neuron_scale`) and balanced states (`certify`'s
-    `state_scale`), with cvxpy and Clarabel (BLAS single-threaded); returns
-    `(P, λ, status)` in the controller's own units."""
+    $t\\le1$, in the neuron units `d` and the state units `ts` (`units.coordinates`),
+    with cvxpy and Clarabel (BLAS single-threaded); returns `(P, λ, status)` in the
+    controller's own units."""
     import cvxpy as cp
 
-    # Solved in balanced neuron units (Λ = d Λ̃ below) and balanced states (P = P̃ / (ts ts')
-    # below). Each balancing sees the other's units (a state in units 2^100 too large makes
-    # its B1 column dominate every neuron's effect), so they alternate, states first.
-    d = np.ones(q)
-    for _ in range(4):  # rounds
-        Gd = _unit_multiplier(G, d)
-        ts = state_scale(*(np.asarray(M, np.float64) for M in (Gd.A, Gd.B, Gd.C)))
-        Gs = LTIController(*balanced_states(*(np.asarray(M, np.float64)
-                                              for M in (G.A, G.B, G.C)), ts), G.D)
-        d, d_old = _neuron_scale(Gs, q), d
-        if np.allclose(d, d_old, rtol=1e-3):
-            break
     check_storage_range(ts)
-    G = _unit_multiplier(G, d)
+    G = unit_multiplier(G, d)
     A, B, C, D = (np.asarray(M, np.float64) for M in (G.A, G.B, G.C, G.D))
     A, B, C = balanced_states(A, B, C, ts)
     n = B.shape[0]
@@ -382,7 +328,21 @@ def certify_ren(K: RENController, qsr: QSR, *, P=None, multiplier=None,
         with working("certify_ren", what, progress):
             for idx in np.ndindex(*batch):
                 Gi = LTIController(*(M[idx] for M in (G.A, G.B, G.C, G.D)))
-                Pi, li, status[idx] = _solve(Gi, qsr, q)
+                # the coordinates of `units.COORDINATES` until a pair passes the check;
+                # else the first pair found (and its status), else the first failure's
+                tried, found, proved = [], [], False
+                for states_first in COORDINATES:
+                    d, ts = coordinates(Gi, q, states_first)
+                    if any(np.array_equal(d, e) and np.array_equal(ts, f) for e, f in tried):
+                        continue
+                    tried.append((d, ts))
+                    found.append(_solve(Gi, qsr, q, d, ts))
+                    Pi, li, _ = found[-1]
+                    proved = Pi is not None and bool(_margin_and_holds(Gi, qsr, Pi, li, tol)[1])
+                    if proved:
+                        break
+                Pi, li, status[idx] = found[-1] if proved else next(
+                    (f for f in found if f[0] is not None), found[0])
                 if Pi is not None:
                     P[idx], lam[idx] = Pi, li
     Ps, lams = np.array(P, np.float64), np.array(lam, np.float64)

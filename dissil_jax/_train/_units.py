@@ -194,7 +194,7 @@ def _times(M, factors: np.ndarray):
     return M * jnp.asarray(factors, M.dtype) if isinstance(M, jax.Array) else M * factors
 
 
-def balance_factor(windows: Windows, balance) -> Units:
+def balancing_units(windows: Windows, balance) -> Units:
     """The `Units` of the module docstring when `balance` is True (the states' factors $d$
     first, then $c$ of the windows with $\\hat x_0/d$), none when False; a `ValueError`
     naming `balance` for anything else, or for traced windows (`fit_gd` under `jax.jit` or

@@ -32,7 +32,7 @@ from ._checks import (
 )
 from ._iterate import Method, iterate, where
 from ._scale import loss_scale, scaled
-from ._units import balance as balanced, balance_factor, unbalance
+from ._units import balance as balanced, balancing_units, unbalance
 from .result import FitResult, fit_timed, raise_if_failed
 
 _CONVERGED = _outcome.code("converged")
@@ -378,7 +378,7 @@ def fit_direct(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, margin=margin)
     fallback_eps = check_positive("fallback_eps", fallback_eps)  # used after training
-    units = balance_factor(windows, balance)  # outputs' and states' units (`_units.py`)
+    units = balancing_units(windows, balance)  # outputs' and states' units (`_units.py`)
     user_qsr, (windows, qsr) = qsr, balanced(windows, qsr, units)
     c = units.c
     rate = solved_rate(qsr, margin, windows.y.dtype)  # traced: one compilation per shape

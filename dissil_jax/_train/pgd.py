@@ -34,7 +34,7 @@ from ._checks import (
 from ._init import init_controllers
 from ._iterate import RTOL, iterate
 from ._scale import loss_scale, scaled
-from ._units import balance as balanced, balance_factor, unbalance
+from ._units import balance as balanced, balancing_units, unbalance
 from .pgd_steps import PGDSteps
 from .result import FitResult, fit_timed, raise_if_failed
 from .steps import (
@@ -195,7 +195,7 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state)
 
-    units = balance_factor(windows, balance)  # outputs' and states' units (`_units.py`)
+    units = balancing_units(windows, balance)  # outputs' and states' units (`_units.py`)
     user_qsr, (windows, qsr) = qsr, balanced(windows, qsr, units)
     c = units.c
     if qsr is not None:  # the margin applies to the rate as solved: after balancing

@@ -28,7 +28,7 @@ from .._validate import check_flag, check_int
 from ._checks import check_eager, check_fit_args, check_keep, check_key, check_n_state
 from ._iterate import iterate
 from ._scale import loss_scale, scaled
-from ._units import balance as balanced, balance_factor, unbalance
+from ._units import balance as balanced, balancing_units, unbalance
 from .direct import MAX_STEPS, RTOL_DIRECT, MapDescent, default_hyperparameters, map_loss
 from .result import FitResult, raise_if_failed, warn_if_untrained
 
@@ -289,7 +289,7 @@ def fit_ren(
     init_scale = scale0 if init_scale is None else init_scale
     start = time.perf_counter()
     dtype = windows.y.dtype
-    units = balance_factor(windows, balance)  # outputs' and states' units (`_units.py`)
+    units = balancing_units(windows, balance)  # outputs' and states' units (`_units.py`)
     user_qsr, (windows, qsr) = qsr, balanced(windows, qsr, units)
     c = units.c
     with reporting("fit_ren", max_steps, check_flag("progress", progress), c**2) as token:

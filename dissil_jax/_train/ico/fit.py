@@ -22,7 +22,7 @@ from .._checks import check_eager, check_finite_draw, check_fit_args, check_key
 from .._init import INIT_SCALE, init_controllers
 from .._iterate import RTOL
 from .._scale import loss_scale, scaled
-from .._units import balance as balanced, balance_factor, unbalance
+from .._units import balance as balanced, balancing_units, unbalance
 from ..result import FitResult, raise_if_failed
 from .sdp import ICOProblem
 from .solver import ICOSolver
@@ -140,7 +140,7 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
                 init_scale=init_scale, eps=eps, prox=prox, atol=atol, rtol=rtol)
     _check_args(windows, qsr, num_inits, max_steps, atol, rtol, init_scale)
     eps, prox = check_positive("eps", eps), check_positive("prox", prox, zero=True)
-    units = balance_factor(windows, balance)  # outputs' and states' units (`_units.py`)
+    units = balancing_units(windows, balance)  # outputs' and states' units (`_units.py`)
     user_qsr, (windows, qsr) = qsr, balanced(windows, qsr, units)
     atol, c = atol / units.c**2, units.c
     k = 1.0  # a rate far from unit size is solved divided by k, P multiplied back (exact)
