@@ -668,6 +668,31 @@ def test_certify_ren_balances_states_and_neurons_together():
         assert not dj.certify_ren(Kd, qsr).holds
 
 
+def test_certify_ren_tries_its_second_coordinates_when_the_first_pair_fails(monkeypatch):
+    """`certify_ren` solves in `ren_units.COORDINATES` in turn until a pair passes the check
+    (on RENs trained for |Q| ~ 1e6 R each order certified runs the other did not). A first
+    pair that fails the check is replaced by the second's; one that passes is kept, and
+    the second SDP is not solved."""
+    K = _random_ren(np.random.default_rng(0), n=2, q=3, scale=0.3, activation="relu")
+    d = 2.0**20  # states in other units than the neurons: the two coordinates differ
+    K = eqx.tree_at(lambda k: (k.B1, k.B2, k.C1, k.C2), K, (K.B1 * d, K.B2 * d, K.C1 / d,
+                                                            K.C2 / d))
+    qsr = SUPPLY_RATES["strict"]
+    real, calls = ren_certify._solve, []
+
+    def first_fails(G, qsr, q, d, ts):
+        calls.append(d)
+        P, lam, status = real(G, qsr, q, d, ts)
+        return (-P, lam, "spoiled") if len(calls) == 1 else (P, lam, status)
+
+    monkeypatch.setattr(ren_certify, "_solve", first_fails)
+    cert = dj.certify_ren(K, qsr)
+    assert cert.holds and cert.status == "optimal" and len(calls) == 2
+    monkeypatch.setattr(ren_certify, "_solve", lambda *a: (calls.append(a[3]), real(*a))[1])
+    calls.clear()
+    assert dj.certify_ren(K, qsr).holds and len(calls) == 1
+
+
 def test_certify_ren_refuses_what_the_layer_does_not_run():
     """A D11 with entries on the diagonal (set by `tree_at`, or built under `jit` where the
     constructor cannot check it) is refused: the layer runs only tril(D11, -1), so a
