@@ -96,8 +96,10 @@ class _Reporter:
         self.last = now
         finite = loss[np.isfinite(loss)]
         best = f"{finite.min():.2e}" if finite.size else "none finite"
-        compiled = np.ndim(k) == 0  # a compiled loop's step; host loops pass (slowest, furthest)
+        # a compiled loop's step; host loops pass (slowest, furthest, runs not started yet)
+        compiled = np.ndim(k) == 0
         lo, hi = (int(k), int(k)) if compiled else (int(k[0]), int(k[1]))
+        waiting = 0 if compiled else int(k[2])
         if compiled and hi == 0:  # its first call back comes after its compilation
             print(f"{self.name}: compiled and started after {now - self.start:.0f} s, "
                   f"{done.size} runs of at most {self.max_steps} steps", file=sys.stderr,
@@ -105,9 +107,10 @@ class _Reporter:
             return
         # host loops (ICO) step at their own pace: the slowest and the furthest still going
         steps = f"step {hi}" if lo == hi else f"steps {lo}-{hi}"
+        queued = f" ({waiting} waiting for a thread)" if waiting else ""
         print(f"{self.name}: {steps} of at most {self.max_steps}, "
-              f"{int((~done).sum())} of {done.size} runs training, lowest loss {best}, "
-              f"{now - self.start:.0f} s", file=sys.stderr, flush=True)
+              f"{int((~done).sum()) - waiting} of {done.size} runs training{queued}, lowest "
+              f"loss {best}, {now - self.start:.0f} s", file=sys.stderr, flush=True)
 
 
 def _dispatch(token, k, loss, done):
@@ -183,8 +186,10 @@ CHECKING = "checking every result's certificate in float64"
 
 class HostProgress:
     """Progress of `num_runs` runs stepping on host threads (ICO): `step(i, k, loss)` after
-    each accepted step of run `i`, `done(i)` when it ends; reported like the compiled
-    loops' (nothing when not `enabled`)."""
+    each accepted step of run `i` (step 0 when it starts), `done(i)` when it ends; reported
+    like the compiled loops' (nothing when not `enabled`). Runs waiting for a thread are
+    counted apart and left out of the steps' range (with four runs on two threads it read
+    "4 of 4 runs training, steps 0-11" for minutes, then "steps 1-3")."""
 
     def __init__(self, name: str, max_steps: int, num_runs: int, enabled: bool):
         self._reporter = _Reporter(name, max_steps) if enabled else None
@@ -192,15 +197,17 @@ class HostProgress:
         self._k = np.zeros(num_runs, np.int64)
         self._loss = np.full(num_runs, np.nan)
         self._done = np.zeros(num_runs, bool)
+        self._started = np.zeros(num_runs, bool)
 
     def step(self, i: int, k: int, loss: float) -> None:
         if self._reporter is None:
             return
         with self._lock:
-            self._k[i], self._loss[i] = k, loss
-            going = self._k[~self._done]
+            self._k[i], self._loss[i], self._started[i] = k, loss, True
+            going = self._k[self._started & ~self._done]
             span = (going.min(), going.max()) if going.size else (self._k.max(),) * 2
-            self._reporter(span, self._loss.copy(), self._done.copy())
+            waiting = int((~self._started & ~self._done).sum())
+            self._reporter((*span, waiting), self._loss.copy(), self._done.copy())
 
     def done(self, i: int) -> None:
         with self._lock:

@@ -115,6 +115,29 @@ def test_certify_says_it_is_searching_unless_asked_not_to(monkeypatch, capsys):
     assert "certify:" not in capsys.readouterr().err
 
 
+def test_project_says_it_is_solving(monkeypatch, capsys):
+    """A batch of projection SDPs (minutes at high orders with an indefinite Q) said
+    nothing; its heartbeat names the work, except inside a trainer's run."""
+    monkeypatch.setattr(progress, "DELAY", 0.0)
+    monkeypatch.setattr(progress, "INTERVAL", 0.0)
+    monkeypatch.setattr(progress, "_BEAT", 0.002)
+    rng = np.random.default_rng(1)
+    n = 6
+    K = dj.LTIController(0.9 * rng.standard_normal((4, n, n)) / np.sqrt(n),
+                         rng.standard_normal((4, n, 1)), rng.standard_normal((4, 1, n)),
+                         rng.standard_normal((4, 1, 1)))
+    qsr = dj.QSR(-29.867, 3.556, 0.601)
+    dj.project(K, qsr, method="clarabel")
+    lines = capsys.readouterr().err.splitlines()
+    assert lines and all(line.startswith("project: solving 4 projection SDP(s) of order 6, ")
+                         for line in lines)
+    with progress.reporting("fit_x", 10, True):
+        capsys.readouterr()
+        progress.INTERVAL = 1e9
+        dj.project(K, qsr, method="clarabel")
+    assert "project:" not in capsys.readouterr().err
+
+
 def test_ico_reports_from_its_host_loop(immediate, capsys):
     w = expert_windows(2, 2, 1, 1, N=6)
     res = dj.fit_ico(jr.PRNGKey(0), w, QSR, num_inits=2, max_steps=3, atol=0.0, rtol=0.0,
@@ -135,8 +158,12 @@ def test_host_loops_report_the_slowest_and_furthest_running_runs(immediate, caps
     host.done(2)
     host.step(0, 6, 1.0)
     lines = _lines(capsys.readouterr().err, "fit_ico")
-    assert lines[1].startswith("fit_ico: steps 0-5 of at most 10, 3 of 3 runs training")
-    assert lines[2].startswith("fit_ico: steps 2-10 of at most 10, 3 of 3 runs training")
+    # runs not started yet (waiting for a thread) are counted apart, not as runs at step 0
+    assert lines[0].startswith("fit_ico: step 5 of at most 10, 1 of 3 runs training "
+                               "(2 waiting for a thread)")
+    assert lines[1].startswith("fit_ico: steps 2-5 of at most 10, 2 of 3 runs training "
+                               "(1 waiting for a thread)")
+    assert lines[2].startswith("fit_ico: steps 2-10 of at most 10, 3 of 3 runs training, ")
     assert lines[3].startswith("fit_ico: steps 2-6 of at most 10, 2 of 3 runs training, "
                                "lowest loss 2.50e-01")
 

@@ -21,6 +21,7 @@ import numpy as np
 from .. import _outcome
 from .._certify import fast as _certify_fast
 from .._controller import LTIController
+from .._progress import working
 from .._rate_scale import rate_factor, scaled_rate
 from .._sdp import sdp as _sdp
 from .._sdp.lmi import cast, certified
@@ -176,43 +177,53 @@ def _host_batch(A, B, C, D, P_ref, WA, WB, WC, WD, active, C0, D0, shard, token=
         keep = certified(A_, B_, C_, D_, qsr, P_)
         codes[todo[keep]] = _UNCHANGED
         todo = todo[~keep]
-    if len(todo):
-        layout = _cache.lmi(qsr, n).layout
-        targets = layout.pack(*(M[todo] for M in flat[:4]))
-        w = layout.pack(*(np.asarray(W, np.float64).reshape((-1,) + W.shape[len(batch):])[todo]
-                          for W in (WA, WB, WC, WD)))
-        w /= w.max(axis=1, keepdims=True)
-        P_tilde = flat[4][todo] if has_ref else np.broadcast_to(np.eye(n), (len(todo), n, n))
-        if _cache.lmi(qsr, n).indefinite:
-            H0 = tuple(np.asarray(M, np.float64).reshape((-1,) + M.shape[len(batch):])[todo]
-                       for M in (C0, D0))
-            solve = partial(_indefinite_solve, qsr, eps=eps, reg=reg, dtype=dtype, shards=shards)
-            sol, codes[todo] = project_rows_indefinite(solve, layout, qsr, targets, P_tilde, H0,
-                                                       w, max(1, refine))
-        else:
-            kw = dict(eps=eps, reg=reg, dtype=dtype, shards=shards)
-            sol, c = _project_rows(qsr, targets, P_tilde, w, 1 if has_ref else max(1, refine), **kw)
-            retry = np.nonzero(c != _SOLVED)[0] if has_ref else ()
-            if len(retry):
-                # A P_ref that leaves the linearised set (almost) empty, e.g. one whose smallest
-                # eigenvalue sits on the margin eps: start again from a multiple of the identity
-                # and re-linearise, as without P_ref.
-                scale = np.trace(P_tilde[retry], axis1=1, axis2=2) / n
-                scale = np.where(np.isfinite(scale) & (scale > 0), scale, 1.0)
-                sol2, c2 = _project_rows(qsr, targets[retry], scale[:, None, None] * np.eye(n),
-                                         w[retry], max(1, refine), **kw)
-                for S, S2 in zip(sol, sol2):
-                    S[retry[c2 == _SOLVED]] = S2[c2 == _SOLVED]
-                c[retry[c2 == _SOLVED]] = _SOLVED
-            codes[todo] = c
-        done = todo[codes[todo] == _SOLVED]
-        for o, M in zip(out, sol):
-            o[done] = M[codes[todo] == _SOLVED]
-        # `certify` of a returned controller then finds its storage without an SDP
-        A_, B_, C_, D_, P_ = (M[codes[todo] == _SOLVED] for M in sol)
-        _certify_fast.remember(A_, B_, C_, D_, qsr, P_)
+    if len(todo):  # minutes at high orders with an indefinite Q: a heartbeat says so
+        with working("project", f"solving {len(todo)} projection SDP(s) of order {n}"):
+            _solve_rows(flat, todo, codes, out, batch, qsr, has_ref, WA, WB, WC, WD, C0,
+                        D0, eps=eps, reg=reg, refine=refine, dtype=dtype, shards=shards)
     return (*(o.reshape(batch + o.shape[1:]).astype(dtype) for o in out),
             codes.reshape(batch))
+
+
+def _solve_rows(flat, todo, codes, out, batch, qsr, has_ref, WA, WB, WC, WD, C0, D0, *,
+                eps, reg, refine, dtype, shards):
+    """`_host_batch`'s projections of the rows `todo` (Clarabel), written into `out` and
+    `codes` in place."""
+    n = flat[0].shape[-1]
+    layout = _cache.lmi(qsr, n).layout
+    targets = layout.pack(*(M[todo] for M in flat[:4]))
+    w = layout.pack(*(np.asarray(W, np.float64).reshape((-1,) + W.shape[len(batch):])[todo]
+                      for W in (WA, WB, WC, WD)))
+    w /= w.max(axis=1, keepdims=True)
+    P_tilde = flat[4][todo] if has_ref else np.broadcast_to(np.eye(n), (len(todo), n, n))
+    if _cache.lmi(qsr, n).indefinite:
+        H0 = tuple(np.asarray(M, np.float64).reshape((-1,) + M.shape[len(batch):])[todo]
+                   for M in (C0, D0))
+        solve = partial(_indefinite_solve, qsr, eps=eps, reg=reg, dtype=dtype, shards=shards)
+        sol, codes[todo] = project_rows_indefinite(solve, layout, qsr, targets, P_tilde, H0,
+                                                   w, max(1, refine))
+    else:
+        kw = dict(eps=eps, reg=reg, dtype=dtype, shards=shards)
+        sol, c = _project_rows(qsr, targets, P_tilde, w, 1 if has_ref else max(1, refine), **kw)
+        retry = np.nonzero(c != _SOLVED)[0] if has_ref else ()
+        if len(retry):
+            # A P_ref that leaves the linearised set (almost) empty, e.g. one whose smallest
+            # eigenvalue sits on the margin eps: start again from a multiple of the identity
+            # and re-linearise, as without P_ref.
+            scale = np.trace(P_tilde[retry], axis1=1, axis2=2) / n
+            scale = np.where(np.isfinite(scale) & (scale > 0), scale, 1.0)
+            sol2, c2 = _project_rows(qsr, targets[retry], scale[:, None, None] * np.eye(n),
+                                     w[retry], max(1, refine), **kw)
+            for S, S2 in zip(sol, sol2):
+                S[retry[c2 == _SOLVED]] = S2[c2 == _SOLVED]
+            c[retry[c2 == _SOLVED]] = _SOLVED
+        codes[todo] = c
+    done = todo[codes[todo] == _SOLVED]
+    for o, M in zip(out, sol):
+        o[done] = M[codes[todo] == _SOLVED]
+    # `certify` of a returned controller then finds its storage without an SDP
+    A_, B_, C_, D_, P_ = (M[codes[todo] == _SOLVED] for M in sol)
+    _certify_fast.remember(A_, B_, C_, D_, qsr, P_)
 
 
 def _indefinite_solve(qsr, targets, P_tilde, weights, H0, **kwargs):
@@ -354,7 +365,9 @@ def project(
       `first_order.AUTO_MIN_ORDER` = 12 states on, and with a `metric` from
       `first_order.AUTO_MIN_ORDER_METRIC` = 12, for $Q\\preceq0$; Clarabel otherwise).
 
-    **Returns:** a [`Projection`][dissil_jax.Projection] `(K_proj, P)` with `.result`.
+    **Returns:** a [`Projection`][dissil_jax.Projection] `(K_proj, P)` with `.result`. (SDPs
+    that take over 10 s, e.g. at high orders with an indefinite $Q$, say so on standard
+    error every 10 s, except inside a trainer, which reports itself.)
 
     ```python
     K_proj, P = dj.project(K, qsr)
