@@ -6,7 +6,7 @@ layout can change behind this one list (as lineax's `internal`).
 
 Modules, for monkeypatching in tests and for benchmarks that time one layer alone:
 `certify_fast`, `certify_sdp`, `direct`, `direct_map`, `ico`, `ico_sdp`, `linalg`, `lmi`, `mlp`, `outcome`,
-`pgd`, `pgd_steps`, `progress`, `projection`, `projection_admm`, `projection_admm_rate`, `projection_cache`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `ren_units`, `rollout`,
+`pgd`, `pgd_steps`, `plant_common`, `progress`, `projection`, `projection_admm`, `projection_admm_rate`, `projection_cache`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `ren_units`, `rollout`,
 `rate_scale`, `sdp`, `units` (the trainers' changes of units), `zoo_build` (the problem zoo's plants, experts and rates); and the functions and constants in
 `__all__`.
 """
@@ -15,6 +15,7 @@ from . import (
     _direct_map as direct_map,
     _linalg as linalg,
     _outcome as outcome,
+    _plant_common as plant_common,
     _progress as progress,
     _rate_scale as rate_scale,
     _rollout as rollout,
@@ -87,7 +88,7 @@ __all__ = [
     "direct_map", "direct_run_unchecked", "ico", "ico_sdp", "ico_step", "init_controllers", "is_indefinite",
     "iterate",
     "kyp_bound_holds", "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",
-    "optimizer_metric", "outcome", "output_factor", "output_ratio", "pgd", "pgd_steps", "progress", "projection", "projection_admm", "projection_admm_rate", "projection_cache", "projection_fo",
+    "optimizer_metric", "outcome", "output_factor", "output_ratio", "pgd", "pgd_steps", "plant_common", "progress", "projection", "projection_admm", "projection_admm_rate", "projection_cache", "projection_fo",
     "ren_certify",
     "ren_controller",
     "ren_map", "ren_train", "ren_units", "rollout", "rate_scale", "units", "scaled", "sdp", "single_threaded_blas", "smat",
