@@ -120,10 +120,18 @@ class QSR(eqx.Module):
             raise ValueError(f"`S` must be m x p with m, p >= 1 (a controller with at least one "
                              f"input and one output), got shape {S.shape}.")
         Q, R = _as_matrix("Q", Q), _as_matrix("R", R)
+        # neither Q nor R agrees with S: S is the odd one out (else the one that disagrees)
+        square = Q.shape[0] == Q.shape[1] and R.shape[0] == R.shape[1]
+        if square and Q.shape[0] != m and R.shape[0] != p and Q.size and R.size:
+            raise ValueError(f"`S` must be {Q.shape[0]}x{R.shape[0]} to match `Q` "
+                             f"({Q.shape[0]}x{Q.shape[0]}) and `R` ({R.shape[0]}x"
+                             f"{R.shape[0]}), got {S.shape}.")
         if Q.shape != (m, m):
-            raise ValueError(f"`Q` must be {m}x{m} to match `S` ({m}x{p}), got {Q.shape}.")
+            raise ValueError(f"`Q` must be {m}x{m} to match `S` ({m}x{p}), got {Q.shape}"
+                             + (f" (or `S` must have {Q.shape[0]} rows)." if square else "."))
         if R.shape != (p, p):
-            raise ValueError(f"`R` must be {p}x{p} to match `S` ({m}x{p}), got {R.shape}.")
+            raise ValueError(f"`R` must be {p}x{p} to match `S` ({m}x{p}), got {R.shape}"
+                             + (f" (or `S` must have {R.shape[0]} columns)." if square else "."))
         for name, M in (("Q", Q), ("R", R)):
             if not np.allclose(M, M.T, atol=_SYM_TOL * max(1.0, np.abs(M).max())):
                 raise ValueError(f"`{name}` must be symmetric; pass ({name} + {name}.T) / 2.")
@@ -188,6 +196,9 @@ class QSR(eqx.Module):
         """
         n_out, n_in = _check_dim("n_out", n_out), _check_dim("n_in", n_in)
         gamma = check_positive("gamma", gamma)
+        if abs(float(gamma)) > np.sqrt(np.finfo(np.float64).max):
+            raise ValueError(f"`gamma` = {gamma!r} is too large: its square, R, overflows "
+                             "float64.")
         return cls(-np.eye(n_out), np.zeros((n_out, n_in)), gamma**2 * np.eye(n_in))
 
     @classmethod
@@ -202,6 +213,9 @@ class QSR(eqx.Module):
         a, b = check_real("a", a), check_real("b", b)
         if not a < b:
             raise ValueError(f"`a` must be smaller than `b`, got a={a}, b={b}.")
+        if max(abs(a), abs(b)) > np.sqrt(np.finfo(np.float64).max):
+            raise ValueError(f"`a` = {a!r} and `b` = {b!r} are too large: their product, R, "
+                             "overflows float64.")
         return cls(-np.eye(dim), 0.5 * (a + b) * np.eye(dim), -a * b * np.eye(dim))
 
     @classmethod
@@ -355,10 +369,36 @@ def closed_loop_certificate(plant_qsr: QSR, controller_qsr: QSR) -> ClosedLoopCe
                                                   options={"xatol": 1e-10}))
         if res.fun < best:
             best_la, best = res.x, res.fun
+        # Brent stops at about sqrt(eps) relative in log(alpha), wider than the feasible
+        # window of a pair at the edge (gain bounds 2 and 0.5 - 1e-9: alpha in (4, 4 +
+        # 1.6e-8)); lambda_max is convex in alpha itself, so a golden-section search there
+        # resolves it to float64
+        la = np.log10(_golden(lambda a: f(np.log10(a)), 10**lo, 10**hi))
+        if f(la) < best:
+            best_la, best = la, f(la)
     scale = 1.0 + np.abs(_theorem1_matrix(plant_qsr, controller_qsr, 10**best_la)).max()
     holds = bool(best < -1e-12 * scale)
     return ClosedLoopCertificate(Outcome.solved if holds else Outcome.no_multiplier,
                                  float(10**best_la))
+
+
+def _golden(g, a: float, b: float, iters: int = 200) -> float:
+    """The minimiser of the convex `g` on [a, b], by golden-section search."""
+    r = (np.sqrt(5.0) - 1) / 2
+    c, d = b - r * (b - a), a + r * (b - a)
+    gc, gd = g(c), g(d)
+    for _ in range(iters):
+        if b - a <= 4 * np.finfo(float).eps * max(abs(a), abs(b)):
+            break
+        if gc < gd:
+            b, d, gd = d, c, gc
+            c = b - r * (b - a)
+            gc = g(c)
+        else:
+            a, c, gc = c, d, gd
+            d = a + r * (b - a)
+            gd = g(d)
+    return c if gc < gd else d
 
 
 def stabilising_qsr(plant_qsr: QSR, *, alpha: float = 1.0, margins=(1e-2, 1e-2)) -> QSR:

@@ -62,6 +62,11 @@ def test_constructor_validation():
         dj.QSR.conic(2.0, 1.0, dim=1)
     with pytest.raises(ValueError, match="`gamma`"):
         dj.QSR.bounded_gain(-1.0, n_in=1, n_out=1)
+    # a square beyond float64 (a raw OverflowError before)
+    with pytest.raises(ValueError, match="`gamma` = 1e\\+200 is too large"):
+        dj.QSR.bounded_gain(1e200, n_in=1, n_out=1)
+    with pytest.raises(ValueError, match="`a` = .* and `b` = .* are too large"):
+        dj.QSR.conic(1e160, 1e170, dim=1)
     with pytest.raises(ValueError, match="`dim`"):
         dj.QSR.passive(0)
     # arrays, strings and complex numbers are named, not left to numpy's own errors
@@ -124,6 +129,13 @@ def test_closed_loop_certificate_rejects_impossible_pair():
     holds, _ = dj.closed_loop_certificate(dj.QSR.bounded_gain(2.0, n_in=1, n_out=1),
                                           dj.QSR.bounded_gain(0.4, n_in=1, n_out=1))
     assert holds
+    # At the edge: gain bounds 2 and 0.5 - 1e-9 leave alpha in (4, 4 + 1.6e-8), narrower
+    # than Brent's tolerance in log(alpha); the search in alpha itself finds it, and the
+    # multiplier returned certifies (M(alpha) = diag(-1 + alpha g^2, 4 - alpha))
+    g = 0.5 - 1e-9
+    cert = dj.closed_loop_certificate(dj.QSR.bounded_gain(2.0, n_in=1, n_out=1),
+                                      dj.QSR.bounded_gain(g, n_in=1, n_out=1))
+    assert cert.holds and max(-1 + cert.alpha * g**2, 4 - cert.alpha) < -1e-9
     # Passive + passive is not strictly enough (zero margin), strictly passive pair works.
     assert not dj.closed_loop_certificate(dj.QSR.passive(1), dj.QSR.passive(1)).holds
     assert dj.closed_loop_certificate(dj.QSR(-0.1, 0.5, -0.1), dj.QSR.passive(1)).holds
