@@ -19,13 +19,13 @@ from ._rollout import (
     rollout as rollout,
 )
 from ._sdp.lmi import kyp_matrix as kyp_matrix
-from ._supply import (
-    QSR as QSR,
+from ._supply import QSR as QSR
+from ._sweep import sweep as sweep
+from ._theorem1 import (
     ClosedLoopCertificate as ClosedLoopCertificate,
     closed_loop_certificate as closed_loop_certificate,
     stabilising_qsr as stabilising_qsr,
 )
-from ._sweep import sweep as sweep
 
 __version__ = "0.1.0"
 

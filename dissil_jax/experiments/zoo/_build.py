@@ -18,7 +18,8 @@ from ..._plant_qsr import (
     passivity_indices,
     sector_plant_qsr,
 )
-from ..._supply import QSR, closed_loop_certificate, stabilising_qsr
+from ..._supply import QSR
+from ..._theorem1 import closed_loop_certificate, stabilising_qsr
 from ...systems import LinearPlant, SectorPlant, mass_spring_chain
 from ..data import initial_segments, sliding_windows
 from ..simulate import Noise, Trajectories, simulate_expert
