@@ -84,6 +84,22 @@ def test_map_is_well_conditioned_near_q_zero():
             assert float(jnp.max(jnp.abs(a - b))) < 1e3 * delta * (1 + float(jnp.max(jnp.abs(b))))
 
 
+def test_a_narrow_cone_far_from_zero_is_feasible():
+    """[1e5, 1e5 + 1]: Phi has entries of 1e10 and one positive eigenvalue of 2.5e-11, below
+    an eigen-decomposition's round-off, so the rate was refused as admitting "no controller
+    of any order", while `certify` proves static and dynamic controllers for it. The count
+    now also goes through the Schur complement R - S'Q^-1 S = (b - a)^2 / 4 when Q < 0.
+    A rate with no positive direction is still refused."""
+    qsr = dj.QSR.conic(1e5, 1e5 + 1, dim=1)
+    dji.check_feasible(qsr)  # no ValueError
+    K = dj.LTIController(np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((1, 0)),
+                         np.array([[1e5 + 0.5]]))
+    assert dj.certify(K, qsr).holds  # the rate admits a controller indeed
+    for bad in (dj.QSR(-1.0, 0.0, -1.0), dj.QSR(-1.0, 1e5, -1e10 - 1.0)):
+        with pytest.raises(ValueError, match="`qsr` is infeasible"):
+            dji.check_feasible(bad)
+
+
 @pytest.mark.parametrize("e", [-24, -12, 12, 24])
 def test_degenerate_cone_with_outputs_in_other_units_is_feasible(e):
     """A degenerate cone (Q = 0, R < 0) with its outputs in units 2^e (the rate the trainers
