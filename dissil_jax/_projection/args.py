@@ -56,7 +56,11 @@ def check_eps_room(qsr: QSR, eps) -> None:
             f"has R + S'D + D'S + D'QD <= R - S'Q^-1 S, whose smallest eigenvalue is "
             f"{room:.3g}, so no controller meets the KYP LMI with this margin. Pass a much "
             f"smaller `eps` (e.g. {room * 1e-4:.1g}), or express the signals in units where "
-            "Q, S and R are of similar size.")
+            "Q, S and R are of similar size."
+            + (" With room this close to float64's round-off, a projection may succeed "
+               "but a trainer's iterates rarely pass the exact check: `dj.fit_direct` "
+               "parameterises such rates without a margin to choose."
+               if room < 1e-8 else ""))
 
 
 def check_k_ref(K: LTIController, K_ref) -> None:
