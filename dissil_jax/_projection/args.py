@@ -58,8 +58,8 @@ def check_eps_room(qsr: QSR, eps) -> None:
             f"smaller `eps` (e.g. {room * 1e-4:.1g}), or express the signals in units where "
             "Q, S and R are of similar size."
             + (" With room this close to float64's round-off, a projection may succeed "
-               "but a trainer's iterates rarely pass the exact check: `dj.fit_direct` "
-               "parameterises such rates without a margin to choose."
+               "but a trainer's iterates rarely pass the exact check; `dj.fit_direct`, "
+               "whose `margin` is relative to the room, trains such rates."
                if room < 1e-8 else ""))
 
 
