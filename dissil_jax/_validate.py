@@ -138,5 +138,5 @@ def check_callback_dtype(dtype, fn: str) -> None:
             "which run on XLA's threads, and `jax.enable_x64(True)` sets float64 for the "
             f"calling thread only: the {np.dtype(dtype).name} projections would come back "
             "as float32. Enable float64 for the whole process "
-            "(`jax.config.update('jax_enable_x64', True)` or the environment variable "
+            "(`jax.config.update(\"jax_enable_x64\", True)` or the environment variable "
             "JAX_ENABLE_X64=1), or pass float32 data.")
