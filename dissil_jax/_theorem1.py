@@ -117,34 +117,17 @@ def closed_loop_certificate(plant_qsr: QSR, controller_qsr: QSR) -> ClosedLoopCe
             best_la, best = res.x, res.fun
         # Brent stops at about sqrt(eps) relative in log(alpha), wider than the feasible
         # window of a pair at the edge (gain bounds 2 and 0.5 - 1e-9: alpha in (4, 4 +
-        # 1.6e-8)); lambda_max is convex in alpha itself, so a golden-section search there
-        # resolves it to float64
-        la = np.log10(_golden(lambda a: f(np.log10(a)), 10**lo, 10**hi))
-        if f(la) < best:
-            best_la, best = la, f(la)
+        # 1.6e-8)); lambda_max is convex in alpha itself, so scipy's golden-section search
+        # there, with a relative tolerance near float64's, resolves it
+        g = lambda a: np.linalg.eigvalsh(_theorem1_matrix(plant_qsr, controller_qsr, a))[-1]
+        res = cast(scipy.optimize.OptimizeResult, scipy.optimize.minimize_scalar(
+            g, bracket=(10**lo, 10**hi), method="golden", options={"xtol": 1e-15}))
+        if res.x > 0 and res.fun < best:
+            best_la, best = float(np.log10(res.x)), float(res.fun)
     scale = 1.0 + np.abs(_theorem1_matrix(plant_qsr, controller_qsr, 10**best_la)).max()
     holds = bool(best < -1e-12 * scale)
     return ClosedLoopCertificate(Outcome.solved if holds else Outcome.no_multiplier,
                                  float(10**best_la))
-
-
-def _golden(g, a: float, b: float, iters: int = 200) -> float:
-    """The minimiser of the convex `g` on [a, b], by golden-section search."""
-    r = (np.sqrt(5.0) - 1) / 2
-    c, d = b - r * (b - a), a + r * (b - a)
-    gc, gd = g(c), g(d)
-    for _ in range(iters):
-        if b - a <= 4 * np.finfo(float).eps * max(abs(a), abs(b)):
-            break
-        if gc < gd:
-            b, d, gd = d, c, gc
-            c = b - r * (b - a)
-            gc = g(c)
-        else:
-            a, c, gc = c, d, gd
-            d = a + r * (b - a)
-            gd = g(d)
-    return c if gc < gd else d
 
 
 def stabilising_qsr(plant_qsr: QSR, *, alpha: float = 1.0, margins=(1e-2, 1e-2)) -> QSR:

@@ -9,7 +9,7 @@ import numpy as np
 
 from .._controller import LTIController
 from .._rate_scale import rate_factor, scaled_rate
-from .._sdp.indefinite import check_feasible
+from .._sdp.indefinite import check_feasible, schur_complement
 from .._supply import QSR
 from .._validate import check_int, check_positive
 
@@ -45,11 +45,10 @@ def check_eps_room(qsr: QSR, eps) -> None:
     if isinstance(eps, jax.core.Tracer) or isinstance(qsr.Q, jax.core.Tracer):
         return
     qsr = scaled_rate(qsr, rate_factor(qsr))  # the margin applies to the rate as solved
-    Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
-    w = np.linalg.eigvalsh((Q + Q.T) / 2)
-    if w.size == 0 or w[-1] >= -1e-12 * max(1.0, float(np.abs(w).max())):
+    found = schur_complement(qsr, 1e-12)
+    if found is None:
         return  # Q not negative definite
-    room = float(np.linalg.eigvalsh(R - S.T @ np.linalg.solve(Q, S))[0])
+    room = float(np.linalg.eigvalsh(found[0])[0])
     if 0 < room <= float(eps):
         raise ValueError(
             f"`eps` = {float(eps):.3g} is not below the supply rate's room: every feedthrough "

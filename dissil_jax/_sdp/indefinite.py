@@ -78,14 +78,25 @@ def _positive_by_schur(qsr: QSR) -> int:
     of $10^{10}$ and one positive eigenvalue of $2.5\cdot10^{-11}$, below the round-off of
     an eigen-decomposition of $\Phi$; its Schur complement, $(b - a)^2/4 = 0.25$, is
     computed with an error of about $\varepsilon\lVert S\rVert^2\lVert Q^{-1}\rVert$."""
-    Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
-    q = np.linalg.eigvalsh(Q)
-    if not q.size or q[-1] >= -_TOL * max(1.0, float(np.abs(q).max())):
+    found = schur_complement(qsr, _TOL)
+    if found is None:
         return 0
+    schur, q_max = found
+    noise = 64 * np.finfo(np.float64).eps * (np.abs(qsr.R).max(initial=0.0)
+                                             + np.abs(qsr.S).max(initial=0.0) ** 2 / -q_max)
+    return int(np.sum(np.linalg.eigvalsh(schur) > noise))
+
+
+def schur_complement(qsr: QSR, tol: float):
+    """`(R - S'Q^-1 S, lambda_max(Q))` (symmetrised) when $Q\prec0$ beyond `tol` relative,
+    else None: the input block's largest value over all feedthroughs, $\Phi(D)\preceq
+    R - S^\top Q^{-1}S$ (the feasibility count and the margin's room use it)."""
+    Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
+    q = np.linalg.eigvalsh((Q + Q.T) / 2)
+    if not q.size or q[-1] >= -tol * max(1.0, float(np.abs(q).max())):
+        return None
     schur = R - S.T @ np.linalg.solve(Q, S)
-    noise = 64 * np.finfo(np.float64).eps * (np.abs(R).max(initial=0.0)
-                                             + np.abs(S).max(initial=0.0) ** 2 / -q[-1])
-    return int(np.sum(np.linalg.eigvalsh((schur + schur.T) / 2) > noise))
+    return (schur + schur.T) / 2, float(q[-1])
 
 
 def static_point(qsr: QSR, near=None) -> np.ndarray:
