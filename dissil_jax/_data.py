@@ -69,6 +69,8 @@ class Windows(eqx.Module):
     $$h \\ge \\lceil\\hat n/m\\rceil + \\lceil\\hat n/p\\rceil + 1
     \\qquad (h \\ge 2\\hat n + 1 \\text{ for one input and one output}).$$
 
+    The trainers warn when windows from rest are shorter than that.
+
     With `x0=None`, `x0` stays None, `n_state` is None (the controller order is a free
     choice: the trainers take it as `n_state=`) and the number of windows comes from `y`.
 

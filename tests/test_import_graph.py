@@ -142,3 +142,30 @@ def test_no_private_imports_outside_the_package(folder):
     found = {str(p.relative_to(ROOT)): _private_imports(p)
              for p in sorted((ROOT / folder).rglob("*.py"))}
     assert {k: v for k, v in found.items() if v} == {}
+
+
+@pytest.mark.parametrize("folder", ["dissil_jax", "tests", "benchmarks", "examples"])
+def test_sources_compile_without_warnings(folder):
+    # The docstrings carry LaTeX in non-raw strings, so every backslash is doubled. A single
+    # one is either an invalid escape ("\\P": a SyntaxWarning on import, an error under
+    # `python -W error`) or, worse, a valid one that silently changes the text ("\\top" is
+    # a tab and "op", "\\beta" a backspace): no string constant holds such a control
+    # character.
+    import warnings
+
+    bad = {}
+    for path in sorted((ROOT / folder).rglob("*.py")):
+        name, text = str(path.relative_to(ROOT)), path.read_text()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            try:
+                tree = compile(text, name, "exec", ast.PyCF_ONLY_AST)
+            except SyntaxError as err:
+                bad[name] = str(err)
+                continue
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str):
+                found = set(node.value) & {chr(c) for c in (7, 8, 9, 11, 12, 13)}
+                if found:
+                    bad[f"{name}:{node.lineno}"] = f"control characters {sorted(found)}"
+    assert bad == {}

@@ -91,11 +91,42 @@ def test_check_n_state(getkey):
     for bad in (0, -1, 1.5, True, "2", np.ones(2)):
         with pytest.raises(ValueError, match="`n_state` must be a positive integer"):
             check_n_state(rest, bad)
-    assert check_n_state(rest, 3) == 3 and check_n_state(rest, np.int64(1)) == 1
-    assert type(check_n_state(rest, np.int64(1))) is int
+    assert check_n_state(rest, 3, warn=False) == 3
+    assert type(check_n_state(rest, np.int64(1), warn=False)) is int
     assert check_n_state(logged, None) == 2 and check_n_state(logged, 2) == 2
     with pytest.raises(ValueError, match="`n_state` = 3 but `windows.x0` has width 2"):
         check_n_state(logged, 3)
+
+
+@pytest.mark.parametrize("n_hat, p, m, need", [(1, 1, 1, 3), (3, 1, 1, 7), (6, 2, 2, 7),
+                                                (5, 3, 1, 8), (4, 1, 4, 6)])
+def test_short_windows_from_rest_warn(getkey, n_hat, p, m, need):
+    # From rest an h-step window fixes D and h - 1 Markov parameters; a generic order-n̂
+    # controller with p inputs and m outputs needs ceil(n̂/m) + ceil(n̂/p) of them.
+    import warnings
+
+    for h in (need - 1, need):
+        rest = random_windows(getkey(), 3, h, n=None, p=p, m=m, gain=None)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            assert check_n_state(rest, n_hat) == n_hat
+        texts = [str(w.message) for w in caught]
+        if h < need:
+            assert len(texts) == 1 and f"needs h >= {need}" in texts[0], texts
+        else:
+            assert texts == []
+    # Windows with a recorded state never warn: the state fixes the rest.
+    logged = random_windows(getkey(), 3, 1, n=n_hat, p=p, m=m, gain=None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_n_state(logged, n_hat)
+
+
+def test_fit_warns_once_at_the_callers_line_for_short_windows_from_rest(getkey):
+    rest = random_windows(getkey(), 4, 2, n=None, p=1, m=1, gain=0.5)
+    with pytest.warns(UserWarning, match="needs h >= 5") as caught:
+        dj.fit_gd(getkey(), rest, n_state=2, num_inits=1, max_steps=2)
+    assert [w.filename for w in caught] == [__file__]
 
 
 @pytest.mark.parametrize("n_hat", [1, 3])

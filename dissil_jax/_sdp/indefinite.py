@@ -72,12 +72,12 @@ def check_feasible(qsr: QSR) -> None:
 
 
 def _positive_by_schur(qsr: QSR) -> int:
-    """The positive eigenvalues of $\Phi$ counted through the Schur complement when
-    $Q\prec0$ (Haynsworth: inertia$(\Phi)$ = inertia$(Q)$ + inertia$(R - S^\top Q^{-1}S)$),
-    0 otherwise. A narrow cone far from zero, $[10^5, 10^5 + 1]$, has $\Phi$ with entries
-    of $10^{10}$ and one positive eigenvalue of $2.5\cdot10^{-11}$, below the round-off of
-    an eigen-decomposition of $\Phi$; its Schur complement, $(b - a)^2/4 = 0.25$, is
-    computed with an error of about $\varepsilon\lVert S\rVert^2\lVert Q^{-1}\rVert$."""
+    """The positive eigenvalues of $\\Phi$ counted through the Schur complement when
+    $Q\\prec0$ (Haynsworth: inertia$(\\Phi)$ = inertia$(Q)$ + inertia$(R - S^\\top Q^{-1}S)$),
+    0 otherwise. A narrow cone far from zero, $[10^5, 10^5 + 1]$, has $\\Phi$ with entries
+    of $10^{10}$ and one positive eigenvalue of $2.5\\cdot10^{-11}$, below the round-off of
+    an eigen-decomposition of $\\Phi$; its Schur complement, $(b - a)^2/4 = 0.25$, is
+    computed with an error of about $\\varepsilon\\lVert S\\rVert^2\\lVert Q^{-1}\\rVert$."""
     found = schur_complement(qsr, _TOL)
     if found is None:
         return 0
@@ -88,9 +88,9 @@ def _positive_by_schur(qsr: QSR) -> int:
 
 
 def schur_complement(qsr: QSR, tol: float):
-    """`(R - S'Q^-1 S, lambda_max(Q))` (symmetrised) when $Q\prec0$ beyond `tol` relative,
-    else None: the input block's largest value over all feedthroughs, $\Phi(D)\preceq
-    R - S^\top Q^{-1}S$ (the feasibility count and the margin's room use it)."""
+    """`(R - S'Q^-1 S, lambda_max(Q))` (symmetrised) when $Q\\prec0$ beyond `tol` relative,
+    else None: the input block's largest value over all feedthroughs, $\\Phi(D)\\preceq
+    R - S^\\top Q^{-1}S$ (the feasibility count and the margin's room use it)."""
     Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
     q = np.linalg.eigvalsh((Q + Q.T) / 2)
     if not q.size or q[-1] >= -tol * max(1.0, float(np.abs(q).max())):

@@ -162,7 +162,7 @@ def check_optimizer(optimizer, rule: str, **step_args) -> bool:
     return True
 
 
-def check_n_state(windows: Windows, n_state) -> int:
+def check_n_state(windows: Windows, n_state, warn: bool = True) -> int:
     """The controller order $\\hat n$ a trainer should use for `windows`.
 
     With recorded plant states (`windows.x0` `[N, n]`) every window starts the controller at
@@ -177,7 +177,8 @@ def check_n_state(windows: Windows, n_state) -> int:
 
     **Returns:** $\\hat n$ (an int). Raises a ValueError naming `n_state` when it is missing
     for windows that start at rest, is not a positive integer, or disagrees with
-    `windows.n_state`.
+    `windows.n_state`. Warns (unless `warn` is False) when windows from rest are shorter
+    than `rest_horizon`: they then leave part of the controller unfitted.
     """
     if n_state is None:
         if windows.n_state is None:  # the windows start at rest (`x0` None)
@@ -194,4 +195,27 @@ def check_n_state(windows: Windows, n_state) -> int:
             "`n_state`, or build the windows with `dj.Windows(None, y, u)` to start a "
             "controller of any order at rest."
         )
+    if warn and windows.x0 is None:
+        _warn_short_from_rest(windows, n_state)
     return n_state
+
+
+def rest_horizon(n_state: int, n_in: int, n_out: int) -> int:
+    """The shortest horizon $h$ at which windows from rest determine a generic
+    order-$\\hat n$ controller with `n_in` inputs and `n_out` outputs:
+    $\\lceil\\hat n/m\\rceil + \\lceil\\hat n/p\\rceil + 1$ (`dj.Windows`, "Window length
+    from rest")."""
+    return -(-n_state // n_out) + -(-n_state // n_in) + 1
+
+
+def _warn_short_from_rest(windows: Windows, n_state: int) -> None:
+    h, need = windows.horizon, rest_horizon(n_state, windows.n_in, windows.n_out)
+    if h < need:
+        warn_user(
+            f"`windows` start at rest (x0 None) with horizon h = {h}: they show an order-"
+            f"{n_state} controller's D and only its first {h - 1} Markov parameters "
+            f"(CB, CAB, ...), and a generic order-{n_state} controller needs h >= {need} to "
+            "be determined by them. The rest of the trained controller is fitted by nothing "
+            "but still acts in closed loop. Use longer windows or a smaller `n_state` "
+            "(`dj.Windows`, \"Window length from rest\")."
+        )

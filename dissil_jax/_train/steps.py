@@ -92,7 +92,7 @@ def default_rule(optimizer, learning_rate, decay, gd_windows=None, n_state=None)
     width (`gd_learning_rate`)."""
     if optimizer is None and learning_rate is None and decay is None:
         if isinstance(gd_windows, Windows):  # other input is refused by the argument checks
-            return _adam(gd_learning_rate(check_n_state(gd_windows, n_state),
+            return _adam(gd_learning_rate(check_n_state(gd_windows, n_state, warn=False),
                                           gd_windows.n_in))
         return _ADAM
     return optimizer
