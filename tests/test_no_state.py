@@ -88,7 +88,9 @@ def test_check_n_state(getkey):
     logged = random_windows(getkey(), 3, 2, n=None, p=1, m=1, gain=None, x0=jnp.ones((3, 2)))
     with pytest.raises(ValueError, match="`n_state` is required when `windows.x0` is None"):
         check_n_state(rest, None)
-    for bad in (0, -1, 1.5, True, "2", np.ones(2)):
+    with pytest.raises(ValueError, match="got 0: the trainers fit dynamic controllers"):
+        check_n_state(rest, 0)
+    for bad in (-1, 1.5, True, "2", np.ones(2), False):
         with pytest.raises(ValueError, match="`n_state` must be a positive integer"):
             check_n_state(rest, bad)
     assert check_n_state(rest, 3, warn=False) == 3

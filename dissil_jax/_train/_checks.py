@@ -187,6 +187,13 @@ def check_n_state(windows: Windows, n_state, warn: bool = True) -> int:
                 "rest (x̂0 = 0), so the data do not fix its order; pass e.g. `n_state=2`."
             )
         return windows.n_state
+    if not isinstance(n_state, bool) and np.ndim(n_state) == 0 and n_state == 0:
+        raise ValueError(
+            "`n_state` must be a positive integer, got 0: the trainers fit dynamic "
+            "controllers, whose certificate has a storage P of order n_state. A static gain "
+            "ŷ = Dû is checked by `dj.certify` (order 0: the test is then "
+            "R + S'D + D'S + D'QD > 0, no storage)."
+        )
     n_state = check_int("n_state", n_state)
     if windows.x0 is not None and n_state != windows.n_state:
         raise ValueError(
