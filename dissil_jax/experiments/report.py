@@ -10,13 +10,9 @@ from typing import Any
 
 import numpy as np
 
+from ._figures import DATA_TITLES, plot_figures
 from ._paper import FIGURES, SEGMENTS, TABLES
 from .protocol import METHOD_LABELS, METHODS
-
-_COLORS = {"ico": "#0047ab", "ico_nc": "#00bfff", "pgd": "#ff4000", "gd": "#ffa600",
-           "mlp": "#c05fa8", "direct": "#2e8b57",
-           "ren": "#8b4513"}
-_DATA_TITLES = {"initial": "Initial segments", "sliding": "Sliding window"}
 
 
 def _key(r: dict):
@@ -146,7 +142,7 @@ def tables_markdown(records: list[dict]) -> str:
         by = {(r["method"], r["segments"]): r for r in rows}
         paper = TABLES.get((example, data), {})
         pseg = SEGMENTS[example]
-        out += [f"## {example.capitalize()} example — {_DATA_TITLES[data].lower()}", ""]
+        out += [f"## {example.capitalize()} example — {DATA_TITLES[data].lower()}", ""]
         counts = ", ".join(
             f"{METHOD_LABELS[m]} {r['controllers']} ({r['plants']} plant(s) × {r['inits']})"
             for m in methods for r in [next(r for r in rows if r["method"] == m)]
@@ -169,7 +165,7 @@ def tables_markdown(records: list[dict]) -> str:
                          if m in paper and s in pseg else None)
                     cells.append(f"**{ours}** ({_fmt(p, kind)})")
             out.append(f"| {METHOD_LABELS[m]} | " + " | ".join(cells) + " |")
-        out += ["", f"Test MSE ({example}, {_DATA_TITLES[data].lower()}): median (paper's "
+        out += ["", f"Test MSE ({example}, {DATA_TITLES[data].lower()}): median (paper's "
                 "median), quartiles and worst controller; % bounded (the weaker verdict, "
                 "equal to % stable where the test is exact) and the test horizon in steps.", ""]
         out += ["| method | N | median | paper median | q1 | q3 | max | paper max | % bounded "
@@ -199,77 +195,6 @@ def _steps(steps) -> str:
         return "–"
     lo, hi = min(steps), max(steps)
     return f"{lo}" if lo == hi else f"{lo}–{hi}"
-
-
-def _finite_or_ceiling(values, ceiling):
-    v = np.asarray(values, np.float64)
-    return np.where(np.isfinite(v), v, ceiling), ~np.isfinite(v)
-
-
-def plot_figures(records: list[dict], out_dir: pathlib.Path) -> list[pathlib.Path]:
-    """Figures 1-6 of the paper: median, worst and quartile test MSE against N.
-
-    One PNG per (example, statistic), one panel per data regime; solid lines are ours,
-    dashed lines the paper's (read from its figure data); unstable (infinite) values are
-    drawn as crosses on the top edge of the panel.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out_dir = pathlib.Path(out_dir)
-    paths = []
-    for example in sorted({r["example"] for r in records}):
-        datas = [d for d in ("initial", "sliding")
-                 if any(r["example"] == example and r["data"] == d for r in records)]
-        for stat, title in (("median", "Median"), ("max", "Worst"),
-                            ("quartiles", "Quartiles (q1-median-q3)")):
-            # at least 9 inches wide: one panel's width clipped the figure's title
-            fig, axes = plt.subplots(1, len(datas), figsize=(max(9.0, 6.5 * len(datas)), 4.6),
-                                     squeeze=False)
-            for ax, data in zip(axes[0], datas):
-                rows = [r for r in records if r["example"] == example and r["data"] == data]
-                finite = [r[f"mse_{k}"] for r in rows for k in ("median", "max", "q1", "q3")
-                          if np.isfinite(r[f"mse_{k}"])]
-                ceiling = 10 * max(finite) if finite else 1.0
-                for m in METHODS:
-                    mr = sorted((r for r in rows if r["method"] == m), key=lambda r: r["segments"])
-                    if not mr:
-                        continue
-                    x = np.array([r["segments"] for r in mr], float)
-                    col = _COLORS[m]
-                    key = "mse_median" if stat != "max" else "mse_max"
-                    y, inf = _finite_or_ceiling([r[key] for r in mr], ceiling)
-                    label = METHOD_LABELS[m]  # "Direct (ours)" is ours already
-                    label = label if "(ours)" in label else f"{label} (ours)"
-                    ax.plot(x[~inf], y[~inf], "-o", color=col, label=label)
-                    ax.plot(x[inf], y[inf], "x", color=col, ms=10, mew=2)
-                    if stat == "quartiles":
-                        lo, _ = _finite_or_ceiling([r["mse_q1"] for r in mr], ceiling)
-                        hi, _ = _finite_or_ceiling([r["mse_q3"] for r in mr], ceiling)
-                        ax.fill_between(x, lo, hi, color=col, alpha=0.15)
-                    ref = dict(FIGURES.get((example, data, stat), {})).get(m)
-                    if ref:
-                        px = np.array([p[0] for p in ref], float)
-                        py = np.array([p[1][1] if stat == "quartiles" else p[1] for p in ref])
-                        keep = py < ceiling
-                        ax.plot(px[keep], py[keep], "--", color=col, alpha=0.7, lw=1.2,
-                                label=f"{METHOD_LABELS[m]} (paper)")
-                ax.set_yscale("log")
-                ax.set_xlabel("number of training segments N")
-                ax.set_ylabel("test MSE of plant states vs expert")
-                ax.set_title(f"{_DATA_TITLES[data]}")
-                ax.grid(True, which="both", alpha=0.3)
-                ax.legend(fontsize=8)
-            fig.suptitle(f"{example.capitalize()} example: {title} test MSE over controllers "
-                         "(× = unstable, ∞)")
-            fig.tight_layout()
-            path = out_dir / f"{example}_{stat}.png"
-            fig.savefig(path, dpi=110)
-            plt.close(fig)
-            paths.append(path)
-    return paths
 
 
 def write_report(records: list[dict], out_dir) -> tuple[pathlib.Path, list[pathlib.Path]]:
