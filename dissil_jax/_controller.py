@@ -10,7 +10,7 @@ import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ._validate import check_abcd, check_int, check_precision, has_non_finite
+from ._validate import check_abcd, check_int, check_key, check_precision, has_non_finite
 
 
 def _collect_systems(sys) -> tuple[tuple[int, ...], list]:
@@ -28,7 +28,7 @@ def _collect_systems(sys) -> tuple[tuple[int, ...], list]:
 
 def _statespace_matrices(sys) -> tuple[np.ndarray, ...]:
     """`(A, B, C, D)` (float64) of one discrete-time StateSpace; refuses continuous ones."""
-    if not all(hasattr(sys, k) for k in "ABCD"):
+    if isinstance(sys, LTIController) or not all(hasattr(sys, k) for k in "ABCD"):
         raise ValueError(f"`sys` must be a `control.StateSpace` (with matrices A, B, C, D), "
                          f"got {type(sys).__name__}; convert a transfer function with "
                          "`control.ss(sys)`.")
@@ -156,6 +156,7 @@ class LTIController(eqx.Module):
                                                             and 0 <= float(scale) < np.inf):
             raise ValueError(f"`scale` must be a finite number >= 0 (a standard deviation), "
                              f"got {scale!r}.")
+        check_key(key)
         dtype = dtype or jnp.result_type(float)
         kA, kB, kC, kD = jr.split(key, 4)
         shapes = ((n, n), (n, n_in), (n_out, n), (n_out, n_in))

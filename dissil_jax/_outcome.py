@@ -125,7 +125,8 @@ def codes(outcome):
 
 def names(outcome) -> list | str:
     """An `Outcome` item (or codes) decoded into item names (nested lists when batched)."""
-    return np.asarray(NAMES, dtype=object)[np.asarray(codes(outcome))].tolist()
+    found = np.asarray(NAMES, dtype=object)[np.asarray(codes(outcome))]
+    return found.tolist() if isinstance(found, np.ndarray) else str(found)
 
 
 def is_in(codes_, names_) -> np.ndarray | jax.Array:

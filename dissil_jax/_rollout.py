@@ -33,8 +33,7 @@ def observability_toeplitz(
     (time-major blocks), where `batch` is `K.batch_shape` (empty for one controller).
     """
     horizon = check_int("horizon", horizon)
-    if not isinstance(K, LTIController):
-        raise ValueError(f"`K` must be a `dj.LTIController`, got {type(K).__name__}.")
+    check_lti(K)
     fn = functools.partial(_observability_toeplitz, horizon=horizon)
     for _ in K.batch_shape:
         fn = jax.vmap(fn)
@@ -71,10 +70,15 @@ def rollout(
     Raises a ValueError when `K` is not an `LTIController` (a REN has `ren_rollout`) or
     when `x0` or `u_in` do not have the controller's sizes.
     """
+    check_lti(K)
+    return scan_outputs(K, x0, u_in)
+
+
+def check_lti(K) -> None:
+    """A ValueError naming `K` unless it is an `LTIController` (a REN has its own tools)."""
     if not isinstance(K, LTIController):
         raise ValueError(f"`K` must be a `dj.LTIController`, got {type(K).__name__} (for a "
-                         "REN use `dj.ren_rollout`).")
-    return scan_outputs(K, x0, u_in)
+                         "REN use `dj.ren_rollout`, `dj.ren_predict`, `dj.ren_imitation_loss`).")
 
 
 def scan_outputs(K, x0, u_in, name: str = "dj.rollout"):
@@ -149,8 +153,10 @@ def predict(K: LTIController, windows: Windows) -> Float[Array, "N h m"]:
     **Returns:** `[N, h, m]`. Raises a ValueError when `windows.y`, `windows.u` or
     `windows.x0` do not have `K.n_in`, `K.n_out` or `K.n_state` columns.
     """
+    check_lti(K)
     if K.batch_shape:
-        raise ValueError("`K` must be a single controller; vmap `predict` for batches.")
+        raise ValueError("`K` must be a single controller; vmap `predict` or `imitation_loss` "
+                         "for batches.")
     check_window_sizes(K, windows)
     h, N = windows.horizon, windows.num_windows
     if h <= _TOEPLITZ_MAX_HORIZON:

@@ -14,6 +14,8 @@ input is the plant output and the output is (minus) the plant input.
 from __future__ import annotations
 
 import equinox as eqx
+import jax
+import jax.core
 import numpy as np
 
 from ._validate import check_int, check_positive, check_real
@@ -22,6 +24,13 @@ _SYM_TOL = 1e-9
 
 
 def _as_matrix(name: str, value, shape: tuple[int, int] | None = None) -> np.ndarray:
+    if isinstance(value, jax.core.Tracer):
+        raise ValueError(
+            f"`{name}` is traced (inside `jax.vmap`, `jax.jit` or `jax.grad`), but a `QSR` is "
+            "static host data in float64 that the certificates are checked against, so it "
+            "cannot be built from traced values: build each `QSR` outside the "
+            "transformation and loop over rates in Python (see `dj.QSR`, \"Many rates in one "
+            "process\").")
     try:
         raw = np.asarray(value)
         arr = None if np.iscomplexobj(raw) else raw.astype(np.float64)

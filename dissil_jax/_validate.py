@@ -71,6 +71,24 @@ def check_real(name: str, value, what: str = "a finite real number") -> float:
     return v
 
 
+def real_array(name: str, value) -> np.ndarray:
+    """`value` as a float64 numpy array, or a ValueError naming `name` when it is not an
+    array of real numbers (complex values, whose imaginary part numpy would drop with only a
+    warning, strings, bools, objects)."""
+    if isinstance(value, jax.core.Tracer):
+        raise ValueError(f"`{name}` is traced (inside `jax.jit`, `jax.vmap` or `jax.grad`), "
+                         "but this check runs on the host in float64: call it on concrete "
+                         "arrays, outside the transformation.")
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is None or arr.dtype.kind not in "fiu":
+        got = f"dtype {arr.dtype}" if arr is not None else type(value).__name__
+        raise ValueError(f"`{name}` must be an array of real numbers, got {got}.")
+    return arr.astype(np.float64)
+
+
 def check_positive(name: str, value, *, zero: bool = False) -> float:
     """A finite positive (with `zero`, non-negative) real number, or a ValueError naming it."""
     v = real_scalar(value)
@@ -140,3 +158,19 @@ def check_callback_dtype(dtype, fn: str) -> None:
             "as float32. Enable float64 for the whole process "
             "(`jax.config.update(\"jax_enable_x64\", True)` or the environment variable "
             "JAX_ENABLE_X64=1), or pass float32 data.")
+
+
+def check_key(key) -> None:
+    """A JAX PRNG key (raw `uint32` or typed), or a `ValueError` naming `key`; traced keys
+    (a vmapped sweep over keys) pass."""
+    if isinstance(key, jax.core.Tracer):
+        return
+    dtype = getattr(key, "dtype", None)
+    typed = dtype is not None and jnp.issubdtype(dtype, jax.dtypes.prng_key)
+    # a raw key is `uint32[2]` (threefry) or `uint32[4]` (rbg); leading batch axes are not
+    # one key
+    raw = (dtype is not None and not typed and np.dtype(dtype) == np.uint32
+           and np.ndim(key) == 1 and np.shape(key)[0] in (2, 4))
+    if not (typed or raw):
+        raise ValueError(f"`key` must be a JAX PRNG key such as `jax.random.PRNGKey(0)` or "
+                         f"`jax.random.key(0)`, got {key!r}.")

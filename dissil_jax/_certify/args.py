@@ -9,6 +9,7 @@ import numpy as np
 
 from .._controller import LTIController
 from .._supply import QSR
+from .._validate import real_array
 
 
 def controller_arrays(K: LTIController, qsr: QSR):
@@ -34,7 +35,7 @@ _SYMMETRY_RTOL = 1e-5
 def storage_arg(name, P, batch, n, *, members: bool = False):
     """`P` checked (shape, finite, symmetric) and broadcast to the batch. With `members`, a
     batch's non-finite members pass (the caller judges them `non_finite`)."""
-    P = np.asarray(P, np.float64)
+    P = real_array(name, P)
     if P.shape not in ((n, n), batch + (n, n)):
         expected = f"{n}x{n}" + (f" or {batch + (n, n)}" if batch else "")
         raise ValueError(f"`{name}` must be {expected}, got {P.shape}.")

@@ -69,6 +69,10 @@ class Certificate(eqx.Module):
         ok = np.asarray(self.result == Outcome.solved)
         return bool(ok) if ok.ndim == 0 else ok
 
+    def result_names(self) -> str | list:
+        """`result` decoded into `Outcome` names: a `str`, nested lists when batched."""
+        return _outcome.names(self.result)
+
     @property
     def status(self) -> str | np.ndarray:
         """The former name of `source`."""

@@ -11,7 +11,7 @@ from .._controller import LTIController
 from .._rate_scale import rate_factor, scaled_rate
 from .._sdp.indefinite import check_feasible, schur_complement
 from .._supply import QSR
-from .._validate import check_int, check_positive
+from .._validate import check_int, check_positive, real_array
 
 
 def check_qsr(K: LTIController, qsr: QSR) -> None:
@@ -104,13 +104,15 @@ def check_options(K: LTIController, P_ref, active, eps, reg, refine, metric=None
                          f"{K.batch_shape} of `K`, got shape {jnp.shape(active)}.")
     if P_ref is None:
         return
-    n, shape = K.n_state, jnp.shape(P_ref)
+    n, shape = K.n_state, np.shape(P_ref)
     if shape not in ((n, n), K.batch_shape + (n, n)):
         raise ValueError(f"`P_ref` must be {n}x{n} (shared by the batch) or "
                          f"{K.batch_shape + (n, n)} (one per controller), got {shape}.")
     if isinstance(P_ref, jax.core.Tracer):
+        if jnp.iscomplexobj(P_ref):
+            raise ValueError("`P_ref` must be an array of real numbers, got complex values.")
         return
-    P = np.asarray(P_ref, np.float64)
+    P = real_array("P_ref", P_ref)
     sym = (P + np.swapaxes(P, -1, -2)) / 2
     if not np.all(np.isfinite(P)):
         raise ValueError("`P_ref` contains NaN or inf.")

@@ -387,7 +387,7 @@ def project(
         qsr = scaled_rate(qsr, k)
     first_order = _projection_fo.use_first_order(method, K.n_state, metric is not None, qsr)
     _check_k_ref(K, K_ref)
-    P_ref = None if P_ref is None else P_ref / k
+    P_ref = None if P_ref is None else jnp.asarray(P_ref) / k  # checked real above
     fn = partial(partial(_project_fo_cold, weighted=metric is not None) if first_order else
                  _project_one, qsr=qsr, eps=eps, reg=reg, refine=refine)
     W = jax.tree.map(jnp.ones_like, K) if metric is None else metric

@@ -38,6 +38,11 @@ class Projection(eqx.Module):
     def __getitem__(self, i: int) -> Any:
         return (self.controller, self.P)[i]
 
+    def result_names(self) -> str | list:
+        """`result` decoded into `Outcome` names: a `str`, nested lists when batched (the
+        same as `dj.Outcome[result]` for one projection, which is not per member)."""
+        return _outcome.names(self.result)
+
 
 def raise_on_failure(P, codes):
     """`throw=True`: a ValueError eagerly; under `jax.jit` a `JaxRuntimeError` (an

@@ -11,6 +11,7 @@ from numpy.typing import ArrayLike
 
 from .._rate_scale import rate_factor
 from .._supply import QSR
+from .._validate import real_array
 from .indefinite import split_q
 from .sdp import Layout
 
@@ -25,8 +26,10 @@ def kyp_matrix(A, B, C, D, qsr: QSR, P) -> np.ndarray:
     $$\\begin{bmatrix} A^\\top PA - P - C^\\top QC & A^\\top PB - C^\\top S - C^\\top QD \\\\
     \\ast & B^\\top PB - D^\\top QD - D^\\top S - S^\\top D - R\\end{bmatrix}$$
 
-    Accepts stacks of controllers (leading batch axes on every matrix).
+    Accepts stacks of controllers (leading batch axes on every matrix). Each matrix must hold
+    real numbers (a complex `P` is refused, not cast).
     """
+    A, B, C, D, P = (real_array(name, M) for name, M in zip("ABCDP", (A, B, C, D, P)))
     return kyp_matrix_of(A, B, C, D, qsr.Q, qsr.S, qsr.R, P)
 
 

@@ -99,22 +99,6 @@ def check_eager(fn: str, key, windows, throw, alternative: str = "", **hyper) ->
                if alternative else "; call it once per value for more."))
 
 
-def check_key(key) -> None:
-    """A JAX PRNG key (raw `uint32` or typed), or a `ValueError` naming `key`; traced keys
-    (a vmapped sweep over keys) pass."""
-    if isinstance(key, jax.core.Tracer):
-        return
-    dtype = getattr(key, "dtype", None)
-    typed = dtype is not None and jnp.issubdtype(dtype, jax.dtypes.prng_key)
-    # a raw key is `uint32[2]` (threefry) or `uint32[4]` (rbg); leading batch axes are not
-    # one key
-    raw = (dtype is not None and not typed and np.dtype(dtype) == np.uint32
-           and np.ndim(key) == 1 and np.shape(key)[0] in (2, 4))
-    if not (typed or raw):
-        raise ValueError(f"`key` must be a JAX PRNG key such as `jax.random.PRNGKey(0)` or "
-                         f"`jax.random.key(0)`, got {key!r}.")
-
-
 def check_magnitude(windows: Windows) -> None:
     """Refuse windows whose squares leave the data's floating-point range, naming `windows`.
 

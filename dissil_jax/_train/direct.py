@@ -20,12 +20,11 @@ from .._rollout import imitation_loss
 from .._sdp import lmi as _lmi
 from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
-from .._validate import check_flag, check_positive, warn_user
+from .._validate import check_flag, check_key, check_positive, warn_user
 from ._checks import (
     check_eager,
     check_fit_args,
     check_keep,
-    check_key,
     check_n_state,
     check_optimizer,
     nan_unless,

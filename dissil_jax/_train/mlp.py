@@ -18,8 +18,8 @@ from jaxtyping import Array, Float, PRNGKeyArray
 from .. import _outcome
 from .._data import Windows
 from .._progress import reporting
-from .._validate import check_flag, check_int
-from ._checks import check_fit_args, check_key
+from .._validate import check_flag, check_int, check_key
+from ._checks import check_fit_args
 from ._iterate import RTOL_MLP, Method, iterate
 from .result import FitResult, fit_timed
 
@@ -42,6 +42,17 @@ def check_hidden(hidden) -> tuple[int, ...]:
         raise ValueError(
             f"`hidden` must list equal widths (eqx.nn.MLP has one width), got {hidden}.")
     return hidden
+
+
+def _relu(x):
+    """ReLU, as a function of this module so that a controller pickles (`jax.nn.relu` is a
+    `custom_jvp` object that pickle cannot find by name)."""
+    return jax.nn.relu(x)
+
+
+def _identity(x):
+    """The output layer's activation (equinox's default is a lambda, which does not pickle)."""
+    return x
 
 
 class MLPController(eqx.Module):
@@ -69,7 +80,8 @@ class MLPController(eqx.Module):
                  dtype=None):
         hidden = check_hidden(hidden)
         width = hidden[0] if hidden else 1
-        mlp = eqx.nn.MLP(n_in, n_out, width, len(hidden), activation=jax.nn.relu,
+        mlp = eqx.nn.MLP(n_in, n_out, width, len(hidden), activation=_relu,
+                         final_activation=_identity,
                          dtype=dtype, key=key)
         # Only arrays are leaves, so `jax.tree.map(lambda a: a[i], K)` indexes a batch.
         self.params, self.static = eqx.partition(mlp, eqx.is_array)

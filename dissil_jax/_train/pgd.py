@@ -20,12 +20,11 @@ from .._projection.project import project
 from .._rate_scale import rate_factor, scaled_rate
 from .._sdp import lmi as _lmi
 from .._supply import QSR
-from .._validate import check_callback_dtype, check_flag
+from .._validate import check_callback_dtype, check_flag, check_key
 from ._checks import (
     check_eager,
     check_fit_args,
     check_keep,
-    check_key,
     check_n_state,
     check_optimizer,
     finite_lanes,

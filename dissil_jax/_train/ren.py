@@ -24,8 +24,8 @@ from .._ren.controller import block_diag2, ren_imitation_loss, ren_odd_loss
 from .._ren.map import init_ren_params, ren_map, ren_rate
 from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
-from .._validate import check_flag, check_int
-from ._checks import check_eager, check_fit_args, check_keep, check_key, check_n_state
+from .._validate import check_flag, check_int, check_key
+from ._checks import check_eager, check_fit_args, check_keep, check_n_state
 from ._iterate import iterate
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balancing_units, unbalance

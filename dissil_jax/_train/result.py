@@ -27,7 +27,9 @@ class FitResult(eqx.Module):
     - `certified`: `[num_inits]` bool, the exact float64 KYP check of (controller, `P`)
       (None for unconstrained methods).
     - `loss_history`: `[num_inits, max_steps + 1]`; column 0 is the initial controller's
-      loss, column k the loss after step k, NaN after a controller stopped.
+      loss, column k the loss after step k, NaN after a controller stopped (so the
+      compiled trainers cannot run under `jax.config.update("jax_debug_nans", True)`,
+      which stops at the first NaN: turn it on around your own code only).
     - `final_loss`: `[num_inits]` loss of the returned controller. The certified trainers
       (`fit_pgd`, `fit_direct`, `fit_ico`, `fit_ren`) return each run's *best* iterate,
       the certified one of lowest loss, which is not always the last (a noisy or too long
@@ -38,7 +40,9 @@ class FitResult(eqx.Module):
     - `converged`: `[num_inits]` True when the stopping rule fired (`result` is
       `converged`).
     - `steps`: `[num_inits]` number of steps taken.
-    - `wall_time`: total training wall time in seconds (NaN inside a traced sweep).
+    - `wall_time`: total training wall time in seconds, compilation included, as a 0-d
+      array of the data's dtype (a leaf like the others; `float(res.wall_time)` for a
+      number; NaN inside a traced sweep).
     - `result`: `[num_inits]` [`Outcome`][dissil_jax.Outcome], how each run ended
       (decode with [`result_names`][dissil_jax.FitResult.result_names]): `converged`
       (the stopping rule of the trainer's `atol`/`rtol`), `max_steps`, `non_finite` (the loss

@@ -17,7 +17,9 @@ def paper_rule(learning_rate, decay) -> optax.GradientTransformation:
     """The paper's step rule: gradient steps $\\eta_i = \\eta_0\\rho^{\\,i}$ ("an
     exponentially decaying learning rate", paper §4.2); `learning_rate` and `decay` may be
     traced (a vmapped sweep)."""
-    return optax.sgd(learning_rate=lambda count: learning_rate * decay**count)
+    # `count` is an int32 step counter: cast, so that strict dtype promotion holds too
+    return optax.sgd(learning_rate=lambda count: learning_rate * decay ** jnp.asarray(
+        count, jnp.result_type(decay)))
 
 
 #: Smallest weight of the optimiser's metric relative to its largest, per controller: an

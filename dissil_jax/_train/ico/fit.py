@@ -17,8 +17,8 @@ from ..._projection.project import project
 from ..._rate_scale import rate_factor, scaled_rate
 from ..._sdp import lmi as _lmi, sdp as _sdp
 from ..._supply import QSR
-from ..._validate import check_flag, check_positive
-from .._checks import check_eager, check_finite_draw, check_fit_args, check_key
+from ..._validate import check_flag, check_key, check_positive
+from .._checks import check_eager, check_finite_draw, check_fit_args
 from .._init import INIT_SCALE, init_controllers
 from .._iterate import RTOL
 from .._scale import loss_scale, scaled

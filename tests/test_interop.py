@@ -1,0 +1,114 @@
+"""What a user moving between dtypes, transformations and storage formats meets: complex or
+list storages, other controller types, strict dtype promotion, pickling, traced rates and
+batched outcome names (found by an interoperability audit)."""
+
+import pickle
+import warnings
+
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+
+import dissil_jax as dj
+
+
+@pytest.fixture
+def K():
+    return dj.LTIController(jnp.array([[0.5]]), jnp.array([[1.0]]), jnp.array([[0.2]]),
+                            jnp.array([[0.5]]))
+
+
+@pytest.mark.parametrize("call", [
+    lambda K, P: dj.certify(K, dj.QSR.passive(1), P=P),
+    lambda K, P: dj.certify(K, dj.QSR.passive(1), hint=P),
+    lambda K, P: dj.project(K, dj.QSR.passive(1), P_ref=P),
+    lambda K, P: dj.kyp_matrix(K.A, K.B, K.C, K.D, dj.QSR.passive(1), P),
+])
+def test_a_complex_storage_is_refused_not_cast(K, call):
+    # numpy would drop the imaginary part with only a ComplexWarning, and `certify` then
+    # reported a certificate for a storage that is not one.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=r"`(P|hint|P_ref)` must be an array of real "
+                                             r"numbers, got dtype complex128"):
+            call(K, np.array([[0.1 + 5j]]))
+
+
+def test_storages_given_as_lists_work_everywhere(K):
+    q = dj.QSR.passive(1)
+    P = dj.certify(K, q).P
+    listed = np.asarray(P).tolist()
+    assert dj.certify(K, q, P=listed).holds
+    assert bool(dj.project(K, q, P_ref=listed).result == dj.Outcome.unchanged)
+
+
+def test_host_checks_refuse_traced_arrays_by_name(K):
+    q = dj.QSR.passive(1)
+    with pytest.raises(ValueError, match="`A` is traced"):
+        jax.jit(lambda A: dj.kyp_matrix(A, K.B, K.C, K.D, q, np.eye(1)))(K.A)
+
+
+@pytest.mark.parametrize("fn", [dj.predict, dj.imitation_loss])
+def test_predict_and_loss_refuse_other_controller_types(fn):
+    import control
+
+    W = dj.Windows(jnp.zeros((2, 1)), jnp.ones((2, 2, 1)), jnp.ones((2, 2, 1)))
+    sys = control.ss([[0.5]], [[1.0]], [[1.0]], [[0.0]], True)
+    with pytest.raises(ValueError, match="`K` must be a `dj.LTIController`, got StateSpace"):
+        fn(sys, W)
+
+
+def test_from_statespace_names_the_type_it_got(K):
+    with pytest.raises(ValueError, match="`sys` must be a `control.StateSpace`.*got "
+                                         "LTIController"):
+        dj.LTIController.from_statespace(K)
+
+
+@pytest.mark.parametrize("key", [0, None, np.ones(2)])
+def test_random_controller_refuses_a_non_key(key):
+    with pytest.raises(ValueError, match="`key` must be a JAX PRNG key"):
+        dj.LTIController.random(key, 1, 1, 1)
+
+
+def test_paper_step_rule_runs_under_strict_dtype_promotion(getkey):
+    # The rule's step counter is int32; it is cast to the decay's dtype.
+    y = jr.normal(getkey(), (6, 2, 1))
+    W = dj.Windows(jr.normal(getkey(), (6, 1)), y, -0.3 * y)
+    with jax.numpy_dtype_promotion("strict"):
+        res = dj.fit_gd(getkey(), W, learning_rate=0.5, decay=0.99, num_inits=2,
+                        max_steps=3)
+    plain = dj.fit_gd(getkey(), W, learning_rate=0.5, decay=0.99, num_inits=2, max_steps=3)
+    assert res.loss_history.shape == plain.loss_history.shape == (2, 4)
+    assert np.all(np.isfinite(np.asarray(res.final_loss)))
+
+
+def test_an_mlp_result_pickles(getkey):
+    y = jr.normal(getkey(), (6, 2, 1))
+    W = dj.Windows(jnp.zeros((6, 1)), y, -0.2 * y)
+    res = dj.fit_mlp(getkey(), W, hidden=(4, 4), num_inits=2, max_steps=5)
+    back = pickle.loads(pickle.dumps(res))
+    x = jnp.linspace(-1.0, 1.0, 5)[:, None]
+    f = lambda r: jax.vmap(lambda K: jax.vmap(K.mlp)(x))(r.controllers)
+    np.testing.assert_array_equal(np.asarray(f(back)), np.asarray(f(res)))
+
+
+def test_a_traced_rate_gets_a_message_about_rates_not_about_reals():
+    with pytest.raises(ValueError, match="`Q` is traced .* a `QSR` is static host data"):
+        jax.vmap(lambda q: dj.QSR(q, 3.556, 0.601))(jnp.array([-29.867, -20.0]))
+
+
+def test_batched_projection_and_certificate_decode_per_member(K):
+    # Against a plain loop of single calls; the second member is far outside the set.
+    q = dj.QSR.passive(1)
+    members = [K, jax.tree.map(lambda a: -50.0 * a, K)]
+    Ks = jax.tree.map(lambda *a: jnp.stack(a), *members)
+    P = dj.certify(K, q).P  # certifies the first member: "unchanged"; the second "solved"
+    names = dj.project(Ks, q, P_ref=P, throw=False).result_names()
+    assert names == [dj.project(Ki, q, P_ref=P, throw=False).result_names()
+                     for Ki in members]
+    assert len(set(names)) == 2  # the members ended differently
+    cert = dj.certify(Ks, q)
+    assert cert.result_names() == [dj.certify(Ki, q).result_names() for Ki in members]
+    assert [n == "solved" for n in cert.result_names()] == list(cert.holds)
