@@ -11,6 +11,9 @@ from dissil_jax.experiments.protocol import example_spec, run_config
 from dissil_jax.experiments.report import load_records, merge_records, tables_markdown, write_report
 from dissil_jax.internal import FIGURES, TABLES, sdp
 
+#: The metric fields a record needs to be loaded (`report.REQUIRED_FIELDS`).
+METRICS = dict(percent_stable=50.0, percent_change_cost=-99.0, train_time_s=0.5, mse_q1=0.02,
+               mse_median=0.03, mse_q3=0.04, mse_max=0.05)
 KEYS = {"example", "data", "method", "segments", "percent_stable", "percent_change_cost",
         "train_time_s", "mse_median", "mse_max", "mse_q1", "mse_q3", "percent_bounded",
         "equilibrium_steps", "test_steps"}
@@ -91,7 +94,7 @@ def test_cli_refuses_to_mix_seeds_inits_or_quick_in_one_report(tmp_path, capsys,
     """Records of other settings used to merge silently into one table."""
     _no_training(monkeypatch)
     old = dict(example="nonlinear", data="initial", method="gd", segments=2, inits=2, seed=0,
-               quick=True)
+               quick=True, **METRICS)  # a record of 0.1.0: no version, no dtype
     (tmp_path / "summary.json").write_text(json.dumps([old]))
     base = ["nonlinear", "--segments", "2", "3", "--methods", "pgd", "--out", str(tmp_path)]
     for other in (["--inits", "2", "--seed", "1", "--quick"], ["--inits", "3", "--quick"],
@@ -234,7 +237,9 @@ def test_entry_point_with_jobs_gives_the_serial_records(tmp_path):
     serial, jobs = (json.loads((tmp_path / d / "summary.json").read_text())
                     for d in ("serial", "jobs"))
     assert len(serial) == 6
-    drop = lambda r: {k: v for k, v in r.items() if k != "train_time_s"}  # noqa: E731
+    # the times, the date and the command line (its --out and --jobs) differ
+    varying = {"train_time_s", "train_time_per_plant_s", "date", "command"}
+    drop = lambda r: {k: v for k, v in r.items() if k not in varying}  # noqa: E731
     assert [drop(r) for r in jobs] == [drop(r) for r in serial]
     for rec in serial:
         if rec["method"] in ("pgd", "direct"):

@@ -20,6 +20,7 @@ import math
 import jax
 import jax.numpy as jnp
 import jax.random as jr
+import numpy as np
 from jaxtyping import PRNGKeyArray
 
 from .._data import Windows
@@ -37,6 +38,19 @@ REGIMES = ("initial", "sliding")
 
 
 _check_positive_int = check_int
+
+#: Seeds of the experiments and the zoo: integers in [0, 2^32). Both of their generators,
+#: `jax.random.PRNGKey` and numpy's `default_rng`, take these (numpy refuses negative seeds,
+#: JAX seeds of 2^63 and more), also with the small offsets the zoo adds per problem.
+SEED_LIMIT = 2**32
+
+
+def check_seed(seed) -> int:
+    """`seed` as an `int` in $[0, 2^{32})$, or a `ValueError` naming `seed`."""
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or not (
+            0 <= seed < SEED_LIMIT):
+        raise ValueError(f"`seed` must be an integer from 0 to {SEED_LIMIT - 1}, got {seed!r}.")
+    return int(seed)
 
 
 def _check_traj(traj) -> None:

@@ -11,9 +11,11 @@ Choices the paper leaves open (see `docs/problems.md`) are collected in `Example
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import functools
 import time
 from collections import Counter
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -22,7 +24,8 @@ import jax.random as jr
 import numpy as np
 
 from .._supply import QSR
-from .data import REGIMES, demonstration_windows
+from .._validate import check_int
+from .data import REGIMES, check_seed, demonstration_windows
 from .metrics import evaluate, quantiles as _q
 from .simulate import equilibrium_horizon
 
@@ -34,6 +37,18 @@ PAPER_METHODS = ("ico", "ico_nc", "pgd", "gd", "mlp")
 EXAMPLES = ("linear", "nonlinear")
 METHOD_LABELS = {"ico": "ICO", "ico_nc": "ICO-NC", "pgd": "PGD", "gd": "GD", "mlp": "GD+NN",
                  "direct": "Direct (ours)", "ren": "REN (ours)"}
+#: Why the experiments refuse to train without float64 (the command line, `run_config`,
+#: `fit` and `tuning.learning_rate_sweep` alike): in float32 the records differ (a worst
+#: test MSE 27 % off in one audited configuration) without any sign in the numbers.
+FLOAT64_MESSAGE = ("run the experiments with float64 enabled: set JAX_ENABLE_X64=1 before "
+                   "importing jax, or call jax.config.update(\"jax_enable_x64\", True) "
+                   "first (the command line sets it up itself).")
+
+
+def require_float64() -> None:
+    """Raise a `ValueError` (`FLOAT64_MESSAGE`) unless JAX's float64 is enabled."""
+    if not jax.config.read("jax_enable_x64"):
+        raise ValueError(FLOAT64_MESSAGE)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,6 +96,9 @@ class ExampleSpec:
     ren_init_scale: float | None = None
     ren_direct_input: bool = False
     ren_odd: bool = False
+    # The MLP baseline's step limit: `fit_mlp`'s default (Adam steps are cheap, and its
+    # stopping rule is the paper's |dJ| < tol); `--quick` caps it at 30 as the others.
+    mlp_max_steps: int = 2000
 
 
 def example_spec(name: str, quick: bool = False) -> ExampleSpec:
@@ -105,7 +123,8 @@ def example_spec(name: str, quick: bool = False) -> ExampleSpec:
         raise ValueError(f"`example` must be one of {EXAMPLES}, got {name!r}.")
     if quick:
         spec = dataclasses.replace(spec, num_plants=min(spec.num_plants, 2),
-                                   num_test=min(spec.num_test, 50), max_steps=30)
+                                   num_test=min(spec.num_test, 50), max_steps=30,
+                                   mlp_max_steps=30)
     return spec
 
 
@@ -122,9 +141,36 @@ def make_problem(spec: ExampleSpec, plant_index: int, seed: int):
     return plant, nmpc_expert(plant)
 
 
+def hyperparameters(spec: ExampleSpec) -> dict:
+    """`spec` as a JSON-ready dict (the supply rate as its matrices `Q`, `S`, `R`): the
+    settings that produced a record, stored in it."""
+    out: dict[str, Any] = {}
+    for field in dataclasses.fields(spec):
+        value = getattr(spec, field.name)
+        if isinstance(value, QSR):
+            value = {k: np.asarray(getattr(value, k)).tolist() for k in ("Q", "S", "R")}
+        out[field.name] = list(value) if isinstance(value, tuple) else value
+    return out
+
+
+def provenance(dtype) -> dict:
+    """What produced a record besides its settings: the library's and JAX's versions, the
+    data's `dtype` and the date (UTC)."""
+    from .. import __version__
+
+    return dict(dtype=np.dtype(dtype).name, dissil_jax_version=__version__,
+                jax_version=jax.__version__,
+                date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
+
+
 def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
-    """Train `inits` controllers with `method` using the example's hyperparameters."""
+    """Train `inits` controllers with `method` using the example's hyperparameters.
+
+    Refuses to run without float64 (`FLOAT64_MESSAGE`), as the command line does.
+    """
     import dissil_jax as dj
+
+    require_float64()
 
     # The experiments record every outcome (a diverged GD run counts as unstable), so no
     # trainer raises on a run that ended early.
@@ -161,7 +207,7 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
                           **dict(unbalanced, atol=0.0))
     if method == "mlp":
         return dj.fit_mlp(key, windows, hidden=spec.hidden, num_inits=inits, atol=spec.tol,
-                          rtol=0.0, throw=False, progress=False)
+                          rtol=0.0, max_steps=spec.mlp_max_steps, throw=False, progress=False)
     raise ValueError(f"`method` must be one of {METHODS}, got {method!r}.")
 
 
@@ -181,7 +227,12 @@ def training_data(spec: ExampleSpec, plant_index: int, seed: int, data: str, seg
 
     The windows depend only on (seed, plant, data regime, N), so every method, and the
     step-size sweep, sees the same demonstrations; they are computed once per process.
+    `seed` is an integer in $[0, 2^{32})$ (`check_seed`), `segments` a positive integer.
     """
+    if data not in REGIMES:
+        raise ValueError(f"`data` must be one of {REGIMES}, got {data!r}.")
+    seed, segments = check_seed(seed), check_int("segments", segments)
+    plant_index = check_int("plant_index", plant_index, minimum=0)
     plant, expert = make_problem(spec, plant_index, seed)
     k_data, k_fit, k_test, k_noise = jr.split(jr.fold_in(jr.PRNGKey(seed), plant_index), 4)
     k_data = jr.fold_in(k_data, segments * 2 + REGIMES.index(data))
@@ -209,20 +260,46 @@ def controller_start(spec: ExampleSpec, method: str, x0):
 
 
 def run_config(example: str, data: str, method: str, segments: int, *, inits: int,
-               seed: int = 0, quick: bool = False, spec: ExampleSpec | None = None) -> dict:
-    """Run one configuration and return its summary record (see `summary.json`)."""
+               seed: int = 0, quick: bool = False, spec: ExampleSpec | None = None,
+               on_plant: Callable[[int, int], Any] | None = None) -> dict:
+    """Run one configuration and return its summary record.
+
+    **Arguments:** the configuration (`example`, `data` regime, `method`, `segments` $N$),
+    `inits` initialisations per plant, the `seed` (an integer in $[0, 2^{32})$), `quick`
+    (`example_spec`'s small sizes) or an explicit `spec`, and `on_plant`, called as
+    `on_plant(i, num_plants)` before plant `i` is trained (the command line's progress).
+
+    **Returns:** the record that the command line writes to `summary.json` (every field is
+    described in the reproduction guide, "The records"): the metrics, and what produced
+    them (`hyperparameters`, `dtype`, `dissil_jax_version`, `jax_version`, `date`,
+    `command`). Refuses to run without float64 (`FLOAT64_MESSAGE`), as the command line
+    does, and checks its arguments before any work.
+    """
+    if example not in EXAMPLES:
+        raise ValueError(f"`example` must be one of {EXAMPLES}, got {example!r}.")
     if data not in REGIMES:
         raise ValueError(f"`data` must be one of {REGIMES}, got {data!r}.")
+    if method not in METHODS:
+        raise ValueError(f"`method` must be one of {METHODS}, got {method!r}.")
+    segments, inits = check_int("segments", segments), check_int("inits", inits)
+    seed = check_seed(seed)
+    require_float64()
+    command = (f"run_config({example!r}, {data!r}, {method!r}, {segments}, inits={inits}, "
+               f"seed={seed}, quick={bool(quick)}{', spec=...' if spec else ''})")
     spec = spec or example_spec(example, quick)
     mse, stable, bounded, pcc, certified, reasons, horizons = [], [], [], [], [], [], []
-    train_time = 0.0
+    times = []
     for i in range(spec.num_plants):
+        if on_plant is not None:
+            on_plant(i, spec.num_plants)
         plant, expert, windows, (k_fit, k_test, k_noise) = training_data(
             spec, i, seed, data, segments)
         t = time.perf_counter()
         res = fit(method, k_fit, windows, spec, inits)
         jax.block_until_ready(res.final_loss)
-        train_time += time.perf_counter() - t
+        # Includes XLA's compilation whenever this process meets the method's shapes for
+        # the first time; measuring it apart would mean training twice.
+        times.append(time.perf_counter() - t)
         x0, T, steps = evaluation_setup(spec, i, seed)
         ev = evaluate(k_noise, plant, expert, res.controllers, x0, steps,
                       xhat0=controller_start(spec, method, x0))
@@ -237,21 +314,25 @@ def run_config(example: str, data: str, method: str, segments: int, *, inits: in
     mse, stable, bounded = np.concatenate(mse), np.concatenate(stable), np.concatenate(bounded)
     n_ctrl = len(mse)
     record = dict(
-        example=example, data=data, method=method, segments=int(segments), inits=int(inits),
-        plants=spec.num_plants, controllers=n_ctrl, seed=int(seed), quick=bool(quick),
+        example=example, data=data, method=method, segments=segments, inits=inits,
+        plants=spec.num_plants, controllers=n_ctrl, seed=seed, quick=bool(quick),
         percent_stable=100.0 * float(stable.mean()),
         percent_bounded=100.0 * float(bounded.mean()),
         equilibrium_steps=[T for T, _ in horizons], test_steps=[s for _, s in horizons],
         # Runs whose loss diverged (counted as "non_finite" in stop_reasons) have no finite
         # change in cost; the mean is over the others.
         percent_change_cost=_finite_mean(np.concatenate(pcc)),
-        train_time_s=train_time / n_ctrl,
+        train_time_s=sum(times) / n_ctrl,
         certified=None if not certified else bool(np.concatenate(certified).all()),
         **{k: float(v) for k, v in quantiles(mse).items()},
         stop_reasons=dict(sorted(Counter(reasons).items())),
+        train_time_per_plant_s=times, train_time_includes_compilation=True,
+        **provenance(windows.y.dtype),
+        command=command, hyperparameters=hyperparameters(spec),
     )
     return record
 
 
-__all__ = ["METHODS", "PAPER_METHODS", "EXAMPLES", "METHOD_LABELS", "ExampleSpec",
-           "example_spec", "make_problem", "fit", "run_config", "training_data"]
+__all__ = ["METHODS", "PAPER_METHODS", "EXAMPLES", "METHOD_LABELS", "FLOAT64_MESSAGE",
+           "ExampleSpec", "example_spec", "make_problem", "fit", "hyperparameters", "provenance",
+           "require_float64", "run_config", "training_data"]

@@ -22,7 +22,9 @@ def _key(r: dict):
 def load_records(path: pathlib.Path) -> list[dict]:
     """Records of `summary.json` in `path` (empty when absent).
 
-    Raises a `ValueError` naming the file when it is not a JSON list of records.
+    Raises a `ValueError` naming the file when it is not a JSON list of records, or when a
+    record lacks a field the report needs (`REQUIRED_FIELDS`) or has one of the wrong kind;
+    records of earlier versions, without the provenance fields, load as they are.
     """
     f = pathlib.Path(path) / "summary.json"
     if not f.exists():
@@ -35,7 +37,32 @@ def load_records(path: pathlib.Path) -> list[dict]:
                                               for r in records)):
         raise ValueError(f"{f} is not a list of records (dicts with the fields "
                          f"{', '.join(sorted(_KEY_FIELDS))})")
+    for i, r in enumerate(records):
+        problem = _record_problem(r)
+        if problem:
+            raise ValueError(f"{f}: record {i} ({r['example']}, {r['data']}, {r['method']}, "
+                             f"N={r['segments']}) {problem}")
     return records
+
+
+def _record_problem(r: dict) -> str | None:
+    """What keeps record `r` from a report (None if nothing)."""
+    from .data import REGIMES
+    from .protocol import EXAMPLES
+
+    missing = [k for k in REQUIRED_FIELDS if k not in r]
+    if missing:
+        return f"lacks the fields {', '.join(missing)}"
+    for field, allowed in (("example", EXAMPLES), ("data", REGIMES), ("method", METHODS)):
+        if r[field] not in allowed:
+            return f"has {field} {r[field]!r}, not one of {', '.join(allowed)}"
+    if isinstance(r["segments"], bool) or not isinstance(r["segments"], int):
+        return f"has segments {r['segments']!r}, not an integer"
+    wrong = [k for k in _METRIC_FIELDS
+             if isinstance(r[k], bool) or not isinstance(r[k], int | float)]
+    if wrong:
+        return f"has non-numeric {', '.join(wrong)}"
+    return None
 
 
 #: Non-finite numbers (the test MSE of an unstable loop is infinite) are written as these
@@ -54,8 +81,16 @@ def _encode(obj):
 
 
 def write_json(path, obj) -> None:
-    """Write `obj` to `path` as strict JSON, non-finite floats as the strings above."""
-    pathlib.Path(path).write_text(json.dumps(_encode(obj), indent=1, allow_nan=False))
+    """Write `obj` to `path` as strict JSON, non-finite floats as the strings above.
+
+    Written to a temporary file that then replaces `path`, so that an interrupted write
+    (the command line saves `summary.json` after every configuration) leaves the previous
+    file whole.
+    """
+    path = pathlib.Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(_encode(obj), indent=1, allow_nan=False))
+    os.replace(tmp, path)
 
 
 def _decode(obj):
@@ -69,33 +104,50 @@ def _decode(obj):
 
 
 _KEY_FIELDS = {"example", "data", "method", "segments"}
+_METRIC_FIELDS = ("percent_stable", "percent_change_cost", "train_time_s", "mse_q1",
+                  "mse_median", "mse_q3", "mse_max")
+#: The fields every record in `summary.json` must have: the tables and figures read them.
+REQUIRED_FIELDS = ("example", "data", "method", "segments", *_METRIC_FIELDS)
 #: Settings that must agree between the records of one example in a report: its tables
 #: set results side by side and state one count of controllers per configuration.
 SETTINGS = ("seed", "inits", "quick")
+#: What produced a record that must also agree, where both records state it: records
+#: written before these fields existed (0.1.0) are taken as they are.
+PROVENANCE = ("dissil_jax_version", "dtype")
 
 
 def _settings(r: dict) -> tuple:
     return tuple(r.get(k) for k in SETTINGS)
 
 
-def _describe(settings: tuple) -> str:
-    return ", ".join(f"{k} {'unknown' if v is None else v}" for k, v in zip(SETTINGS, settings))
+def _describe(r: dict) -> str:
+    """`r`'s settings, and its provenance where recorded, as "seed 0, inits 2, ..."."""
+    settings = [f"{k} {'unknown' if r.get(k) is None else r[k]}" for k in SETTINGS]
+    return ", ".join(settings + [f"{k} {r[k]}" for k in PROVENANCE if r.get(k) is not None])
+
+
+def _clash(a: dict, b: dict) -> bool:
+    """Whether records `a` and `b` of one example cannot share a report."""
+    return _settings(a) != _settings(b) or any(
+        a.get(k) is not None and b.get(k) is not None and a[k] != b[k] for k in PROVENANCE)
 
 
 def merge_records(old: list[dict], new: list[dict]) -> list[dict]:
     """New records replace old ones of the same (example, data, method, segments).
 
     The records of one example that remain must share their `seed`, `inits` and `quick`
-    settings: a `ValueError` refuses to mix settings in one report.
+    settings, and their `dissil_jax_version` and `dtype` where both records state them: a
+    `ValueError` refuses to mix them in one report. Records written before those fields
+    existed are kept beside new ones (their version is unknown).
     """
     merged = {_key(r): r for r in old}
     merged.update({_key(r): r for r in new})
     for r_new in new:
         for r in merged.values():
-            if r["example"] == r_new["example"] and _settings(r) != _settings(r_new):
+            if r["example"] == r_new["example"] and _clash(r, r_new):
                 raise ValueError(
                     f"the {r['example']} records already in the report have "
-                    f"{_describe(_settings(r))}, the new ones {_describe(_settings(r_new))}; "
+                    f"{_describe(r)}, the new ones {_describe(r_new)}; "
                     "one report holds one setting per example")
     return sorted(merged.values(), key=lambda r: (r["example"], r["data"],
                                                   METHODS.index(r["method"]), r["segments"]))

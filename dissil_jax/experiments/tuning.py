@@ -17,7 +17,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .protocol import ExampleSpec, example_spec, training_data
+from .._validate import check_int
+from .data import check_seed
+from .protocol import ExampleSpec, example_spec, provenance, require_float64, training_data
 
 
 def learning_rate_sweep(example: str, method: str, learning_rates, *, segments: int = 25,
@@ -31,12 +33,20 @@ def learning_rate_sweep(example: str, method: str, learning_rates, *, segments: 
 
     **Returns:** a dict with `learning_rates`, `final_loss` `[plants, rates, inits]`
     (`inf` where the loss diverged), `median_loss` and `diverged` (fraction of runs with
-    a non-finite loss) per rate, and `best`, the rate with the lowest median.
+    a non-finite loss) per rate, `best`, the rate with the lowest median, and what produced
+    them: the configuration, the `seed`, the example's `max_steps`, `decay`, `tol` and
+    `init_scale`, and `protocol.provenance` (`dtype`, versions, date). Refuses to run
+    without float64, as the command line does.
     """
     import dissil_jax as dj
 
     if method not in ("pgd", "gd"):
         raise ValueError(f"`method` must be 'pgd' or 'gd', got {method!r}.")
+    segments, inits = check_int("segments", segments), check_int("inits", inits)
+    seed = check_seed(seed)
+    if plants is not None:
+        plants = check_int("plants", plants)
+    require_float64()
     spec = spec or example_spec(example)
     lrs = np.asarray(learning_rates, np.float64)
     if lrs.ndim != 1 or lrs.size == 0 or not np.all(np.isfinite(lrs) & (lrs > 0)):
@@ -58,11 +68,13 @@ def learning_rate_sweep(example: str, method: str, learning_rates, *, segments: 
     J = np.stack(losses)  # [plants, rates, inits]
     per_rate = np.moveaxis(J, 1, 0).reshape(len(lrs), -1)
     median = np.median(per_rate, axis=1)
-    return dict(example=example, method=method, data=data, segments=int(segments),
-                inits=int(inits), plants=int(J.shape[0]), learning_rates=lrs.tolist(),
+    return dict(example=example, method=method, data=data, segments=segments,
+                inits=inits, plants=int(J.shape[0]), learning_rates=lrs.tolist(),
                 final_loss=J.tolist(), median_loss=median.tolist(),
                 diverged=np.mean(~np.isfinite(per_rate), axis=1).tolist(),
-                best=float(lrs[int(np.argmin(median))]))
+                best=float(lrs[int(np.argmin(median))]), seed=seed, max_steps=spec.max_steps,
+                decay=spec.pgd_decay, tol=spec.tol, init_scale=spec.init_scale,
+                **provenance(windows.y.dtype))
 
 
 def choose_rate(sweeps: list[dict]) -> tuple[float, np.ndarray]:

@@ -11,6 +11,7 @@ from typing import Any
 
 from ...experts import nmpc_expert
 from ...systems import paper_nonlinear_plant
+from ..data import check_seed
 from ._build import (
     chain_plant,
     make_problem,
@@ -196,8 +197,9 @@ HELD_OUT = ("scalar_heavy", "chain2_passive", "chain4_4x4_io", "chain8_siso_io",
 
 @functools.lru_cache(maxsize=64)
 def problem(name: str, seed: int = 0) -> Problem:
-    """The problem `name` built with `seed` (cached: building solves a few small SDPs)."""
+    """The problem `name` built with `seed`, an integer in $[0, 2^{32})$ as for the
+    experiments' command line (cached: building solves a few small SDPs)."""
     if name not in PROBLEMS:
         raise ValueError(f"`name` must be one of the zoo's problems {sorted(PROBLEMS)}, "
                          f"got {name!r}.")
-    return PROBLEMS[name](seed)
+    return PROBLEMS[name](check_seed(seed))
