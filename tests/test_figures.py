@@ -76,3 +76,26 @@ def test_plot_figures_writes_one_png_per_statistic(tmp_path):
     paths = figs.plot_figures(rows, tmp_path)
     assert sorted(p.name for p in paths) == [f"linear_{k}.png" for k in ("max", "median", "quartiles")]
     assert all(p.stat().st_size > 10_000 for p in paths)
+
+
+def test_tables_state_each_sections_settings_quick_runs_and_certificates():
+    from dissil_jax.experiments.report import tables_markdown
+
+    base = dict(segments=25, percent_stable=100.0, percent_change_cost=-99.0, train_time_s=0.5,
+                mse_q1=0.02, mse_median=0.03, mse_q3=0.04, mse_max=0.05, seed=3, inits=7,
+                dissil_jax_version="9.9", jax_version="0.1", dtype="float64", cpu_count=5,
+                date="2026-01-02T00:00:00+00:00")
+    recs = [dict(base, example="nonlinear", data="initial", method="pgd", certified=True),
+            dict(base, example="nonlinear", data="initial", method="gd", certified=None),
+            dict(base, example="linear", data="initial", method="ico", certified=False,
+                 quick=True, date="2026-01-05T00:00:00+00:00")]
+    md = tables_markdown(recs)
+    linear, nonlinear = md.split("## Nonlinear")
+    assert ("Settings: seed 3; initialisations 7; dissil_jax 9.9; jax 0.1; dtype float64; "
+            "CPU count 5; recorded 2026-01-02.") in nonlinear
+    assert "recorded 2026-01-05." in linear
+    # the quick banner belongs to the quick section only
+    assert "Quick run" in linear and "Quick run" not in nonlinear
+    rows = {line.split("|")[1].strip(): line.rstrip(" |").rsplit("|", 1)[-1].strip()
+            for line in md.splitlines() if line.startswith("| ") and "| 25 |" in line}
+    assert rows == {"PGD": "all", "GD": "–", "ICO": "not all"}

@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import functools
+import os
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -155,11 +156,12 @@ def hyperparameters(spec: ExampleSpec) -> dict:
 
 def provenance(dtype) -> dict:
     """What produced a record besides its settings: the library's and JAX's versions, the
-    data's `dtype` and the date (UTC)."""
+    data's `dtype`, the machine's CPU count (its training times depend on it) and the date
+    (UTC)."""
     from .. import __version__
 
     return dict(dtype=np.dtype(dtype).name, dissil_jax_version=__version__,
-                jax_version=jax.__version__,
+                jax_version=jax.__version__, cpu_count=os.cpu_count(),
                 date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
 
 

@@ -177,14 +177,13 @@ def tables_markdown(records: list[dict]) -> str:
     out = ["# Results", "",
            "Each cell: **ours** (paper). Percent stable counts controllers whose closed loop "
            "is stable in testing; percent change in cost is the mean relative change of the "
-           "training loss; training time is wall seconds per controller (ours: "
-           f"{os.cpu_count()} CPU cores, all initialisations of a configuration trained "
-           "together). Test MSE: plant-state MSE against the expert from the same test states "
-           "and noise; unstable controllers count as ∞.", ""]
-    if any(r.get("quick") for r in records):
-        out += ["**Quick run** (`--quick`): fewer plants, test states and training steps "
-                "than the paper's protocol, so the numbers are not comparable with the "
-                "paper's.", ""]
+           "training loss; training time is wall seconds per controller (ours: all "
+           "initialisations of a configuration trained together, XLA compilation included, "
+           "so a configuration that runs first in its process pays more; the CPU count of "
+           "the machine is in each section's settings). Test MSE: plant-state MSE against "
+           "the expert from the same test states and noise; unstable controllers count as ∞. "
+           "Certified: every controller of the configuration holds the float64 certificate "
+           "(– for the unconstrained methods).", ""]
     groups = sorted({(r["example"], r["data"]) for r in records},
                     key=lambda k: (k[0] != "linear", k[1] != "initial"))
     for example, data in groups:
@@ -194,7 +193,12 @@ def tables_markdown(records: list[dict]) -> str:
         by = {(r["method"], r["segments"]): r for r in rows}
         paper = TABLES.get((example, data), {})
         pseg = SEGMENTS[example]
-        out += [f"## {example.capitalize()} example — {DATA_TITLES[data].lower()}", ""]
+        out += [f"## {example.capitalize()} example — {DATA_TITLES[data].lower()}", "",
+                _settings_line(rows), ""]
+        if any(r.get("quick") for r in rows):
+            out += ["**Quick run** (`--quick`): fewer plants, test states and training steps "
+                    "than the paper's protocol, so the numbers are not comparable with the "
+                    "paper's.", ""]
         counts = ", ".join(
             f"{METHOD_LABELS[m]} {r['controllers']} ({r['plants']} plant(s) × {r['inits']})"
             for m in methods for r in [next(r for r in rows if r["method"] == m)]
@@ -221,8 +225,8 @@ def tables_markdown(records: list[dict]) -> str:
                 "median), quartiles and worst controller; % bounded (the weaker verdict, "
                 "equal to % stable where the test is exact) and the test horizon in steps.", ""]
         out += ["| method | N | median | paper median | q1 | q3 | max | paper max | % bounded "
-                "| steps |",
-                "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+                "| steps | certified |",
+                "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
         pmed = dict(FIGURES.get((example, data, "median"), {}))
         pmax = dict(FIGURES.get((example, data, "max"), {}))
         for m in methods:
@@ -236,9 +240,29 @@ def tables_markdown(records: list[dict]) -> str:
                            f"{_fmt(pm, 'g')} | {_fmt(r['mse_q1'], 'g')} | "
                            f"{_fmt(r['mse_q3'], 'g')} | {_fmt(r['mse_max'], 'g')} | "
                            f"{_fmt(px, 'g')} | {_fmt(r.get('percent_bounded'), 'pct')} | "
-                           f"{_steps(r.get('test_steps'))} |")
+                           f"{_steps(r.get('test_steps'))} | "
+                           f"{_CERTIFIED.get(r.get('certified'), '–')} |")
         out.append("")
     return "\n".join(out)
+
+
+_CERTIFIED = {True: "all", False: "not all"}
+
+
+def _settings_line(rows: list[dict]) -> str:
+    """The settings and provenance of a section's records, as one sentence."""
+    def values(key):
+        return sorted({str(r[key]) for r in rows if r.get(key) is not None})
+
+    parts = [f"{label} {', '.join(v)}" for label, key in (
+        ("seed", "seed"), ("initialisations", "inits"), ("dissil_jax", "dissil_jax_version"),
+        ("jax", "jax_version"), ("dtype", "dtype"), ("CPU count", "cpu_count"))
+        for v in [values(key)] if v]
+    dates = values("date")
+    if dates:
+        parts.append(f"recorded {dates[0][:10]}" + (f" to {dates[-1][:10]}"
+                                                     if dates[-1][:10] != dates[0][:10] else ""))
+    return "Settings: " + ("; ".join(parts) if parts else "not recorded") + "."
 
 
 def _steps(steps) -> str:
