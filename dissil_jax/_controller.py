@@ -89,6 +89,10 @@ class LTIController(eqx.Module):
             if not jnp.issubdtype(M.dtype, jnp.floating):
                 raise ValueError(f"`{name}` must be a floating-point array, got {M.dtype}.")
             check_precision(name, M.dtype)
+        if len({M.dtype for M in mats}) > 1:  # a projection would round the wider ones
+            raise ValueError(f"`A`, `B`, `C` and `D` must share one dtype, got "
+                             f"{', '.join(str(M.dtype) for M in mats)}; cast them alike (e.g. "
+                             "`K.astype(jnp.float64)` or `.astype` on each).")
         check_abcd(*mats)
         for name, M in zip(names, mats):
             if has_non_finite(M):

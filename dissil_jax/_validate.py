@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import sys
 import threading
 import warnings
@@ -174,3 +175,21 @@ def check_key(key) -> None:
     if not (typed or raw):
         raise ValueError(f"`key` must be a JAX PRNG key such as `jax.random.PRNGKey(0)` or "
                          f"`jax.random.key(0)`, got {key!r}.")
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def no_derivative(name: str, x):
+    """`x` unchanged; differentiating through it raises a ValueError naming `name`, a
+    function solved on the host (JAX's own error, "Pure callbacks do not support JVP",
+    names neither the function nor a way out)."""
+    return x
+
+
+@no_derivative.defjvp
+def _no_derivative_jvp(name, primals, tangents):
+    raise ValueError(
+        f"`{name}` has no derivative: its SDP is solved on the host (Clarabel, or the "
+        "first-order path's float64 check), which JAX cannot differentiate. For derivatives "
+        "of a certified training run with respect to its hyperparameters use `dj.direct_run` "
+        "in forward mode (`jax.jacfwd`); to pass through a projection without one, apply "
+        "`jax.lax.stop_gradient` to its input.")

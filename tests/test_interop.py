@@ -112,3 +112,29 @@ def test_batched_projection_and_certificate_decode_per_member(K):
     cert = dj.certify(Ks, q)
     assert cert.result_names() == [dj.certify(Ki, q).result_names() for Ki in members]
     assert [n == "solved" for n in cert.result_names()] == list(cert.holds)
+
+
+@pytest.mark.parametrize("method", ["clarabel", "first_order"])
+def test_differentiating_a_projection_names_it_and_the_way_out(K, method):
+    q = dj.QSR.passive(1)
+
+    def f(s, stop=False):
+        target = jax.tree.map(lambda a: s * a, K)
+        if stop:
+            target = jax.lax.stop_gradient(target)
+        return jnp.sum(dj.project(target, q, method=method).controller.D)
+
+    with pytest.raises(ValueError, match="`dj.project` has no derivative.*stop_gradient"):
+        jax.grad(f)(1.0)
+    # values, jit and vmap are untouched; a stopped gradient passes
+    assert float(jax.jit(f)(1.0)) == pytest.approx(float(f(1.0)), rel=1e-6)
+    assert jax.vmap(f)(jnp.array([1.0, 2.0])).shape == (2,)
+    assert float(jax.grad(lambda s: f(s, stop=True))(1.0)) == 0.0
+
+
+def test_a_controller_of_mixed_dtypes_is_refused_by_name():
+    with jax.enable_x64(True):
+        A = jnp.array([[0.5]], jnp.float32)
+        B = C = D = jnp.array([[1.0]], jnp.float64)
+        with pytest.raises(ValueError, match="must share one dtype, got float32, float64"):
+            dj.LTIController(A, B, C, D)

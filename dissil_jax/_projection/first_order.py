@@ -41,6 +41,7 @@ from .._rate_scale import rate_factor, scaled_rate
 from .._sdp import lmi as _lmi, sdp as _sdp
 from .._sdp.indefinite import is_indefinite
 from .._supply import QSR
+from .._validate import no_derivative
 from . import admm as _admm
 from .admm_rate import AdmmRate, admm_rate
 from .handle import RateHandle, rate_handle, resolve
@@ -253,7 +254,7 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR | RateHandle, eps, reg, 
     n, dtype = K.n_state, K.A.dtype
     has_ref = P_ref is not None
     P_ref = jnp.asarray(P_ref, dtype) if has_ref else jnp.eye(n, dtype=dtype)
-    target = (K.A, K.B, K.C, K.D)
+    target = tuple(no_derivative("dj.project", M) for M in (K.A, K.B, K.C, K.D))
     weights = None
     if weighted:  # only ratios matter: the largest weight 1, as Clarabel's path
         weights = tuple(jnp.asarray(M, dtype) for M in (W.A, W.B, W.C, W.D))

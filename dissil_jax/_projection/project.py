@@ -26,7 +26,7 @@ from .._rate_scale import rate_factor, scaled_rate
 from .._sdp import sdp as _sdp
 from .._sdp.lmi import cast, certified
 from .._supply import QSR
-from .._validate import check_flag
+from .._validate import check_flag, no_derivative
 from . import cache as _cache, first_order as _projection_fo
 from .args import (
     check_eps_room as _check_eps_room,
@@ -253,15 +253,15 @@ def _project_one(K: LTIController, P_ref, W: LTIController, active, K_ref, *,
                        eps=float(eps), reg=float(reg), refine=int(refine), shards=shards)
     token = (qsr.token,) if handle else ()
     A, B, C, D, P, codes = jax.pure_callback(
-        callback, (*shapes, jax.ShapeDtypeStruct((), jnp.int32)), K.A, K.B, K.C, K.D, P_ref,
-        W.A, W.B, W.C, W.D, jnp.asarray(active, bool), K_ref.C.astype(dtype),
-        K_ref.D.astype(dtype), shard, *token, vmap_method="broadcast_all")
+        callback, (*shapes, jax.ShapeDtypeStruct((), jnp.int32)),
+        *(no_derivative("dj.project", M) for M in (K.A, K.B, K.C, K.D)), P_ref, W.A, W.B, W.C,
+        W.D, jnp.asarray(active, bool), K_ref.C.astype(dtype), K_ref.D.astype(dtype), shard,
+        *token, vmap_method="broadcast_all")
     return LTIController(A, B, C, D), P, codes
 
 
 def _project_fo_cold(*args, **kwargs):
-    return _projection_fo.project_one(*args, fallback=_host_batch, floor=P_FLOOR,
-                                      **kwargs)[:3]
+    return _projection_fo.project_one(*args, fallback=_host_batch, floor=P_FLOOR, **kwargs)[:3]
 
 
 def project_first_order_warm(K: LTIController, qsr: QSR | RateHandle, P_ref, state, *, active, eps: float,
@@ -326,10 +326,10 @@ def project(
 
     Works eagerly, under `jax.jit` and under `jax.vmap` (the host then solves the whole
     batch on a thread pool); under `jax.shard_map` (e.g. [`sweep`][dissil_jax.sweep])
-    each device sends its own batch to its own host. `qsr` is a static, hashable value: close over it or pass it
-    as a static argument. For float64 set JAX's `jax_enable_x64` flag globally in your
-    application (or `JAX_ENABLE_X64=1`); the thread-local `jax.enable_x64` context does not
-    reach the host-callback thread.
+    each device sends its own batch to its own host; not under `jax.grad`/`jax.jacfwd` (a
+    `ValueError`: the SDP has no derivative). `qsr` is static: close over it or pass it as
+    a static argument. For float64 set `jax_enable_x64` globally in your application (or
+    `JAX_ENABLE_X64=1`): the thread-local `jax.enable_x64` does not reach the callback.
 
     **Arguments:**
 
