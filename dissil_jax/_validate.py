@@ -49,6 +49,11 @@ def check_int(name: str, value, *, minimum: int = 1) -> int:
     except (TypeError, ValueError):
         ok = False
     if not ok:
+        if isinstance(value, jax.core.Tracer):
+            raise ValueError(f"`{name}` must be {kind} known when tracing (it sets array "
+                             "shapes or loop lengths), got a traced value: pass it as a "
+                             "static argument (`jax.jit(..., static_argnames=...)`) or close "
+                             "over it.")
         raise ValueError(f"`{name}` must be {kind}, got {value!r}.")
     return int(value)
 

@@ -44,6 +44,10 @@ def test_cli_writes_summary_tables_and_figures(tmp_path, capsys):
         assert png.exists() and png.stat().st_size > 10_000
     printed = capsys.readouterr().out
     assert "tables:" in printed and "nonlinear_median.png" in printed
+    # the printed table says what its columns are, with PGD certified and GD+NN not checked
+    rows = {line.split()[1]: line.split()[-1] for line in printed.splitlines()
+            if line.startswith("initial ")}
+    assert rows == {"PGD": "all", "GD+NN": "–"} and "s/ctrl: training seconds" in printed
     # a second invocation adds to the same report instead of replacing it
     assert cli.main(["nonlinear", "--data", "initial", "--segments", "2", "--inits", "2",
                      "--methods", "ico_nc", "--out", str(out), "--quick"]) == 0

@@ -138,3 +138,9 @@ def test_a_controller_of_mixed_dtypes_is_refused_by_name():
         B = C = D = jnp.array([[1.0]], jnp.float64)
         with pytest.raises(ValueError, match="must share one dtype, got float32, float64"):
             dj.LTIController(A, B, C, D)
+
+
+def test_a_traced_size_asks_for_a_static_argument(K):
+    with pytest.raises(ValueError, match="`horizon` must be a positive integer known when "
+                                         "tracing .* static argument"):
+        jax.jit(lambda h: dj.observability_toeplitz(K, h))(3)

@@ -285,12 +285,16 @@ def _experiments(args) -> int:
     print(f"\n{args.example}: {len(todo)} configurations in "
           f"{time.perf_counter() - start:.0f} s\n")
     width = max(7, *(len(METHOD_LABELS[r["method"]]) for r in records))
-    print(f"{'data':8s} {'method':{width}s} {'N':>4s} {'% stable':>9s} {'% dJ':>8s} "
-          f"{'time/ctrl':>10s} {'MSE median':>11s} {'MSE max':>10s}")
+    print(f"{'data':8s} {'method':{width}s} {'N':>4s} {'% stable':>9s} {'% ΔJ':>8s} "
+          f"{'s/ctrl':>8s} {'MSE median':>11s} {'MSE max':>10s} {'certified':>9s}")
     for r in records:
+        cert = {True: "all", False: "not all"}.get(r.get("certified"), "–")
         print(f"{r['data']:8s} {METHOD_LABELS[r['method']]:{width}s} {r['segments']:4d} "
               f"{r['percent_stable']:9.0f} {r['percent_change_cost']:8.2f} "
-              f"{r['train_time_s']:10.3g} {r['mse_median']:11.4g} {r['mse_max']:10.4g}")
+              f"{r['train_time_s']:8.3g} {r['mse_median']:11.4g} {r['mse_max']:10.4g} "
+              f"{cert:>9s}")
+    print("(% ΔJ: mean change of the training loss; s/ctrl: training seconds per "
+          "controller, compilation included)")
     print(f"\ntables: {tables}")
     for f in figures:
         print(f"figure: {f}")
