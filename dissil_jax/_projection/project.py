@@ -292,9 +292,9 @@ def project(
 ) -> Projection:
     """Project `K` onto the convexified $(Q,S,R)$-dissipative set (paper eq. 13).
 
-    $$\\Pi(\\tilde K) = \\arg\\min_{A,B,C,D,P}\\ \\lVert (A,B,C,D) - (\\tilde A,\\tilde B,\\tilde C,
-    \\tilde D)\\rVert_W^2 + \\mu\\lVert P-\\tilde P\\rVert^2 \\quad\\text{s.t.}\\quad
-    \\mathcal M(A,B,C,D,P;\\tilde P) \\preceq -\\varepsilon I,$$
+    $$\\begin{aligned}\\Pi(\\tilde K) = \\arg\\min_{A,B,C,D,P}\\ & \\lVert (A,B,C,D) - (\\tilde A,
+    \\tilde B,\\tilde C,\\tilde D)\\rVert_W^2 + \\mu\\lVert P-\\tilde P\\rVert^2\\\\
+    \\text{s.t.}\\ & \\mathcal M(A,B,C,D,P;\\tilde P) \\preceq -\\varepsilon I,\\end{aligned}$$
 
     where $\\mathcal M$ is the convexified KYP LMI (paper Corollary 1 + Remark 1, with
     $-Q = LL^\\top$; see [`ConvexifiedLMI`](concepts.md)). For an indefinite
@@ -328,8 +328,8 @@ def project(
     batch on a thread pool); under `jax.shard_map` (e.g. [`sweep`][dissil_jax.sweep])
     each device sends its own batch to its own host; not under `jax.grad`/`jax.jacfwd` (a
     `ValueError`: the SDP has no derivative). `qsr` is static: close over it or pass it as
-    a static argument. For float64 set `jax_enable_x64` globally in your application (or
-    `JAX_ENABLE_X64=1`): the thread-local `jax.enable_x64` does not reach the callback.
+    a static argument. In float64 a call works under `with jax.enable_x64(True):` (its
+    callback runs on the calling thread); inside a compiled loop enable x64 process-wide.
 
     **Arguments:**
 

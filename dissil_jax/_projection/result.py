@@ -39,8 +39,9 @@ class Projection(eqx.Module):
         return (self.controller, self.P)[i]
 
     def result_names(self) -> str | list:
-        """`result` decoded into `Outcome` names: a `str`, nested lists when batched (the
-        same as `dj.Outcome[result]` for one projection, which is not per member)."""
+        """`result` decoded into `Outcome` names (`'solved'`, `'unchanged'`, ...): a `str`
+        for one projection, nested lists when batched (`dj.Outcome[result]` gives the
+        item's message instead, and only for a single item)."""
         return _outcome.names(self.result)
 
 

@@ -28,8 +28,8 @@ class FitResult(eqx.Module):
       (None for unconstrained methods).
     - `loss_history`: `[num_inits, max_steps + 1]`; column 0 is the initial controller's
       loss, column k the loss after step k, NaN after a controller stopped (so the
-      compiled trainers cannot run under `jax.config.update("jax_debug_nans", True)`,
-      which stops at the first NaN: turn it on around your own code only).
+      compiled trainers cannot run with `jax_debug_nans` on, which stops at the first
+      NaN: use `with jax.debug_nans(True):` around your own code only).
     - `final_loss`: `[num_inits]` loss of the returned controller. The certified trainers
       (`fit_pgd`, `fit_direct`, `fit_ico`, `fit_ren`) return each run's *best* iterate,
       the certified one of lowest loss, which is not always the last (a noisy or too long
@@ -82,7 +82,7 @@ class FitResult(eqx.Module):
 
     @property
     def percent_change_cost(self) -> Float[Array, " inits"]:
-        """$100\\,(J_\\text{final} - J_\\text{initial}) / J_\\text{initial}$ (paper Tables 1-4)."""
+        """$100\\,(J_\\text{final} - J_\\text{initial}) / J_\\text{initial}$ (paper Tables 2-5)."""
         return 100.0 * (self.final_loss - self.initial_loss) / self.initial_loss
 
     @property

@@ -47,7 +47,7 @@ def _parser() -> argparse.ArgumentParser:
                         "(dj.fit_direct) and `ren` (dj.fit_ren, certified REN controllers) "
                         "are ours; not with --lr-sweep")
     p.add_argument("--out", default="runs/latest",
-                   help="output directory, not empty (default: %(default)s); records of its "
+                   help="output directory, a non-empty path (default: %(default)s); records of its "
                         "summary.json are kept, and must have the same --seed, --inits and "
                         "--quick for the same example")
     p.add_argument("--seed", type=int, default=0,
@@ -254,7 +254,7 @@ def _experiments(args) -> int:
     missing = sum(r.get("dissil_jax_version") is None for r in old)
     if missing:
         print(f"note: {missing} record(s) in {summary} do not say which library version "
-              "wrote them (written before 0.2.0); they are kept", file=sys.stderr)
+              "wrote them (written before records stated it); they are kept", file=sys.stderr)
     start, finished = time.perf_counter(), {}
 
     def on_record(i: int, record: dict) -> None:

@@ -35,10 +35,11 @@ def _scale(rows: list[dict]) -> float:
     return 10.0 * max(finite) if finite else 1.0
 
 
-def _x_limits(ax, xs) -> None:
+def _x_limits(ax, xs, shifts: float) -> None:
+    """Room on both sides for the sideways shifts and the value labels."""
     lo, hi = min(xs), max(xs)
-    pad = max(1.0, 0.05 * (hi - lo))
-    ax.set_xlim(lo - pad, hi + pad)
+    pad = max(1.0, 0.05 * (hi - lo)) + shifts
+    ax.set_xlim(lo - pad, hi + pad + 0.04 * (hi - lo))
 
 
 def _ours(ax, rows, m, stat, top, shift):
@@ -60,8 +61,9 @@ def _ours(ax, rows, m, stat, top, shift):
         both = ok & np.isfinite(hi)  # the band only between finite quartiles
         ax.fill_between(x, np.where(both, lo, np.nan), np.where(both, hi, np.nan), color=col,
                         alpha=0.12)
-        # a bar at every point too: with one N the band has no width
-        ax.vlines(x[ok] + shift, lo[ok], np.minimum(hi[ok], top), color=col, lw=3, alpha=0.5)
+        if len(x) == 1:  # a band of one N has no width: a bar instead
+            ax.vlines(x[ok] + shift, lo[ok], np.minimum(hi[ok], top), color=col, lw=3,
+                      alpha=0.5)
         up = ok & ~np.isfinite(hi)
         ax.plot(x[up] + shift, np.full(up.sum(), top), "^", color=col, ms=7)
 
@@ -86,7 +88,7 @@ def _paper(ax, points, m, stat, top, level):
     for xi, yi in zip(px[off], py[off]):
         ax.plot([xi], [at], "^", mfc="none", color=col, ms=7)
         ax.annotate(_short(yi), (xi, at), textcoords="offset points", xytext=(5, -3),
-                    fontsize=7, color=col)
+                    fontsize=8, color=col)
     if quart:  # the paper's quartiles, as thin bars beside ours
         lo = np.array([p[1][0] for p in points], float)
         hi = np.array([p[1][2] for p in points], float)
@@ -100,7 +102,7 @@ def _panel(ax, rows, example, data, stat):
     methods = [m for m in METHODS if any(r["method"] == m for r in rows)]
     xs = [r["segments"] for r in rows]
     span = max(xs) - min(xs)
-    step = 0.022 * (span if span else 2.0)
+    step = 0.011 * (span if span else 2.0)
     level = 0
     for i, m in enumerate(methods):
         mr = sorted((r for r in rows if r["method"] == m), key=lambda r: r["segments"])
@@ -120,7 +122,7 @@ def _panel(ax, rows, example, data, stat):
     plain = ax.yaxis.get_major_formatter()
     ax.yaxis.set_major_formatter(lambda v, pos: "" if v > top * 1.0001 else plain(v, pos))
     ax.yaxis.set_minor_formatter("")
-    _x_limits(ax, xs)
+    _x_limits(ax, xs, len(methods) * step)
     ax.set_xlabel("number of training segments N")
     ax.set_ylabel("test MSE of plant states vs expert")
     ax.set_title(DATA_TITLES[data])
@@ -130,20 +132,22 @@ def _panel(ax, rows, example, data, stat):
 def _legend(fig, axes, quartiles: bool) -> None:
     """One legend for the figure, outside the panels (it covered data inside them)."""
     from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
 
     seen = {}
     for ax in axes:
         for h, lab in zip(*ax.get_legend_handles_labels()):
             seen.setdefault(lab, h)
-    extra = {"unstable (∞; shifted per method)":
+    extra = {"unstable (∞, shifted per method)":
              Line2D([], [], ls="none", marker="x", color="0.3", ms=8, mew=2),
              "paper's value off the scale":
              Line2D([], [], ls="none", marker="^", mfc="none", color="0.3", ms=7)}
     if quartiles:
+        extra["q1 to q3 (ours)"] = Patch(color="0.3", alpha=0.2)
         extra["q3 = ∞ (ours)"] = Line2D([], [], ls="none", marker="^", color="0.3", ms=7)
     seen.update(extra)
-    fig.legend(list(seen.values()), list(seen), loc="outside right center", fontsize=8,
-               frameon=False)
+    fig.legend(list(seen.values()), list(seen), loc="outside lower center", ncol=4,
+               fontsize=9, frameon=False)
 
 
 def plot_figures(records: list[dict], out_dir: pathlib.Path) -> list[pathlib.Path]:
@@ -164,15 +168,16 @@ def plot_figures(records: list[dict], out_dir: pathlib.Path) -> list[pathlib.Pat
         datas = [d for d in DATA_TITLES
                  if any(r["example"] == example and r["data"] == d for r in records)]
         for stat, title in _STATS:
+            # sized for a page about 700 px wide: 9-10 pt text stays legible there
             fig, axes = plt.subplots(1, len(datas), squeeze=False, layout="constrained",
-                                     figsize=(6.0 * len(datas) + 2.8, 4.8))
+                                     figsize=(4.7 * len(datas) + 0.6, 6.0))
             for ax, data in zip(axes[0], datas):
                 _panel(ax, [r for r in records if r["example"] == example and r["data"] == data],
                        example, data, stat)
             fig.suptitle(f"{example.capitalize()} example: {title} test MSE over controllers")
             _legend(fig, axes[0], stat == "quartiles")
             path = out_dir / f"{example}_{stat}.png"
-            fig.savefig(path, dpi=110)
+            fig.savefig(path, dpi=150)
             plt.close(fig)
             paths.append(path)
     return paths

@@ -179,8 +179,7 @@ def tables_markdown(records: list[dict]) -> str:
            "is stable in testing; percent change in cost is the mean relative change of the "
            "training loss; training time is wall seconds per controller (ours: all "
            "initialisations of a configuration trained together, XLA compilation included, "
-           "so a configuration that runs first in its process pays more; the CPU count of "
-           "the machine is in each section's settings). Test MSE: plant-state MSE against "
+           "so a configuration that runs first in its process pays more). Test MSE: plant-state MSE against "
            "the expert from the same test states and noise; unstable controllers count as ∞. "
            "Certified: every controller of the configuration holds the float64 certificate "
            "(– for the unconstrained methods).", ""]
@@ -205,28 +204,29 @@ def tables_markdown(records: list[dict]) -> str:
             if "controllers" in r)
         if counts:
             out += [f"Controllers per configuration: {counts}.", ""]
-        head = "| method | " + " | ".join(
-            f"{name} N={s}" for name in ("% stable", "% change in cost", "train time (s)")
-            for s in segs) + " |"
-        out += [head, "|" + " --- |" * (1 + 3 * len(segs))]
-        for m in methods:
-            cells = []
-            for field, idx, kind in (("percent_stable", 0, "pct"),
-                                     ("percent_change_cost", 1, "chg"),
-                                     ("train_time_s", 2, "time")):
+        # one table per quantity (the paper's tables set all three side by side)
+        for name, field, idx, kind in (("% stable", "percent_stable", 0, "pct"),
+                                       ("% change in cost", "percent_change_cost", 1, "chg"),
+                                       ("training time (s per controller)", "train_time_s",
+                                        2, "time")):
+            out += [f"**{name}**", "", "| method | " + " | ".join(f"N={s}" for s in segs)
+                    + " |", "|" + " --- |" * (1 + len(segs))]
+            for m in methods:
+                cells = []
                 for s in segs:
                     r = by.get((m, s))
                     ours = _fmt(r[field], kind) if r else "–"
                     p = (paper[m][idx][pseg.index(s)]
                          if m in paper and s in pseg else None)
                     cells.append(f"**{ours}** ({_fmt(p, kind)})")
-            out.append(f"| {METHOD_LABELS[m]} | " + " | ".join(cells) + " |")
-        out += ["", f"Test MSE ({example}, {DATA_TITLES[data].lower()}): median (paper's "
-                "median), quartiles and worst controller; % bounded (the weaker verdict, "
-                "equal to % stable where the test is exact) and the test horizon in steps.", ""]
-        out += ["| method | N | median | paper median | q1 | q3 | max | paper max | % bounded "
-                "| steps | certified |",
-                "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
+                out.append(f"| {METHOD_LABELS[m]} | " + " | ".join(cells) + " |")
+            out.append("")
+        out += [f"**Test MSE** ({example}, {DATA_TITLES[data].lower()}): median and worst "
+                "controller (the paper's in parentheses), quartiles; % bounded (the weaker "
+                "verdict, equal to % stable where the test is exact); test horizon "
+                f"{_steps([t for r in rows for t in r.get('test_steps') or ()])} steps.", ""]
+        out += ["| method | N | median | q1 | q3 | max | % bounded | certified |",
+                "| --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
         pmed = dict(FIGURES.get((example, data, "median"), {}))
         pmax = dict(FIGURES.get((example, data, "max"), {}))
         for m in methods:
@@ -236,11 +236,10 @@ def tables_markdown(records: list[dict]) -> str:
                     continue
                 pm = dict(pmed.get(m, ())).get(s)
                 px = dict(pmax.get(m, ())).get(s)
-                out.append(f"| {METHOD_LABELS[m]} | {s} | **{_fmt(r['mse_median'], 'g')}** | "
-                           f"{_fmt(pm, 'g')} | {_fmt(r['mse_q1'], 'g')} | "
-                           f"{_fmt(r['mse_q3'], 'g')} | {_fmt(r['mse_max'], 'g')} | "
-                           f"{_fmt(px, 'g')} | {_fmt(r.get('percent_bounded'), 'pct')} | "
-                           f"{_steps(r.get('test_steps'))} | "
+                out.append(f"| {METHOD_LABELS[m]} | {s} | **{_fmt(r['mse_median'], 'g')}** "
+                           f"({_fmt(pm, 'g')}) | {_fmt(r['mse_q1'], 'g')} | "
+                           f"{_fmt(r['mse_q3'], 'g')} | **{_fmt(r['mse_max'], 'g')}** "
+                           f"({_fmt(px, 'g')}) | {_fmt(r.get('percent_bounded'), 'pct')} | "
                            f"{_CERTIFIED.get(r.get('certified'), '–')} |")
         out.append("")
     return "\n".join(out)
@@ -262,7 +261,12 @@ def _settings_line(rows: list[dict]) -> str:
     if dates:
         parts.append(f"recorded {dates[0][:10]}" + (f" to {dates[-1][:10]}"
                                                      if dates[-1][:10] != dates[0][:10] else ""))
-    return "Settings: " + ("; ".join(parts) if parts else "not recorded") + "."
+    missing = [label for label, key in (("versions", "dissil_jax_version"), ("dtype", "dtype"),
+                                         ("CPU count", "cpu_count"), ("date", "date"))
+               if not values(key)]
+    if missing:  # records written before they stated their provenance
+        parts.append(f"{', '.join(missing)} not recorded")
+    return "Settings: " + "; ".join(parts) + "."
 
 
 def _steps(steps) -> str:
