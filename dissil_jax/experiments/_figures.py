@@ -102,7 +102,7 @@ def _panel(ax, rows, example, data, stat):
     methods = [m for m in METHODS if any(r["method"] == m for r in rows)]
     xs = [r["segments"] for r in rows]
     span = max(xs) - min(xs)
-    step = 0.011 * (span if span else 2.0)
+    step = 0.02 * (span if span else 2.0)
     level = 0
     for i, m in enumerate(methods):
         mr = sorted((r for r in rows if r["method"] == m), key=lambda r: r["segments"])
