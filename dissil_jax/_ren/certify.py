@@ -31,7 +31,7 @@ from .._sdp.lmi import (
     kyp_scale_of,
 )
 from .._supply import QSR
-from .._validate import check_flag, check_tolerance
+from .._validate import check_flag, check_tolerance, real_array
 from .controller import RENController
 from .units import COORDINATES, coordinates, unit_multiplier
 
@@ -305,14 +305,7 @@ def certify_ren(K: RENController, qsr: QSR, *, P=None, multiplier=None,
     if P is not None:
         # shape, finiteness and symmetry as in `dj.certify`
         P = np.broadcast_to(storage_arg("P", P, batch, n), batch + (n, n))
-        try:
-            lam = np.asarray(multiplier)
-            if np.iscomplexobj(lam):
-                raise TypeError("complex")
-            lam = lam.astype(np.float64)
-        except (TypeError, ValueError):
-            raise ValueError("`multiplier` must be an array of real numbers (the diagonal of "
-                             f"Lambda), got {multiplier!r}.") from None
+        lam = real_array("multiplier", multiplier)  # the diagonal of Lambda
         if not np.all(np.isfinite(lam)):
             raise ValueError("`multiplier` contains NaN or inf.")
         if lam.shape not in ((q,), batch + (q,)):
