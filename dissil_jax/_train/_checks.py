@@ -91,10 +91,10 @@ def check_eager(fn: str, key, windows, throw, alternative: str = "", **hyper) ->
     if traced:
         names = " and ".join(f"`{n}`" for n in traced)
         raise ValueError(
-            f"`{fn}` cannot run under `jax.jit` or `jax.vmap` (its {names} "
+            f"`{fn}` cannot run under `jax.jit` or `jax.vmap` (nor `jax.grad`: its {names} "
             f"{'is' if len(traced) == 1 else 'are'} traced): it solves convex programs or "
             "checks certificates in float64 on the host. It trains `num_inits` "
-            "initialisations in one vmapped run already"
+            "initialisations together already"
             + (f"; for sweeps inside JAX use `{alternative}`, which is traceable."
                if alternative else "; call it once per value for more."))
 
