@@ -10,7 +10,14 @@ import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from ._validate import check_abcd, check_int, check_key, check_precision, has_non_finite
+from ._validate import (
+    check_abcd,
+    check_int,
+    check_key,
+    check_precision,
+    has_non_finite,
+    real_array,
+)
 
 
 def _collect_systems(sys) -> tuple[tuple[int, ...], list]:
@@ -42,7 +49,7 @@ def _statespace_matrices(sys) -> tuple[np.ndarray, ...]:
 
 def _map_batch(fn, K: LTIController) -> np.ndarray:
     """`fn(A_i, B_i, C_i, D_i)` (float64) per member, in an object array of shape `K.batch_shape`."""
-    mats = [np.asarray(M, np.float64) for M in (K.A, K.B, K.C, K.D)]
+    mats = [real_array(name, M) for name, M in zip("ABCD", (K.A, K.B, K.C, K.D))]
     out = np.empty(K.batch_shape, dtype=object)
     for idx in np.ndindex(*K.batch_shape):
         out[idx] = fn(*(M[idx] for M in mats))
@@ -186,7 +193,8 @@ class LTIController(eqx.Module):
         to_ss = lambda A, B, C, D: control.ss(A, B, C, D, dt=dt)
         if self.batch_shape:
             return _map_batch(to_ss, self)
-        return to_ss(*(np.asarray(M, np.float64) for M in (self.A, self.B, self.C, self.D)))
+        return to_ss(*(real_array(name, M)  # refuses traced matrices by name
+                       for name, M in zip("ABCD", (self.A, self.B, self.C, self.D))))
 
     @classmethod
     def from_statespace(cls, sys) -> LTIController:

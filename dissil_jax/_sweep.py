@@ -89,6 +89,10 @@ def sweep(fn, mesh: Mesh | None = None):
                 "a pytree of separate scalars, not as one axis: pass an array, e.g. "
                 "`jnp.asarray([0.1, 0.3])`.")
         sizes = {np.shape(x)[0] if np.ndim(x) else None for x in leaves}
+        if sizes == {None}:
+            raise ValueError("the swept arguments are scalars: a sweep needs a leading axis "
+                             "of values, e.g. `jnp.asarray([0.1, 0.3])` for one value 0.1 "
+                             "and another 0.3 (call the run directly for a single value).")
         if len(sizes) != 1 or None in sizes:
             raise ValueError("every leaf of the swept arguments must have the same leading "
                              f"(sweep) axis; got leading sizes {sorted(sizes, key=str)}. "

@@ -83,7 +83,7 @@ def real_array(name: str, value) -> np.ndarray:
     warning, strings, bools, objects)."""
     if isinstance(value, jax.core.Tracer):
         raise ValueError(f"`{name}` is traced (inside `jax.jit`, `jax.vmap` or `jax.grad`), "
-                         "but this check runs on the host in float64: call it on concrete "
+                         "but it is read on the host in float64 here: call this on concrete "
                          "arrays, outside the transformation.")
     try:
         arr = np.asarray(value)

@@ -144,3 +144,14 @@ def test_a_traced_size_asks_for_a_static_argument(K):
     with pytest.raises(ValueError, match="`horizon` must be a positive integer known when "
                                          "tracing .* static argument"):
         jax.jit(lambda h: dj.observability_toeplitz(K, h))(3)
+
+
+def test_to_statespace_under_jit_names_the_traced_matrix(K):
+    with pytest.raises(ValueError, match="`A` is traced .* read on the host"):
+        jax.jit(lambda A: dj.LTIController(A, K.B, K.C, K.D).to_statespace())(K.A)
+
+
+def test_a_sweep_over_a_scalar_asks_for_an_axis_of_values():
+    with pytest.raises(ValueError, match="the swept arguments are scalars: a sweep needs a "
+                                         "leading axis"):
+        dj.sweep(lambda lr: 2.0 * lr)(0.3)
