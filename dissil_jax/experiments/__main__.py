@@ -242,7 +242,7 @@ def _experiments(args) -> int:
 
     from . import _jobs
     from .protocol import METHOD_LABELS, run_config
-    from .report import load_records, merge_records, write_json, write_report
+    from .report import certified_cell, load_records, merge_records, write_json, write_report
 
     configs, old, summary = _configs(args), load_records(args.out), pathlib.Path(args.out)
     summary = summary / "summary.json"
@@ -288,7 +288,7 @@ def _experiments(args) -> int:
     print(f"{'data':8s} {'method':{width}s} {'N':>4s} {'% stable':>9s} {'% ΔJ':>8s} "
           f"{'s/ctrl':>8s} {'MSE median':>11s} {'MSE max':>10s} {'certified':>9s}")
     for r in records:
-        cert = {True: "all", False: "not all"}.get(r.get("certified"), "–")
+        cert = certified_cell(r)
         print(f"{r['data']:8s} {METHOD_LABELS[r['method']]:{width}s} {r['segments']:4d} "
               f"{r['percent_stable']:9.0f} {r['percent_change_cost']:8.2f} "
               f"{r['train_time_s']:8.3g} {r['mse_median']:11.4g} {r['mse_max']:10.4g} "

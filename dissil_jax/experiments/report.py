@@ -240,12 +240,14 @@ def tables_markdown(records: list[dict]) -> str:
                            f"({_fmt(pm, 'g')}) | {_fmt(r['mse_q1'], 'g')} | "
                            f"{_fmt(r['mse_q3'], 'g')} | **{_fmt(r['mse_max'], 'g')}** "
                            f"({_fmt(px, 'g')}) | {_fmt(r.get('percent_bounded'), 'pct')} | "
-                           f"{_CERTIFIED.get(r.get('certified'), '–')} |")
+                           f"{certified_cell(r)} |")
         out.append("")
     return "\n".join(out)
 
 
-_CERTIFIED = {True: "all", False: "not all"}
+def certified_cell(record: dict) -> str:
+    """A record's `certified` for a table: all, not all, or – (a method without one)."""
+    return {True: "all", False: "not all"}.get(record.get("certified"), "–")
 
 
 def _settings_line(rows: list[dict]) -> str:
