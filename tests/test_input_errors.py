@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from helpers import through_solves
 
 import dissil_jax as dj
 import dissil_jax.internal as dji
@@ -546,7 +547,10 @@ def test_bad_hyperparameters_in_a_vmapped_run_end_as_non_finite(trainer):
     assert codes[0] != dji.outcome.code("non_finite")
     assert (codes[1:] == dji.outcome.code("non_finite")).all(), res.result_names()
     alone = jax.jit(run)(*(a[0] for a in args))
-    np.testing.assert_allclose(res.final_loss[0], alone.final_loss, rtol=1e-9)
+    # PGD's lane passed through 6 projections, solved in a batch of 7 rows or alone (other
+    # BLAS paths: 4e-9 apart under OPENBLAS_CORETYPE=SkylakeX); the direct map is pure JAX
+    rtol = through_solves(6) if trainer == "pgd" else 1e-9
+    np.testing.assert_allclose(res.final_loss[0], alone.final_loss, rtol=rtol)
     if trainer == "pgd":  # a failed lane is not a certified result (a bad step's lane kept
         # its projected draw and read `certified=True`, against the sweep tutorial)
         assert np.asarray(res.certified)[:, 0].tolist() == [True] + [False] * (len(lanes) - 1)

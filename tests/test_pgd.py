@@ -441,10 +441,13 @@ def test_kept_step_of_a_batch_equals_python_loop(getkey):
     """Each lane of a batch (the initialisations are vmapped) reports as `kept_step` the step
     of lowest loss that a plain Python loop, one run per initialisation, finds, and returns
     that step's loss. The step is far too long for the problem, so the loss goes up and down
-    and the best step is not the last."""
+    and the best step is not the last. Not so long that the runs turn chaotic: at a step of
+    8 one lane amplified the batch's and the loop's round-off differences (other BLAS
+    kernels: OPENBLAS_CORETYPE=SkylakeX, Sandybridge) to 2.7 times the solvers' allowance;
+    at 6 the worst lane stays within 1/30 of it under Haswell, SkylakeX and Sandybridge."""
     w = random_windows(getkey(), N=12, n=2, gain=0.6)
     key = getkey()
-    steps, lr = 8, 8.0
+    steps, lr = 8, 6.0
     res = dj.fit_pgd(key, w, QSR, learning_rate=lr, decay=1.0, num_inits=4, max_steps=steps,
                      atol=0.0, rtol=0.0, init_scale=0.3, throw=False)
     K0, P0 = dj.project(init_controllers(key, 4, w, 0.3), QSR)
