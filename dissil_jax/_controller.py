@@ -70,7 +70,8 @@ class LTIController(eqx.Module):
     controller, so `jax.vmap` it for batches.
 
     **Arguments:** `A` ($\\hat n\\times\\hat n$), `B` ($\\hat n\\times p$), `C` ($m\\times\\hat n$),
-    `D` ($m\\times p$).
+    `D` ($m\\times p$): real matrices of one floating dtype (integer ones are cast to
+    it, or to JAX's default float when all four are integers).
     """
 
     A: Float[Array, "*batch n n"]
@@ -85,6 +86,12 @@ class LTIController(eqx.Module):
                 mats.append(jnp.asarray(M))
             except TypeError:
                 raise ValueError(f"`{name}` must be a floating-point array, got {M!r}.") from None
+        # integer entries (`np.eye(2, dtype=int)`, `[[1]]`) take the floats' dtype, as in
+        # `Windows` and `QSR`: the other matrices' when they share one, else JAX's default
+        floats = {M.dtype for M in mats if jnp.issubdtype(M.dtype, jnp.floating)}
+        target = floats.pop() if len(floats) == 1 else jnp.result_type(float)
+        mats = [M.astype(target) if jnp.issubdtype(M.dtype, jnp.integer) else M
+                for M in mats]
         self.A, self.B, self.C, self.D = mats
 
     def __check_init__(self):

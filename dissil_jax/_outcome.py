@@ -33,8 +33,8 @@ class Outcome(eqx.Enumeration):
         "the loss became NaN or infinite: the steps were too large for this problem, or "
         "float32 arithmetic did not suffice for it; pass a smaller "
         "`learning_rate` (or an `optimizer` with a bounded step, such as `optax.adam`) or a "
-        "smaller `init_scale`, or train in float64 (`jax.config.update(\"jax_enable_x64\", "
-        "True)`)"
+        "smaller `init_scale`, or, if the data are float32, train in float64 "
+        "(`jax.config.update(\"jax_enable_x64\", True)` and float64 windows)"
     )
     solver_failed = (
         "Clarabel failed to solve the SDP (max iterations or numerical trouble), usually for "

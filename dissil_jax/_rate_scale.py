@@ -84,3 +84,36 @@ def balanced_blocks(qsr: QSR, cross: bool = False) -> tuple[float, float, QSR]:
 def scaled_rate(qsr: QSR, k: float) -> QSR:
     """The supply rate $(Q, S, R)/\\kappa$ (`qsr` itself when $\\kappa = 1$)."""
     return qsr if k == 1.0 else QSR(qsr.Q / k, qsr.S / k, qsr.R / k)
+
+
+@functools.lru_cache(maxsize=256)
+def centring(qsr: QSR) -> tuple[np.ndarray, QSR] | None:
+    """`(M, rate)`: the centre $M = Q^{-1}S$ of a narrow cone far from zero and the rate
+    about it, $(Q, 0, R - S^\\top Q^{-1}S)$; None for every other rate.
+
+    For $Q\\prec0$, with $\\hat y = \\hat y' - M\\hat u$ the supply is
+    $w = \\hat y'^\\top Q\\hat y' + \\hat u^\\top(R - S^\\top Q^{-1}S)\\hat u$, so the
+    controller $(A, B, C, D)$ is dissipative for $(Q, S, R)$ with storage $P$ exactly when
+    $(A, B, C, D + M)$ is for the centred rate, with the same KYP matrix. The shift moves
+    every controller by the same $M$, so a Euclidean projection commutes with it.
+
+    A rate is centred when its centre's term outweighs its room more than `RATE_BAND`
+    times, $\\lVert S^\\top Q^{-1}S\\rVert_2 > 64\\,\\lambda_{\\min}(R - S^\\top Q^{-1}S)$:
+    the LMI's input block near the centre, $R + S^\\top D + D^\\top S + D^\\top QD$, is then
+    a difference of terms that many times its size (a cone $[a, a + 1]$: $4(a + \\frac12)^2$,
+    four million at $a = 10^3$, where Clarabel reported the projection infeasible). The
+    ratio does not change with the units of the outputs or the inputs, nor with the rate's
+    size, so a wide cone in small units ($[0.5, 1.5]\\cdot10^{-3}$: 4) is left to the
+    trainers' balancing of units.
+    """
+    Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
+    q = np.linalg.eigvalsh((Q + Q.T) / 2)
+    if not q.size or q[-1] >= 0 or not np.any(S):
+        return None
+    M = np.linalg.solve(Q, S)
+    term = S.T @ M
+    room = R - (term + term.T) / 2
+    smallest = float(np.linalg.eigvalsh((room + room.T) / 2)[0])
+    if not (0.0 < smallest and np.linalg.norm(term, 2) > RATE_BAND * smallest):
+        return None
+    return M, QSR(Q, np.zeros_like(S), (room + room.T) / 2)

@@ -258,3 +258,39 @@ def expert_windows(seed, n, p, m, N=12, noise=0.05):
     t1 = (x0 @ Ae.T + y[:, 0] @ Be.T) @ Ce.T + y[:, 1] @ De.T
     target = np.stack([t0, t1], 1) + noise * rng.normal(size=(N, 2, m))
     return dj.Windows(x0, y, -target)
+
+
+def exactly_dissipative(K, qsr, P) -> bool:
+    """P > 0 and KYP(P) < 0 decided in exact rational arithmetic on the float64 entries
+    (no rounding at all; no library code): Sylvester's criterion, every leading principal
+    minor of P and of -KYP(P) positive, by fraction-exact elimination. Small controllers
+    only (the fractions grow with the order)."""
+    from fractions import Fraction
+
+    F = lambda M: [[Fraction(float(v)) for v in row] for row in np.atleast_2d(
+        np.asarray(M, np.float64))]
+    A, B, C, D, Q, S, R, P = (F(M) for M in _mats(K, qsr, P))
+    mul = lambda X, Y: [[sum(X[i][k] * Y[k][j] for k in range(len(Y))) for j in
+                         range(len(Y[0]))] for i in range(len(X))]
+    tr = lambda X: [list(r) for r in zip(*X)]
+    add = lambda *Xs: [[sum(X[i][j] for X in Xs) for j in range(len(Xs[0][0]))]
+                       for i in range(len(Xs[0]))]
+    neg = lambda X: [[-v for v in r] for r in X]
+    Ps = [[(P[i][j] + P[j][i]) / 2 for j in range(len(P))] for i in range(len(P))]
+    M11 = add(mul(mul(tr(A), Ps), A), neg(Ps), neg(mul(mul(tr(C), Q), C)))
+    M12 = add(mul(mul(tr(A), Ps), B), neg(mul(tr(C), add(S, mul(Q, D)))))
+    M22 = add(mul(mul(tr(B), Ps), B), neg(mul(mul(tr(D), Q), D)), neg(mul(tr(D), S)),
+              neg(mul(tr(S), D)), neg(R))
+    M = [r1 + r2 for r1, r2 in zip(M11, M12)] + [r1 + r2 for r1, r2 in zip(tr(M12), M22)]
+
+    def positive_definite(X):
+        X = [list(r) for r in X]
+        for k in range(len(X)):  # the k-th pivot is the ratio of leading minors k+1, k
+            if X[k][k] <= 0:
+                return False
+            for i in range(k + 1, len(X)):
+                f = X[i][k] / X[k][k]
+                X[i] = [a - f * b for a, b in zip(X[i], X[k])]
+        return True
+
+    return positive_definite(Ps) and positive_definite(neg(M))

@@ -78,7 +78,7 @@ def test_batched_controllers_via_vmap(getkey):
 @pytest.mark.parametrize(
     "mats, name",
     [
-        (([[1]], [[1.0]], [[1.0]], [[1.0]]), "`A`"),  # integer dtype
+        (([[True]], [[1.0]], [[1.0]], [[1.0]]), "`A`"),  # boolean dtype
         (([[1.0]], [[1.0]], np.array([[1j]]), [[1.0]]), "`C`"),  # complex dtype
         (([[1.0]], [[1.0]], [[1.0]], "one"), "`D`"),  # not numeric
         ((np.ones(1), [[1.0]], [[1.0]], [[1.0]]), "`A`"),  # 1-d
@@ -92,6 +92,16 @@ def test_batched_controllers_via_vmap(getkey):
 def test_invalid_matrices_name_the_argument(mats, name):
     with pytest.raises(ValueError, match=name):
         dj.LTIController(*mats)
+
+
+def test_integer_matrices_take_the_floats_dtype():
+    """Integer entries are cast, as `Windows` and `QSR` cast them (they were refused): to
+    the other matrices' float dtype, or to JAX's default float when all are integers."""
+    K = dj.LTIController(np.eye(2, dtype=int), np.ones((2, 1), np.float32), [[1, 0]], [[0]])
+    assert {M.dtype for M in (K.A, K.B, K.C, K.D)} == {np.dtype(np.float32)}
+    np.testing.assert_array_equal(K.A, np.eye(2))
+    K = dj.LTIController([[1]], [[2]], [[3]], [[0]])
+    assert K.A.dtype == jnp.result_type(float) and float(K.B[0, 0]) == 2.0
 
 
 def test_random_size_errors_name_the_argument(getkey):

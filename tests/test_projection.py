@@ -382,7 +382,7 @@ def test_projection_option_errors(getkey):
     with pytest.raises(ValueError, match="`qsr`"):
         dj.project(K, "passive")
     with pytest.raises(ValueError, match="`A`"):
-        dj.project(dj.LTIController(np.eye(2, dtype=int), np.ones((2, 1)), np.ones((1, 2)),
+        dj.project(dj.LTIController(np.eye(2, dtype=bool), np.ones((2, 1)), np.ones((1, 2)),
                                     np.ones((1, 1))), qsr)
 
 

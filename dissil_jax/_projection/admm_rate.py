@@ -16,13 +16,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._rate_scale import centring
 from .._supply import QSR
 
 
 class AdmmRate(eqx.Module):
     """$(S, R, L)$ with $-Q = LL^\\top$, the constant systems of the $\\hat C$- and
     $D$-updates (`constant_systems`) and the strictly dissipative static gain of `repair`
-    (`static_point`), as arrays; `p`, `m`, `r` static."""
+    (`static_point`), as arrays; `p`, `m`, `r` static. A narrow cone far from zero is held
+    about its centre (`centring`): ADMM then projects controllers whose $D$ is moved by
+    `offset` $= Q^{-1}S$ (zero for every other rate)."""
 
     S: jax.Array
     R: jax.Array
@@ -34,6 +37,7 @@ class AdmmRate(eqx.Module):
     Qd: jax.Array
     D0: jax.Array
     g0: jax.Array
+    offset: jax.Array
     p: int = eqx.field(static=True)
     m: int = eqx.field(static=True)
     r: int = eqx.field(static=True)
@@ -44,12 +48,15 @@ def admm_rate(qsr: QSR | AdmmRate, dtype) -> AdmmRate:
     through."""
     if isinstance(qsr, AdmmRate):
         return qsr
+    found = centring(qsr)
+    offset = np.zeros_like(qsr.S) if found is None else found[0]
+    qsr = qsr if found is None else found[1]
     L = qsr.neg_q_factor()
     D0, g0 = static_point(qsr)
     arr = lambda M: jnp.asarray(M, dtype)
     G, g, Qg, h, Qd = (arr(M) for M in constant_systems(qsr))
     return AdmmRate(arr(qsr.S), arr(qsr.R), arr(L), G, g, Qg, h, Qd, arr(D0), arr(g0),
-                    qsr.n_in, qsr.n_out, L.shape[1])
+                    arr(offset), qsr.n_in, qsr.n_out, L.shape[1])
 
 
 @functools.lru_cache(maxsize=32)

@@ -86,6 +86,12 @@ def _rate(qsr: QSR | RateHandle | AdmmRate, dtype) -> AdmmRate:
     return admm_rate(qsr, dtype)
 
 
+def _centred(K, rate: AdmmRate, sign=1.0):
+    """`(A, B, C, D)` with $D$ moved by the rate's `offset` (`sign` -1: back)."""
+    A, B, C, D = K
+    return A, B, C, D + sign * rate.offset
+
+
 def _frame(V, n, N):
     """The rotation $\\operatorname{diag}(V, I_{p+r}, V)$ between the eigenbasis of
     $\\tilde P$ and the original basis (warm starts are kept in the original one)."""
@@ -96,12 +102,13 @@ def _frame(V, n, N):
 def cold_state(n: int, qsr: QSR | RateHandle | AdmmRate, dtype, target=None):
     """The ADMM state of a cold start: $Z = U = Z_2 = U_2 = 0$, $\\rho$ = `RHO_FO`; with a
     metric, also the consensus block's $Y$ = `target` ($(A, B, C, D)$) and $U_Y = 0$."""
-    *_, N = _admm.sizes(_rate(qsr, dtype), n)
+    rate = _rate(qsr, dtype)
+    *_, N = _admm.sizes(rate, n)
     zero, zero2 = jnp.zeros((N, N), dtype), jnp.zeros((n, n), dtype)
     cold = (zero, zero, zero2, zero2, jnp.asarray(RHO_FO, dtype))
     if target is None:
         return cold
-    Y = tuple(jnp.asarray(M, dtype) for M in target)
+    Y = _centred(tuple(jnp.asarray(M, dtype) for M in target), rate)
     return cold + ((Y, tuple(jnp.zeros_like(M) for M in Y)),)
 
 
@@ -262,14 +269,15 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR | RateHandle, eps, reg, 
         weights = tuple(M / top for M in weights)
     rate = _rate(qsr, dtype)
     state = cold_state(n, rate, dtype, target if weighted else None) if state is None else state
+    centred = _centred(target, rate)  # ADMM's coordinates (a far cone's centre at zero)
     # an inactive lane (a stopped PGD run) takes no ADMM iteration; its row is skipped
     max_iter = jnp.where(jnp.asarray(active, bool), max_iter, 0)
 
     def one_round(carry):
         _, state, P_tilde, iters, _ = carry
-        x, state, it, t = admm_round(target, P_tilde, rate, state, eps=eps, margin=margin,
-                                  reg=reg, tol=tol, max_iter=max_iter, floor=floor,
-                                  weights=weights)
+        x, state, it, t = admm_round(centred, P_tilde, rate, state, eps=eps, margin=margin,
+                                     reg=reg, tol=tol, max_iter=max_iter, floor=floor,
+                                     weights=weights)
         # the next round linearises at the new P (if it is usable; else keep P~)
         good = jnp.all(jnp.isfinite(x[4])) & (jnp.min(jnp.diag(x[4])) > 0)
         return x, state, jnp.where(good, x[4], P_tilde), iters + it, t
@@ -280,7 +288,8 @@ def project_one(K, P_ref, W, active, K_ref, *, qsr: QSR | RateHandle, eps, reg, 
     # Several re-linearisation rounds in a loop, so that ADMM is compiled once, not once
     # per round; one round (PGD's steps, at P_ref) as it is.
     x, state, _, iters, t = (one_round(carry) if rounds == 1 else
-                          jax.lax.fori_loop(0, rounds, lambda _, c: one_round(c), carry))
+                             jax.lax.fori_loop(0, rounds, lambda _, c: one_round(c), carry))
+    x = (*_centred(x[:4], rate, -1.0), x[4])
     shard, shards = _sdp.shard()
     shapes = tuple(jax.ShapeDtypeStruct(M.shape, dtype) for M in (*target, P_ref))
     handle = isinstance(qsr, RateHandle)

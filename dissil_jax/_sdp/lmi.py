@@ -109,10 +109,15 @@ def kyp_bound_holds(A, B, C, D, Q, S, R, P) -> np.ndarray:
     so the test is $\\lambda_{\\max}(\\Delta\\tilde M\\Delta) + \\gamma\\lVert\\Delta|M|\\Delta
     \\rVert_F + c N\\epsilon\\lVert\\Delta\\tilde M\\Delta\\rVert_F < 0$ (the last term for the
     eigenvalue solver's own backward error), with $\\Delta = \\operatorname{diag}(|\\tilde
-    M_{ii}|^{-1/2})$, and likewise $\\lambda_{\\min}$ of the scaled $P$. It certifies
-    realisations that are far from balanced (a storage with eigenvalues $10^1$ and $10^7$,
-    state matrices with entries of 30 whose products cancel), where an allowance relative
-    to the norms of the factors (`kyp_scale`) exceeds the margin by orders of magnitude.
+    M_{ii}|^{-1/2})$, or failing that $\\Delta = I$, and likewise $\\lambda_{\\min}$ of the
+    scaled $P$. The scaled test certifies realisations that are far from balanced (a
+    storage with eigenvalues $10^1$ and $10^7$, state matrices with entries of 30 whose
+    products cancel), where an allowance relative to the norms of the factors
+    (`kyp_scale`) exceeds the margin by orders of magnitude. The unscaled one proves
+    matrices with a tiny diagonal entry whose $|M|$ is large: a narrow cone far from zero
+    ($[10^3, 10^3 + 1]$) has an input block of $10^{-6}$ computed from terms of $10^6$, an
+    error of $10^{-9}$ that scaling by $10^{3}$ on each side magnifies to $10^{-3}$ of a
+    unit diagonal.
     """
     A, B, C, D, P, Q, S, R = (np.asarray(M, np.float64) for M in (A, B, C, D, P, Q, S, R))
     eps = np.finfo(np.float64).eps
@@ -131,10 +136,15 @@ def kyp_bound_holds(A, B, C, D, Q, S, R, P) -> np.ndarray:
         d = 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0))
         return d[..., :, None] * X * d[..., None, :]
 
-    Ms = scaled(M, M)
     fro = lambda X: np.sqrt(np.sum(X * X, axis=(-2, -1)))
-    err = gamma * fro(scaled(Mabs, M)) + (8 * N + 2) * eps * fro(Ms)
-    ok = np.linalg.eigvalsh(Ms)[..., -1] + err < 0
+
+    def negative(Ms, Mabs_s):
+        err = gamma * fro(Mabs_s) + (8 * N + 2) * eps * fro(Ms)
+        return np.linalg.eigvalsh(Ms)[..., -1] + err < 0
+
+    ok = negative(scaled(M, M), scaled(Mabs, M))
+    if not np.all(ok):  # Delta = I: for a tiny diagonal entry whose |M| is large
+        ok = ok | negative(M, Mabs)
     if n:
         Psym = (P + _T(P)) / 2
         Ps = scaled(Psym, Psym)

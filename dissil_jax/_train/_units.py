@@ -81,7 +81,7 @@ import numpy as np
 
 from .. import _outcome
 from .._data import Windows
-from .._rate_scale import nearest_power_of_two
+from .._rate_scale import centring, nearest_power_of_two
 from .._ren.certify import certified_batch
 from .._ren.controller import RENController
 from .._sdp.lmi import kyp_certified
@@ -145,20 +145,24 @@ def state_factors(windows: Windows) -> np.ndarray | None:
 
 
 class Units(NamedTuple):
-    """The exact changes of units of a `fit_*` call (powers of two): the outputs divided by
-    `c`, the initial states' components by `d` (None: unchanged)."""
+    """The changes of units of a `fit_*` call: the outputs divided by `c`, the initial
+    states' components by `d` (None: unchanged), both powers of two, after the outputs
+    were moved by the rate's centre, $\\hat y + M\\hat u$ (`centre` $= M$; None: not
+    moved)."""
 
     c: float = 1.0
     d: np.ndarray | None = None
+    centre: np.ndarray | None = None
 
     @property
     def none(self) -> bool:
         """No change of units."""
-        return self.c == 1.0 and self.d is None
+        return self.c == 1.0 and self.d is None and self.centre is None
 
     def controllers(self, K):
         """Controllers (LTI or REN, batched or not) of the balanced problem in the user's
-        units: $\\hat x = D\\hat x_b$ and $\\hat y = c\\,\\hat y_b$."""
+        units: $\\hat x = D\\hat x_b$ and $\\hat y = c\\,\\hat y_b - M\\hat u$ (the
+        feedthrough $D$, a REN's $D_{22}$, less $M$)."""
         if self.d is not None:
             d = self._d(K.n_state)
             names = (("A", "B1", "B2", "C1", "C2") if isinstance(K, RENController)
@@ -172,6 +176,11 @@ class Units(NamedTuple):
             names = ("C2", "D21", "D22") if isinstance(K, RENController) else ("C", "D")
             K = eqx.tree_at(lambda k: tuple(getattr(k, n) for n in names), K,
                             tuple(self.c * getattr(K, n) for n in names))
+        if self.centre is not None:
+            name = "D22" if isinstance(K, RENController) else "D"
+            D = getattr(K, name)
+            K = eqx.tree_at(lambda k: getattr(k, name), K,
+                            D - jnp.asarray(self.centre, D.dtype))
         return K
 
     def storages(self, P):
@@ -194,9 +203,10 @@ def _times(M, factors: np.ndarray):
     return M * jnp.asarray(factors, M.dtype) if isinstance(M, jax.Array) else M * factors
 
 
-def balancing_units(windows: Windows, balance) -> Units:
-    """The `Units` of the module docstring when `balance` is True (the states' factors $d$
-    first, then $c$ of the windows with $\\hat x_0/d$), none when False; a `ValueError`
+def balancing_units(windows: Windows, balance, qsr: QSR | None = None) -> Units:
+    """The `Units` of the module docstring when `balance` is True (the rate's centre $M$
+    first, then the states' factors $d$ of the windows with $u - yM^\\top$, then $c$ of
+    those with $\\hat x_0/d$), none when False; a `ValueError`
     naming `balance` for anything else, or for traced windows (`fit_gd` under `jax.jit` or
     `jax.vmap` over the windows): the factors are powers of two chosen from the data on
     the host."""
@@ -206,12 +216,19 @@ def balancing_units(windows: Windows, balance) -> Units:
         raise ValueError("`balance=True` chooses the outputs' units from the data on the host, "
                          "which traced `windows` (a trainer under `jax.jit` or `jax.vmap` over "
                          "its windows) do not allow: pass `balance=False` there.")
+    found = None if qsr is None else centring(qsr)
+    centre = None if found is None else found[0]
+    windows = _divided(windows, Units(centre=centre))
     d = state_factors(windows)
-    return Units(output_factor(_divided(windows, Units(1.0, d))), d)
+    return Units(output_factor(_divided(windows, Units(1.0, d))), d, centre)
 
 
 def _divided(windows: Windows, units: Units) -> Windows:
-    """The windows $(\\hat x_0/d, y, u/c)$ (exact)."""
+    """The windows $(\\hat x_0/d, y, (u - yM^\\top)/c)$ (exact but for the centre's
+    products)."""
+    if units.centre is not None:
+        u = windows.u - windows.y @ jnp.asarray(units.centre.T, windows.y.dtype)
+        windows = Windows(windows.x0, windows.y, u)
     x0 = windows.x0
     if units.d is not None:  # (d is only chosen for windows that start at a state)
         assert x0 is not None
@@ -229,6 +246,10 @@ def balance(windows: Windows, qsr: QSR | None, units: Units) -> tuple[Windows, Q
     if units.none:
         return windows, qsr
     c = units.c
+    if qsr is not None and units.centre is not None:
+        found = centring(qsr)
+        assert found is not None  # `balancing_units` found it for this rate
+        qsr = found[1]
     if qsr is not None and c != 1.0:
         qsr = QSR(c * c * qsr.Q, c * qsr.S, qsr.R)
     return _divided(windows, units), qsr
@@ -239,17 +260,17 @@ def unbalance(res, units: Units, qsr: QSR | None = None, throw: bool = False):
     controllers by `Units.controllers`, storages by `Units.storages` (a REN's multiplier
     unchanged), losses times $c^2$.
 
-    With the states' units changed, `certified` is checked again against the user's `qsr`
-    (float64; the same matrix up to exact scalings by powers of two, so the verdict agrees
-    except at round-off), and a pair that fails it becomes `not_certified` (raised with
-    `throw`)."""
+    With the states' units changed or the outputs centred, `certified` is checked again
+    against the user's `qsr` (float64; the same matrix up to exact scalings by powers of
+    two and the centre's rounding, so the verdict agrees except at round-off), and a pair
+    that fails it becomes `not_certified` (raised with `throw`)."""
     if units.none:
         return res
     c = units.c
     res = eqx.tree_at(lambda r: (r.controllers, r.loss_history, r.final_loss), res,
                       (units.controllers(res.controllers), res.loss_history * c**2,
                        res.final_loss * c**2))
-    if units.d is None or res.P is None:
+    if (units.d is None and units.centre is None) or res.P is None:
         return res
     res = eqx.tree_at(lambda r: r.P, res, units.storages(res.P))
     if qsr is None or res.certified is None:
@@ -265,7 +286,7 @@ def unbalance(res, units: Units, qsr: QSR | None = None, throw: bool = False):
         return res
     P = np.asarray(res.P)
     overflow = lost & ~np.isfinite(P.reshape(P.shape[0], -1)).all(1)
-    if throw and overflow.any():
+    if throw and overflow.any() and units.d is not None:
         raise ValueError(
             f"{int(overflow.sum())} of {lost.size} certified runs have storages that overflow "
             f"{P.dtype} in your units: some states are about {1 / units.d.min():.0e} times "

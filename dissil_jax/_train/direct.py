@@ -357,7 +357,9 @@ def fit_direct(
       above or below the inputs', train on outputs rescaled by a power of two and the
       matching supply rate; when an initial state is more than 5x smaller than the
       outputs' $y$, train in state coordinates rescaled by a power of two; map the result
-      back exactly.
+      back exactly. A narrow cone far from zero is trained about its centre first (in
+      `fit_pgd`'s words); on a cone $[10^3, 10^3 + 1]$ the map fitted 2000 times worse
+      without it.
     - `progress`: as in `fit_pgd` (default True: a line on standard error every 10 s once
       training has taken 10 s).
 
@@ -377,7 +379,7 @@ def fit_direct(
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state, margin=margin)
     fallback_eps = check_positive("fallback_eps", fallback_eps)  # used after training
-    units = balancing_units(windows, balance)  # outputs' and states' units (`_units.py`)
+    units = balancing_units(windows, balance, qsr)  # outputs' and states' units (`_units.py`)
     user_qsr, (windows, qsr) = qsr, balanced(windows, qsr, units)
     c = units.c
     rate = solved_rate(qsr, margin, windows.y.dtype)  # traced: one compilation per shape

@@ -194,7 +194,7 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
         windows, qsr, num_inits, max_steps, optimizer=optimizer, learning_rate=learning_rate,
         decay=decay, atol=atol, rtol=rtol, init_scale=init_scale, n_state=n_state)
 
-    units = balancing_units(windows, balance)  # outputs' and states' units (`_units.py`)
+    units = balancing_units(windows, balance, qsr)  # outputs' and states' units (`_units.py`)
     user_qsr, (windows, qsr) = qsr, balanced(windows, qsr, units)
     c = units.c
     if qsr is not None:  # the margin applies to the rate as solved: after balancing
@@ -315,8 +315,12 @@ def fit_pgd(
       ([Scaling out](scaling.md#a-first-order-projection)).
     - `balance`: rescale the outputs when their units are far from the inputs', and the
       initial states when theirs are far from the outputs' $y$ (default True, see "Units"
-      above); False trains every signal in the one scale $s$, as the
-      paper's reproduction does (its step sizes were chosen that way).
+      above); first, train a narrow cone far from zero about its centre $-Q^{-1}S$ (the
+      outputs $u - yM^\\top$ and the feedthrough $D + M$, $M = Q^{-1}S$, for a rate whose
+      $\\lVert S^\\top Q^{-1}S\\rVert$ exceeds 64 times its room; an exact change of
+      variables, [concepts](concepts.md#narrow-cones-far-from-zero)). False trains every
+      signal in the one scale $s$, as the paper's reproduction does (its step sizes were
+      chosen that way).
     - `progress`: report long training on standard error (default True): nothing during
       the first 10 s, then a line at most every 10 s with the step, the runs still
       training and the lowest loss so far (from inside the compiled loop, through

@@ -256,7 +256,8 @@ def fit_ren(
       map in the user's units ($C_1/s$, $D_{12}/s$, $sB_1$, $sD_{21}$, multiplier
       $s^2\\Lambda$). With `balance` the outputs' units are balanced first, as in
       `fit_direct`: then $C_2$, $D_{21}$ and $D_{22}$ come back multiplied by the power
-      of two $c$, with the same $P$ and $\\Lambda$.
+      of two $c$, with the same $P$ and $\\Lambda$; a narrow cone far from zero is
+      trained about its centre, $D_{22} + Q^{-1}S$ (as in `fit_pgd`).
 
     **Returns:** a [`RENFitResult`][dissil_jax.RENFitResult].
     """
@@ -289,7 +290,7 @@ def fit_ren(
     init_scale = scale0 if init_scale is None else init_scale
     start = time.perf_counter()
     dtype = windows.y.dtype
-    units = balancing_units(windows, balance)  # outputs' and states' units (`_units.py`)
+    units = balancing_units(windows, balance, qsr)  # outputs' and states' units (`_units.py`)
     user_qsr, (windows, qsr) = qsr, balanced(windows, qsr, units)
     c = units.c
     with reporting("fit_ren", max_steps, check_flag("progress", progress), c**2) as token:

@@ -31,7 +31,11 @@ def _parser() -> argparse.ArgumentParser:
     paper_n = "; ".join(f"{e} {' '.join(map(str, SEGMENTS[e]))}" for e in EXAMPLES)
     p = argparse.ArgumentParser(prog="python -m dissil_jax.experiments",
                                 description="Reproduce the paper's tables and figures.")
-    p.add_argument("example", choices=EXAMPLES)
+    p.add_argument("example", choices=EXAMPLES,
+                   help="the paper's example: linear (ten mass-spring-damper chains, "
+                        "passive controllers) or nonlinear (the scalar plant x+ = 0.5x + "
+                        "0.4 sin x + u, a conic controller rate); every option below "
+                        "applies to either")
     p.add_argument("--data", nargs="+", choices=REGIMES, default=["initial"],
                    help="data regime(s): initial segments and/or sliding window (default: "
                         "initial only, the paper's Tables 2 and 4; add sliding for its "

@@ -140,7 +140,7 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
                 init_scale=init_scale, eps=eps, prox=prox, atol=atol, rtol=rtol)
     _check_args(windows, qsr, num_inits, max_steps, atol, rtol, init_scale)
     eps, prox = check_positive("eps", eps), check_positive("prox", prox, zero=True)
-    units = balancing_units(windows, balance)  # outputs' and states' units (`_units.py`)
+    units = balancing_units(windows, balance, qsr)  # outputs' and states' units (`_units.py`)
     user_qsr, (windows, qsr) = qsr, balanced(windows, qsr, units)
     atol, c = atol / units.c**2, units.c
     k = 1.0  # a rate far from unit size is solved divided by k, P multiplied back (exact)
@@ -362,7 +362,9 @@ def fit_ico(
     - `balance`: as in [`fit_pgd`][dissil_jax.fit_pgd] (default True): when the outputs'
       size is more than 5x above or below the inputs', solve on outputs rescaled by a
       power of two and the matching supply rate, and map the result back exactly. Without
-      it, outputs 1000 times the inputs made every SDP fail after a few steps.
+      it, outputs 1000 times the inputs made every SDP fail after a few steps. A narrow
+      cone far from zero is solved about its centre first (as in `fit_pgd`); without it
+      ICO's SDP failed on every run for the cones $[10, 11]$ and $[10^3, 10^3 + 1]$.
 
     **Returns:** a [`FitResult`][dissil_jax.FitResult] with `P` and `certified` filled in.
 
