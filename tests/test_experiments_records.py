@@ -6,6 +6,7 @@ import functools
 import json
 import os
 import pathlib
+import re
 import subprocess
 import sys
 import time
@@ -80,6 +81,14 @@ def test_record_says_what_produced_it(tmp_path):
     assert rec["dissil_jax_version"] == dj.__version__ and rec["jax_version"] == jax.__version__
     assert datetime.datetime.fromisoformat(rec["date"]).tzinfo is not None
     assert rec["command"].startswith("run_config('nonlinear', 'initial', 'gd', 2, inits=2")
+    # the version stays 0.1.0 between commits; the commit does not (None when installed)
+    root = pathlib.Path(dj.__file__).resolve().parents[1]
+    head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True,
+                          text=True)
+    if head.returncode == 0 and (root / ".git").exists():
+        assert re.fullmatch(head.stdout.strip() + "(-dirty)?", rec["git_commit"])
+    else:
+        assert rec["git_commit"] is None
     hp = rec["hyperparameters"]
     assert hp == hyperparameters(example_spec("nonlinear", quick=True))
     assert hp["max_steps"] == 30 and hp["mlp_max_steps"] == 30 and hp["tol"] == 1e-5

@@ -94,6 +94,25 @@ def test_an_mlp_result_pickles(getkey):
     np.testing.assert_array_equal(np.asarray(f(back)), np.asarray(f(res)))
 
 
+def _leaky(v):
+    """A slope-restricted activation defined at module level (picklable)."""
+    return jnp.maximum(v, 0.5 * v)
+
+
+def test_a_ren_with_a_named_activation_pickles_and_a_lambda_does_not():
+    """The activation is a static field: pickled by reference, so a top-level function
+    round-trips and a lambda cannot (as docs/ren.md says)."""
+    K = dj.LTIController.random(jr.PRNGKey(0), 2, 1, 1, scale=0.3)
+    R = dj.RENController.from_lti(K, width=2, activation=_leaky)
+    back = pickle.loads(pickle.dumps(R))
+    assert back.activation is _leaky
+    x, u = jnp.ones(2), jnp.ones(1)
+    np.testing.assert_array_equal(np.asarray(back(x, u)[1]), np.asarray(R(x, u)[1]))
+    with pytest.raises((pickle.PicklingError, AttributeError)):
+        pickle.dumps(dj.RENController.from_lti(K, width=2,
+                                               activation=lambda v: jnp.maximum(v, 0.0)))
+
+
 def test_a_traced_rate_gets_a_message_about_rates_not_about_reals():
     with pytest.raises(ValueError, match="`Q` is traced .* a `QSR` is static host data"):
         jax.vmap(lambda q: dj.QSR(q, 3.556, 0.601))(jnp.array([-29.867, -20.0]))

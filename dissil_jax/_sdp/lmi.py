@@ -64,9 +64,15 @@ def kyp_scale(A, B, C, D, qsr: QSR, P):
 def kyp_scale_of(A, B, C, D, Q, S, R, P, factor):
     """`kyp_scale` with the rate's matrices as (possibly batched) arrays and its
     `rate_factor` given (batched like them, or a number)."""
-    nA, nB, nC, nD, nP = (_fro(M) for M in (A, B, C, D, P))
-    q, s, r = (_fro(M) for M in (Q, S, R))
-    return factor + nP * (1 + (nA + nB) ** 2) + q * (nC + nD) ** 2 + 2 * s * (nC + nD) + r
+    # Terms beyond float64 (states 2^600 from the neurons) overflow to inf, and a zero
+    # rate block times one to NaN: either way no relative allowance, and the caller's
+    # componentwise bound (`kyp_bound_holds`) decides.
+    with np.errstate(over="ignore", invalid="ignore"):
+        nA, nB, nC, nD, nP = (_fro(M) for M in (A, B, C, D, P))
+        q, s, r = (_fro(M) for M in (Q, S, R))
+        scale = (factor + nP * (1 + (nA + nB) ** 2) + q * (nC + nD) ** 2 + 2 * s * (nC + nD)
+                 + r)
+    return np.where(np.isnan(scale), np.inf, scale)
 
 
 # Relative round-off allowance for the float64 eigenvalue check of the KYP matrix.

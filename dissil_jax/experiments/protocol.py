@@ -156,13 +156,35 @@ def hyperparameters(spec: ExampleSpec) -> dict:
 
 def provenance(dtype) -> dict:
     """What produced a record besides its settings: the library's and JAX's versions, the
-    data's `dtype`, the machine's CPU count (its training times depend on it) and the date
-    (UTC)."""
+    checkout's git commit (`git_commit`), the data's `dtype`, the machine's CPU count (its
+    training times depend on it) and the date (UTC)."""
     from .. import __version__
 
     return dict(dtype=np.dtype(dtype).name, dissil_jax_version=__version__,
-                jax_version=jax.__version__, cpu_count=os.cpu_count(),
+                jax_version=jax.__version__, git_commit=git_commit(), cpu_count=os.cpu_count(),
                 date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"))
+
+
+@functools.lru_cache(maxsize=1)
+def git_commit() -> str | None:
+    """The commit of the git checkout the library runs from, with `-dirty` when tracked
+    files differ from it; None for an installed copy (no checkout that tracks this
+    package), or without git. The version stays the same between commits; this does not."""
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    git = lambda *a: subprocess.run(["git", "-C", str(root), *a], capture_output=True,
+                                    text=True, timeout=10)
+    try:
+        if git("ls-files", "--error-unmatch", "dissil_jax/__init__.py").returncode:
+            return None  # not a checkout of this library (e.g. site-packages in a user's repo)
+        head, dirty = git("rev-parse", "HEAD"), git("status", "--porcelain", "-uno")
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if head.returncode:
+        return None
+    return head.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
 
 
 def fit(method: str, key, windows, spec: ExampleSpec, inits: int):

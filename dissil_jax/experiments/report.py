@@ -259,6 +259,10 @@ def _settings_line(rows: list[dict]) -> str:
         ("seed", "seed"), ("initialisations", "inits"), ("dissil_jax", "dissil_jax_version"),
         ("jax", "jax_version"), ("dtype", "dtype"), ("CPU count", "cpu_count"))
         for v in [values(key)] if v]
+    commits = values("git_commit")
+    if commits:
+        parts.append("commit " + ", ".join(c[:10] + ("-dirty" if c.endswith("-dirty") else "")
+                                          for c in commits))
     dates = values("date")
     if dates:
         parts.append(f"recorded {dates[0][:10]}" + (f" to {dates[-1][:10]}"
