@@ -2,14 +2,14 @@
 
 A cone rate ([a, b]: Q = -I, S = (a + b)/2 I, R = -ab I) admits the feedthroughs near
 (a + b)/2; far from zero its entries are large against its room (b - a)^2/4. The library
-solves such a rate about its centre when its largest entry exceeds 64 times its room
-(`dissil_jax.internal.rate_scale.centring`; the trainers under `balance=True`, the
+solves such a rate about its centre when its centre's term -S'Q^-1 S exceeds 64 times its
+room along some direction (`dissil_jax.internal.rate_scale.centring`; the trainers under `balance=True`, the
 projection always). Per cell: the median final loss over 4 initialisations, solved as
 given ("plain": `centring` switched off in the trainers and the projection, as before)
 and about the centre ("centred": forced, whatever the ratio), both on the same windows in
 the same run, with every trainer's defaults, and which of the two the library picks; runs
 that raised are shown as their error. Every returned controller is certified (the
-trainers' own float64 check). "ratio" is `centring`'s criterion, |S'Q^-1 S| over the room
+trainers' own float64 check). "ratio" is `centring`'s criterion, the term -S'Q^-1 S over the room
 lambda_min(R - S'Q^-1 S) (4 (a + 1/2)^2 for [a, a + 1]).
 
 Data: `expert_windows` (a projected random expert of order 3 whose feedthrough lies
@@ -66,10 +66,13 @@ def forced(qsr):
 
 
 def ratio(qsr) -> float:
-    """`centring`'s criterion: |S'Q^-1 S|_2 over the room lambda_min(R - S'Q^-1 S)."""
+    """`centring`'s criterion: the largest generalised eigenvalue of the term
+    T = -S'Q^-1 S against the room R - S'Q^-1 S (scalar for these diagonal cones)."""
     Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
-    term = S.T @ np.linalg.solve(Q, S)
-    return float(np.linalg.norm(term, 2) / np.linalg.eigvalsh(R - term)[0])
+    term = -S.T @ np.linalg.solve(Q, S)
+    L = np.linalg.cholesky(R + term)
+    X = np.linalg.solve(L, np.linalg.solve(L, term).T)
+    return float(np.linalg.eigvalsh((X + X.T) / 2)[-1])
 
 
 def expert_windows(seed, qsr, a, b, n=3, num_windows=20, horizon=10, noise=0.01):

@@ -97,23 +97,34 @@ def centring(qsr: QSR) -> tuple[np.ndarray, QSR] | None:
     $(A, B, C, D + M)$ is for the centred rate, with the same KYP matrix. The shift moves
     every controller by the same $M$, so a Euclidean projection commutes with it.
 
-    A rate is centred when its centre's term outweighs its room more than `RATE_BAND`
-    times, $\\lVert S^\\top Q^{-1}S\\rVert_2 > 64\\,\\lambda_{\\min}(R - S^\\top Q^{-1}S)$:
-    the LMI's input block near the centre, $R + S^\\top D + D^\\top S + D^\\top QD$, is then
-    a difference of terms that many times its size (a cone $[a, a + 1]$: $4(a + \\frac12)^2$,
-    four million at $a = 10^3$, where Clarabel reported the projection infeasible). The
-    ratio does not change with the units of the outputs or the inputs, nor with the rate's
-    size, so a wide cone in small units ($[0.5, 1.5]\\cdot10^{-3}$: 4) is left to the
-    trainers' balancing of units.
+    A rate is centred when, along some input direction, its centre's term outweighs its
+    room more than `RATE_BAND` times: $\\lambda_{\\max}(\\Pi^{-1/2}T\\Pi^{-1/2}) > 64$ with
+    $T = -S^\\top Q^{-1}S\\succeq0$ and the room $\\Pi = R - S^\\top Q^{-1}S$ (a generalised
+    eigenvalue). The LMI's input block near the centre, $R + S^\\top D + D^\\top S +
+    D^\\top QD$, is then a difference of terms that many times its size along that
+    direction (a cone $[a, a + 1]$: $4(a + \\frac12)^2$, four million at $a = 10^3$, where
+    Clarabel reported the projection infeasible). The ratio does not change with the units
+    of the outputs or the inputs, nor with the rate's size, so a wide cone in small units
+    ($[0.5, 1.5]\\cdot10^{-3}$: 4) is left to the trainers' balancing of units. It is taken
+    per direction: a cone $[0, 100]$ on one channel beside $[-1, 1]$ on another has a large
+    term (2500) but as much room along it (ratio 1), and centring it moved the trainers'
+    feedthrough 50 away from a start near the data; so did a $Q$ with one tiny eigenvalue
+    ($-\\operatorname{diag}(1, 10^{-3})$), whose centre $Q^{-1}S$ runs away along it.
     """
     Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
     q = np.linalg.eigvalsh((Q + Q.T) / 2)
     if not q.size or q[-1] >= 0 or not np.any(S):
         return None
     M = np.linalg.solve(Q, S)
-    term = S.T @ M
-    room = R - (term + term.T) / 2
-    smallest = float(np.linalg.eigvalsh((room + room.T) / 2)[0])
-    if not (0.0 < smallest and np.linalg.norm(term, 2) > RATE_BAND * smallest):
+    term = -S.T @ M
+    term = (term + term.T) / 2
+    room = R + term
+    room = (room + room.T) / 2
+    try:
+        L = np.linalg.cholesky(room)
+    except np.linalg.LinAlgError:
+        return None  # no room: no strictly dissipative static gain to centre on
+    X = np.linalg.solve(L, np.linalg.solve(L, term).T)  # L^-1 T L^-T
+    if not np.linalg.eigvalsh((X + X.T) / 2)[-1] > RATE_BAND:
         return None
-    return M, QSR(Q, np.zeros_like(S), (room + room.T) / 2)
+    return M, QSR(Q, np.zeros_like(S), room)

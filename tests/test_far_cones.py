@@ -27,6 +27,11 @@ FAR = dj.QSR.conic(A_FAR, A_FAR + 1.0, dim=1)
 # the same rate about its centre D = a + 1/2: (Q, 0, R - S'Q^-1 S) = (-1, 0, 1/4)
 CENTRED = dj.QSR(-1.0, 0.0, 0.25)
 NOISE = 0.01
+# one cone per channel, [-1, 1] and [0, 100]: a centre term of 2500 along the second
+# channel, with a room of 2500 there too (an audit's rate, which the first criterion,
+# the largest term against the smallest room, centred, and `fit_direct` then ended 200
+# times above the zero controller's loss)
+PER_CHANNEL = dj.QSR(-np.eye(2), np.diag([0.0, 50.0]), np.diag([1.0, 0.0]))
 
 
 def _dist(K, L) -> float:
@@ -39,8 +44,9 @@ def test_centring_is_the_exact_change_of_variables():
     """`centring`: M = Q^-1 S and (Q, 0, R - S'Q^-1 S) for a far cone; None for the cone
     [1, 2] (its centre's term S'Q^-1 S = 2.25 against its room 0.25), for a wide cone in
     small units ([0.5, 1.5] * 1e-3: entries of 1 against a room of 2.5e-7, but a ratio of
-    4, which the trainers' balancing of units handles), for Q not negative definite and
-    for S = 0."""
+    4, which the trainers' balancing of units handles), for rates whose large centre term
+    comes with as much room along it (one cone per channel, [-1, 1] and [0, 100]; a Q
+    with one tiny eigenvalue), for Q not negative definite and for S = 0."""
     found = dji.rate_scale.centring(FAR)
     assert found is not None
     M, rate = found
@@ -48,6 +54,7 @@ def test_centring_is_the_exact_change_of_variables():
     np.testing.assert_allclose(rate.R, CENTRED.R, rtol=1e-9)  # R - S'Q^-1S cancels 1e6
     assert not np.any(rate.S) and np.array_equal(rate.Q, FAR.Q)
     for other in (dj.QSR.conic(1.0, 2.0, dim=1), dj.QSR.conic(0.5e-3, 1.5e-3, dim=1),
+                  PER_CHANNEL, dj.QSR(-np.diag([1.0, 1e-3]), 0.5 * np.eye(2), 0.1 * np.eye(2)),
                   dj.QSR.passive(2),
                   dj.QSR.bounded_gain(1e3, n_in=1, n_out=1)):
         assert dji.rate_scale.centring(other) is None
@@ -151,3 +158,20 @@ def test_ren_fits_a_far_cone(far_windows):
 
 def _each(K):
     return [jax.tree.map(lambda M, i=i: M[i], K) for i in range(K.A.shape[0])]
+
+
+def test_one_cone_per_channel_trains_as_given():
+    """The per-channel cones are not centred. Centred, `fit_pgd` ended at 0.36 and
+    `fit_direct` at 1070 against the zero controller's 3.9 (the expert's 4e-4); as given,
+    PGD reaches 0.002. `fit_direct` stays far from the expert here (0.8: its map's known
+    weakness at the edge of the set, where this expert sits), so it is held to a gross
+    bound only."""
+    with jax.enable_x64(True):
+        w, _ = realisable_windows(jr.PRNGKey(0), PER_CHANNEL, n_state=2, num_windows=50,
+                                  noise=NOISE)
+        pgd = dj.fit_pgd(jr.PRNGKey(1), w, PER_CHANNEL, n_state=2, progress=False)
+        direct = dj.fit_direct(jr.PRNGKey(1), w, PER_CHANNEL, n_state=2, progress=False)
+    zero = float(np.mean(np.sum(np.asarray(w.u) ** 2, axis=(1, 2))))
+    assert np.all(pgd.certified) and np.all(direct.certified)
+    assert np.median(np.asarray(pgd.final_loss)) < 0.01 * zero
+    assert np.median(np.asarray(direct.final_loss)) < 0.5 * zero

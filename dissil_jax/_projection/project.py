@@ -249,7 +249,8 @@ def project(
       a margin at or above $\\lambda_{\\min}(R - S^\\top Q^{-1}S)$, the most any feedthrough
       leaves in the LMI's input block (e.g. $10^{-8}$ for a gain bound of $10^{-4}$), is
       refused with a `ValueError` naming `eps` (as in `fit_pgd` and `fit_ico`). A narrow
-      cone far from zero ($\\lVert S^\\top Q^{-1}S\\rVert$ over 64 times that room) is
+      cone far from zero (a centre's term $-S^\\top Q^{-1}S$ over 64 times that room along
+      some direction) is
       solved about its centre, $D + Q^{-1}S$, an exact change of variables that leaves
       the distance and the KYP matrix as they are
       ([concepts](concepts.md#narrow-cones-far-from-zero)); the check is in the rate as

@@ -317,7 +317,8 @@ def fit_pgd(
       initial states when theirs are far from the outputs' $y$ (default True, see "Units"
       above); first, train a narrow cone far from zero about its centre $-Q^{-1}S$ (the
       outputs $u - yM^\\top$ and the feedthrough $D + M$, $M = Q^{-1}S$, for a rate whose
-      $\\lVert S^\\top Q^{-1}S\\rVert$ exceeds 64 times its room; an exact change of
+      centre's term $-S^\\top Q^{-1}S$ exceeds 64 times its room along some direction; an
+      exact change of
       variables, [concepts](concepts.md#narrow-cones-far-from-zero)). False trains every
       signal in the one scale $s$, as the paper's reproduction does (its step sizes were
       chosen that way).
