@@ -284,6 +284,31 @@ def test_certificate_holds_along_random_and_worst_case_inputs(name):
 
 
 @pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
+@pytest.mark.parametrize("gamma", [1e-5, 1e-6])
+def test_certify_ren_solves_tight_gain_bounds_in_balanced_units(gamma):
+    """A gain bound of 1e-5 has R = 1e-10 beside Q = -1: the SDP's best margin fell below
+    Clarabel's tolerance and `certify_ren` was undecided on RENs whose trainer's pair
+    passed the check (an audit's case; width 0 went through `dj.certify`, which balanced
+    the blocks). It now solves in the units that balance Q and R, like `dj.certify`; the
+    pair, mapped back exactly, passes an exact rational-arithmetic check of the S-procedure
+    matrix (`test_lmi_is_the_s_procedure_form_of_the_definition` ties it to the
+    definition)."""
+    from helpers import exactly_dissipative
+
+    qsr = dj.QSR.bounded_gain(gamma, n_in=1, n_out=1)
+    k1, k2, k3 = jr.split(jr.PRNGKey(1), 3)
+    y = jr.normal(k2, (20, 5, 1))
+    w = dj.Windows(jr.normal(k1, (20, 1)), y, -0.5 * gamma * y + 0.01 * jr.normal(k3, y.shape))
+    res = dj.fit_ren(jr.PRNGKey(1), w, qsr, width=1, num_inits=1, max_steps=200,
+                     progress=False)
+    K = jax.tree.map(lambda a: a[0], res.controllers)
+    cert = dj.certify_ren(K, qsr, progress=False)
+    assert cert.holds, cert.message
+    assert np.all(np.asarray(cert.multiplier) > 0)
+    assert exactly_dissipative(ren_certify.augmented_lti(K),
+                               ren_certify.augmented_qsr(qsr, cert.multiplier), cert.P)
+
+
 def test_a_non_dissipative_ren_is_rejected():
     """A REN with a large feedthrough and an active network violates a small gain bound; the
     SDP finds no certificate, and optimised inputs show the violation on the system."""
@@ -822,6 +847,9 @@ def test_ill_conditioned_storages_are_named_when_the_end_check_fails(monkeypatch
     the error says why; with `throw=False` they are returned flagged, never as certified."""
     key, W, qsr = _tight_gain_problem(1e-6)
     monkeypatch.setattr(rm, "input_units", lambda qsr, margin=None: np.ones(qsr.R.shape[0]))
+    # and the fallback SDP in the given units only: in balanced input and output units it
+    # now certifies these controllers with storages of its own, so nothing would fail
+    monkeypatch.setattr(ren_certify, "_io_units", lambda G, qsr, q: iter([(G, qsr)]))
     # width 3: static arguments of its own, so the patched map is traced afresh rather than
     # taken from the compiled loop of the test above
     # the step and scale of that measurement (`fit_ren`'s defaults then)

@@ -3,6 +3,7 @@ multiplier $\\Lambda$ (S-procedure), found by an SDP and checked by eigenvalues 
 
 from __future__ import annotations
 
+import itertools
 import math
 import warnings
 
@@ -12,6 +13,7 @@ import jax.core
 import numpy as np
 
 from .._certify.args import storage_arg
+from .._certify.certify import _io_scale
 from .._certify.coordinates import (
     balanced_states,
     check_storage_range,
@@ -262,6 +264,26 @@ def _solve(G: LTIController, qsr: QSR, q: int, d, ts):
             d * np.asarray(lam.value if q else np.zeros(0)).reshape(q), status)
 
 
+def _io_units(G: LTIController, qsr: QSR, q: int):
+    """`(G, qsr)` as given, then, for a rate whose $Q$ and $R$ differ in size by more than
+    $2^{12}$ (`dj.certify`'s `_io_scale`), the augmented system in the units
+    $\\hat y = t_y\\tilde y$, $\\hat u = t_u\\tilde u$ that balance them: the columns
+    of $\\hat u$ times $t_u$, the rows of $\\hat y$ divided by $t_y$, against
+    $(t_y^2Q, t_yt_uS, t_u^2R)$. The same inequality with the same $(P, \\Lambda)$, exactly
+    (powers of two). A gain bound of $10^{-5}$ ($R = 10^{-10}$ beside $Q = -1$) left the
+    SDP's margin below Clarabel's tolerance, and `certify_ren` undecided on RENs whose
+    trainer's pair passes the check."""
+    yield G, qsr
+    found = _io_scale(qsr)
+    if found is None:
+        return
+    t_y, t_u, rate = found
+    cols = np.concatenate([np.ones(q), np.full(qsr.n_in, t_u)])
+    rows = np.concatenate([np.ones(q), np.full(qsr.n_out, 1.0 / t_y)])
+    yield LTIController(G.A, G.B * cols, G.C * rows[:, None],
+                        G.D * rows[:, None] * cols), rate
+
+
 # The optimum t* below which an SDP solved to optimality disproves the certificate (the
 # solver's own tolerances are ~1e-8 relative).
 _DISPROOF = 1e-6
@@ -284,9 +306,12 @@ def certify_ren(K: RENController, qsr: QSR, *, P=None, multiplier=None,
     $(P,\\Lambda)$.
 
     Without `P` and `multiplier`, solves $\\max t$ s.t. $M\\preceq-tI$, $P\\succeq tI$,
-    $\\Lambda\\succeq tI$, $t\\le1$ (cvxpy with Clarabel); the verdict is always the float64
-    eigenvalue check of the returned pair, independent of the solver. With both given,
-    only the eigenvalue check runs.
+    $\\Lambda\\succeq tI$, $t\\le1$ (cvxpy with Clarabel), in balanced coordinates of the
+    states and neurons, and, for a rate whose $Q$ and $R$ differ in size by more than
+    $2^{12}$ (a gain bound of $10^{-5}$: $R = 10^{-10}$), also with the input and output in
+    units that balance them, as [`certify`][dissil_jax.certify] does; the verdict is always
+    the float64 eigenvalue check of the returned pair in the units given, independent of
+    the solver. With both given, only the eigenvalue check runs.
 
     **Arguments:** the controller `K` (leading batch axes allowed), the supply rate `qsr`,
     optionally `P` (`[*batch, n, n]`) and `multiplier` (the diagonal of $\\Lambda$,
@@ -324,13 +349,16 @@ def certify_ren(K: RENController, qsr: QSR, *, P=None, multiplier=None,
                 # the coordinates of `units.COORDINATES` until a pair passes the check;
                 # else the first pair found (and its status), else the first failure's
                 tried, found, proved = [], [], False
-                for states_first in COORDINATES:
-                    d, ts = coordinates(Gi, q, states_first)
-                    if any(np.array_equal(d, e) and np.array_equal(ts, f) for e, f in tried):
+                for (Gu, rate), states_first in itertools.product(_io_units(Gi, qsr, q),
+                                                                  COORDINATES):
+                    d, ts = coordinates(Gu, q, states_first)
+                    if any(r is rate and np.array_equal(d, e) and np.array_equal(ts, f)
+                           for r, e, f in tried):
                         continue
-                    tried.append((d, ts))
-                    found.append(_solve(Gi, qsr, q, d, ts))
+                    tried.append((rate, d, ts))
+                    found.append(_solve(Gu, rate, q, d, ts))
                     Pi, li, _ = found[-1]
+                    # the verdict is on the controller and the rate as given
                     proved = Pi is not None and bool(_margin_and_holds(Gi, qsr, Pi, li, tol)[1])
                     if proved:
                         break
