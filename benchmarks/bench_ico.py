@@ -36,7 +36,7 @@ import dissil_jax as dj  # noqa: E402
 from dissil_jax.internal import (  # noqa: E402
     ICOProblem,
     ICOSolver,
-    ico,
+    ico_run,
     single_threaded_blas,
     stacked_factor,
 )
@@ -134,7 +134,7 @@ def bench(N, iters, ref_iters, run_fit):
     K, P = dj.project(K, qsr)
     theta, P = pb.theta(K.A, K.B, K.C, K.D), np.asarray(P)
     solver, solver_win = ICOSolver(pb), ICOSolver(pb_win)
-    w = ico._young_scale(pb, theta)
+    w = ico_run._young_scale(pb, theta)
     t = {k: [] for k in ("ours", "ours_win", "cvxpy_win", "cvxpy_stacked")}
     gaps = []
     with single_threaded_blas():

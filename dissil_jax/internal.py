@@ -6,7 +6,7 @@ layout can change behind this one list (as lineax's `internal`).
 
 Modules, for monkeypatching in tests and for benchmarks that time one layer alone:
 `certify_fast`, `certify_sdp`, `direct`, `direct_map`, `experiment_figures`, `experiment_jobs` (the command
-line's runs of configurations, `--jobs`), `ico`, `ico_sdp`, `linalg`, `lmi`, `mlp`, `outcome`,
+line's runs of configurations, `--jobs`), `ico`, `ico_run`, `ico_sdp`, `linalg`, `lmi`, `mlp`, `outcome`,
 `pgd`, `pgd_steps`, `plant_common`, `progress`, `projection`, `projection_admm`, `projection_admm_rate`, `projection_cache`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `ren_units`, `rollout`,
 `rate_scale`, `sdp`, `units` (the trainers' changes of units), `zoo_build` (the problem zoo's plants, experts and rates); and the functions and constants in
 `__all__`.
@@ -71,7 +71,7 @@ from ._train.direct import (
     default_hyperparameters,
     map_loss,
 )
-from ._train.ico import fit as ico, sdp as ico_sdp, step as ico_step
+from ._train.ico import fit as ico, run as ico_run, sdp as ico_sdp, step as ico_step
 from ._train.ico.blocks import Iterate
 from ._train.ico.layout import svec_len
 from ._train.ico.sdp import ICOProblem
@@ -87,7 +87,7 @@ __all__ = [
     "balanced_realisation", "ConvexifiedLMI", "FIGURES", "LRU", "ICOProblem", "ICOSolver", "INIT_SCALE", "Iterate",
     "METRIC_FLOOR", "MapDescent", "Method", "OUTPUT_BAND", "TABLES", "certified", "certify_fast", "certify_sdp", "certify_state_scale",
     "check_feasible", "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct", "gd_learning_rate",
-    "direct_map", "direct_run_unchecked", "experiment_figures", "experiment_jobs", "ico", "ico_sdp", "ico_step", "init_controllers", "is_indefinite",
+    "direct_map", "direct_run_unchecked", "experiment_figures", "experiment_jobs", "ico", "ico_run", "ico_sdp", "ico_step", "init_controllers", "is_indefinite",
     "iterate",
     "kyp_bound_holds", "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",
     "optimizer_metric", "outcome", "output_factor", "output_ratio", "pgd", "pgd_steps", "plant_common", "progress", "projection", "projection_admm", "projection_admm_rate", "projection_cache", "projection_fo",

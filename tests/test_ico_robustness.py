@@ -14,7 +14,7 @@ from helpers import dissipation_ok, expert_windows, freq_response, index
 import dissil_jax as dj
 from dissil_jax.experiments.data import realisable_windows
 from dissil_jax.experiments.protocol import example_spec, training_data
-from dissil_jax.internal import ICOProblem, ICOSolver, ico, ico_step, outcome as _outcome
+from dissil_jax.internal import ICOProblem, ICOSolver, ico, ico_run, ico_step, outcome as _outcome
 
 
 def test_large_initial_draws_do_not_stop_ico_early():
@@ -277,7 +277,7 @@ def test_a_run_without_a_certified_step_stalls_at_its_last_iterate(monkeypatch):
             return d, P, w, status, t
         return bad_P
 
-    monkeypatch.setattr(ico, "shortened", lambda *args, **kwargs: None)
+    monkeypatch.setattr(ico_run, "shortened", lambda *args, **kwargs: None)
     monkeypatch.setattr(ICOSolver, "solve", bad_P_from(3))
     res = dj.fit_ico(jr.PRNGKey(1), windows, qsr, num_inits=1, max_steps=6, atol=0.0,
                      rtol=0.0)  # throw=True: no error

@@ -24,21 +24,9 @@ from .._iterate import RTOL
 from .._scale import loss_scale, scaled
 from .._units import balance as balanced, balancing_units, unbalance
 from ..result import FitResult, raise_if_failed
+from .run import CONVERGED as _CONVERGED, MAX_STEPS as _MAX_STEPS, not_started, run_one
 from .sdp import ICOProblem
-from .solver import ICOSolver
-from .step import shortened, step_with_fallbacks
 
-#: A rise of the loss smaller than this, in units of the zero controller's loss (the SDP's
-#: data are scaled so that it is 1), is the SDP's accuracy (Clarabel's duality-gap
-#: tolerance is 1e-8), not a failed step: the run ends converged. An audit's cone
-#: [10, 1000] rose by 5e-8 at a loss of 1e-6, after 19 steps, and raised with defaults.
-_SOLVER_FLOOR = 1e-6
-_CONVERGED, _MAX_STEPS, _LOSS_INCREASED, _NOT_CERTIFIED, _STALLED = (
-    _outcome.code(n) for n in ("converged", "max_steps", "loss_increased", "not_certified",
-                               "stalled"))
-
-# Bounds on the Young weight's linearisation point, relative to its data-derived scale.
-_W_RANGE = 1e4
 # The default initial scale of `fit_ico`, measured on the zoo's tuning half: from N(0, 1)
 # draws (the paper's) the median run of chain3_paper ended 1.17x above the best scale's and its
 # worst 464x; from N(0, 0.1^2) every problem's median was within 0.1 % of the best of
@@ -62,85 +50,6 @@ def _check_args(windows, qsr, num_inits, max_steps, atol, rtol, init_scale):
             "windows (e.g. `dj.Windows(x0, y[:, :2], u[:, :2])`, or sliding 2-step windows with "
             "x0 the plant state at each window start), or use `dj.fit_pgd` for longer horizons."
         )
-
-
-def _young_scale(pb: ICOProblem, theta) -> float:
-    """$\\lVert z\\rVert / (\\lVert C\\rVert\\lVert e\\rVert)$: balances the two Young terms
-    when the step moves $C$ and $z = A\\hat x_0 + B\\hat u_0$ by the same relative amount."""
-    A, B, C, D = pb.mats(theta)
-    z = pb.x0 @ A.T + pb.u0 @ B.T
-    e = pb.t1 - z @ C.T - pb.u1 @ D.T
-    rz = np.sqrt(np.mean(np.sum(z**2, 1)))
-    re = np.sqrt(np.mean(np.sum(e**2, 1)))
-    nc = np.linalg.norm(C, 2)
-    w = rz / max(nc * re, 1e-12)
-    return float(np.clip(w if np.isfinite(w) and w > 0 else 1.0, 1e-6, 1e6))
-
-
-def _run_one(pb: ICOProblem, theta, P, *, max_steps, atol, rtol, dtype, index, callback):
-    """Algorithm 1 for one initialisation (host, float64). Returns a dict of results."""
-    qsr = pb.qsr
-    solver = ICOSolver(pb)
-    J = pb.loss(theta)
-    hist = np.full(max_steps + 1, np.nan)
-    hist[0] = J
-    w_scale = _young_scale(pb, theta)
-    w_tilde = w_scale
-    reason, steps = _MAX_STEPS, 0
-    if callback is not None:
-        callback(index, 0, theta, P, J)
-    for step in range(1, max_steps + 1):
-        dtheta, P_new, w_new, status, P = step_with_fallbacks(pb, solver, theta, P, w_tilde)
-        if dtheta is None:
-            reason = status
-            break
-        assert w_new is not None  # a solve returns the whole step or none of it
-        theta_new = _lmi.cast(theta + dtheta, dtype)
-        if qsr is not None:
-            assert P_new is not None  # ICO's step has a P (ICO-NC's has none)
-            P_new = _lmi.cast((P_new + P_new.T) / 2, dtype)
-        J_new = pb.loss(theta_new)
-        # Guards against solver inaccuracy (the SDP guarantees both in exact arithmetic):
-        # a rise of the loss, or near the edge (after the iterates' P, A and B have grown)
-        # a check whose round-off allowance passes the step's margin. Either way take a
-        # shorter step along the SDP's (convex overbound: no longer rise, if it was solved
-        # to its tolerance).
-        rose = not J_new <= J
-        if rose or (qsr is not None and not _lmi.certified(*pb.mats(theta_new), qsr, P_new)):
-            short = None if qsr is None else shortened(pb, theta, P, J, dtheta, P_new, dtype)
-            if short is None and rose:
-                # a rise below the stopping rule's tolerance or the solver's accuracy: the
-                # run is at its floor, where the SDP's step moves the loss by round-off;
-                # keep the iterate
-                rise = abs(J_new - J)
-                small = rise < atol + rtol * abs(hist[0]) or rise < _SOLVER_FLOOR
-                reason = _CONVERGED if small else _LOSS_INCREASED
-                break
-            if short is None:
-                # after accepted steps the run keeps its last certified iterate, stalled
-                # (float32 data: rounding the step can leave the set near convergence)
-                reason = _STALLED if steps else _NOT_CERTIFIED
-                break
-            theta_new, P_new, J_new = short
-        dJ = J - J_new  # of the step taken, as in every trainer's stopping rule
-        theta, P, J = theta_new, P_new, J_new
-        steps = step
-        hist[step] = J
-        w_tilde = float(np.clip(w_new, max(w_tilde / 4, w_scale / _W_RANGE),
-                                min(2 * w_tilde, w_scale * _W_RANGE)))
-        if callback is not None:
-            callback(index, step, theta, P, J)
-        if abs(dJ) < atol + rtol * abs(hist[0]):  # the trainers' rule (`_iterate.terminate`)
-            reason = _CONVERGED
-            break
-    return dict(theta=theta, P=P, J=J, hist=hist, steps=steps, reason=reason)
-
-
-def _not_started(pb: ICOProblem, theta, P, outcome, max_steps):
-    """The result of a run whose initial projection failed: its (uncertified) draw, flagged."""
-    hist = np.full(max_steps + 1, np.nan)
-    hist[0] = J = pb.loss(theta)
-    return dict(theta=theta, P=P, J=J, hist=hist, steps=0, reason=int(outcome))
 
 
 def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps, prox,
@@ -184,11 +93,11 @@ def _fit(key, windows, qsr, *, num_inits, max_steps, atol, rtol, init_scale, eps
                      None if P is None else units.storages(k * P), c**2 * s2 * J)
 
     def one(i):
-        out = (_run_one(pb, thetas[i], None if qsr is None else P0[i], max_steps=max_steps,
+        out = (run_one(pb, thetas[i], None if qsr is None else P0[i], max_steps=max_steps,
                         atol=atol / s2, rtol=rtol, dtype=dtype, index=i,
                         callback=in_controller_units)
                if not _outcome.failed(code0[i])
-               else _not_started(pb, thetas[i], P0[i], code0[i], max_steps))
+               else not_started(pb, thetas[i], P0[i], code0[i], max_steps))
         reports.done(i)
         return out
 
