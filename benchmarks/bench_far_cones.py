@@ -59,20 +59,13 @@ def centring_as(fn):
 
 def forced(qsr):
     """The centring of every rate with Q < 0 and S != 0, whatever its ratio."""
-    Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
-    M = np.linalg.solve(Q, S)
-    room = R - S.T @ M
-    return M, dj.QSR(Q, np.zeros_like(S), (room + room.T) / 2)
+    return rate_scale.centre_of(qsr)[:2]
 
 
 def ratio(qsr) -> float:
     """`centring`'s criterion: the largest generalised eigenvalue of the term
     T = -S'Q^-1 S against the room R - S'Q^-1 S (scalar for these diagonal cones)."""
-    Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
-    term = -S.T @ np.linalg.solve(Q, S)
-    L = np.linalg.cholesky(R + term)
-    X = np.linalg.solve(L, np.linalg.solve(L, term).T)
-    return float(np.linalg.eigvalsh((X + X.T) / 2)[-1])
+    return rate_scale.centre_of(qsr)[2]
 
 
 def expert_windows(seed, qsr, a, b, n=3, num_windows=20, horizon=10, noise=0.01):

@@ -111,6 +111,17 @@ def centring(qsr: QSR) -> tuple[np.ndarray, QSR] | None:
     feedthrough 50 away from a start near the data; so did a $Q$ with one tiny eigenvalue
     ($-\\operatorname{diag}(1, 10^{-3})$), whose centre $Q^{-1}S$ runs away along it.
     """
+    found = centre_of(qsr)
+    if found is None or not found[2] > RATE_BAND:
+        return None
+    return found[0], found[1]
+
+
+@functools.lru_cache(maxsize=256)
+def centre_of(qsr: QSR) -> tuple[np.ndarray, QSR, float] | None:
+    """`(M, rate, ratio)` of `centring` whatever the ratio: the centre $M = Q^{-1}S$, the
+    rate about it and $\\lambda_{\\max}(\\Pi^{-1/2}T\\Pi^{-1/2})$; None unless
+    $Q\\prec0$, $S\\ne0$ and the room $\\Pi\\succ0$."""
     Q, S, R = (np.asarray(M, np.float64) for M in (qsr.Q, qsr.S, qsr.R))
     q = np.linalg.eigvalsh((Q + Q.T) / 2)
     if not q.size or q[-1] >= 0 or not np.any(S):
@@ -125,6 +136,5 @@ def centring(qsr: QSR) -> tuple[np.ndarray, QSR] | None:
     except np.linalg.LinAlgError:
         return None  # no room: no strictly dissipative static gain to centre on
     X = np.linalg.solve(L, np.linalg.solve(L, term).T)  # L^-1 T L^-T
-    if not np.linalg.eigvalsh((X + X.T) / 2)[-1] > RATE_BAND:
-        return None
-    return M, QSR(Q, np.zeros_like(S), room)
+    ratio = float(np.linalg.eigvalsh((X + X.T) / 2)[-1])
+    return M, QSR(Q, np.zeros_like(S), room), ratio
