@@ -7,7 +7,7 @@ layout can change behind this one list (as lineax's `internal`).
 Modules, for monkeypatching in tests and for benchmarks that time one layer alone:
 `certify_fast`, `certify_sdp`, `direct`, `direct_map`, `experiment_figures`, `experiment_jobs` (the command
 line's runs of configurations, `--jobs`), `ico`, `ico_run`, `ico_sdp`, `linalg`, `lmi`, `mlp`, `outcome`,
-`pgd`, `pgd_steps`, `plant_common`, `progress`, `projection`, `projection_admm`, `projection_admm_rate`, `projection_cache`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_map`, `ren_train`, `ren_units`, `rollout`,
+`pgd`, `pgd_steps`, `plant_common`, `progress`, `projection`, `projection_admm`, `projection_admm_rate`, `projection_cache`, `projection_fo`, `ren_certify`, `ren_controller`, `ren_init` (`fit_ren(init=...)`), `ren_inverse` (the REN map backwards), `ren_map`, `ren_train`, `ren_units`, `rollout`,
 `rate_scale`, `sdp`, `units` (the trainers' changes of units), `zoo_build` (the problem zoo's plants, experts and rates); and the functions and constants in
 `__all__`.
 """
@@ -37,6 +37,7 @@ from ._projection.project import solver_stats
 from ._ren import (
     certify as ren_certify,
     controller as ren_controller,
+    inverse as ren_inverse,
     map as ren_map,
     units as ren_units,
 )
@@ -59,6 +60,7 @@ from ._train import (
     pgd,
     pgd_steps,
     ren as ren_train,
+    ren_init,
 )
 from ._train._checks import check_n_state
 from ._train._init import INIT_SCALE, init_controllers
@@ -92,7 +94,7 @@ __all__ = [
     "kyp_bound_holds", "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",
     "optimizer_metric", "outcome", "output_factor", "output_ratio", "pgd", "pgd_steps", "plant_common", "progress", "projection", "projection_admm", "projection_admm_rate", "projection_cache", "projection_fo",
     "ren_certify",
-    "ren_controller",
+    "ren_controller", "ren_init", "ren_inverse",
     "ren_map", "ren_train", "ren_units", "rollout", "rate_scale", "units", "scaled", "sdp", "single_threaded_blas", "smat",
     "solver_stats", "stacked_factor", "state_ratios", "static_point", "svec_len", "vanishing_supply",
     "zoo_build",

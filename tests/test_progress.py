@@ -78,6 +78,10 @@ def test_the_heartbeat_says_what_a_run_does_between_reports(monkeypatch, capsys)
     assert 2 <= len(before) <= 8, before  # ~0.3 s / 0.05 s, with room for a slow machine
     assert all(line.startswith("fit_x: compiling the training loop and preparing the runs, ")
                for line in before)
+    # on a loaded machine one beat of the compiling phase can land between the read above
+    # and the first report; it comes first, and nothing but the report follows it
+    if len(stepping) == 2 and stepping[0].startswith("fit_x: compiling the training loop"):
+        stepping = stepping[1:]
     assert len(stepping) == 1 and stepping[0].startswith("fit_x: compiled and started after")
     assert 2 <= len(after) <= 8, after
     assert all(line.startswith(f"fit_x: {progress.CHECKING}, ") for line in after)

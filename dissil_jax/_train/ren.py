@@ -30,6 +30,12 @@ from ._iterate import iterate
 from ._scale import loss_scale, scaled
 from ._units import balance as balanced, balancing_units, unbalance
 from .direct import MAX_STEPS, RTOL_DIRECT, MapDescent, default_hyperparameters, map_loss
+from .ren_init import (
+    INIT_MARGINS,
+    WARM_LEARNING_RATE,
+    init_controllers_order,
+    initial_params,
+)
 from .result import FitResult, raise_if_failed, warn_if_untrained
 
 _CONVERGED, _NOT_CERTIFIED, _NON_FINITE = (
@@ -40,9 +46,11 @@ class RENFitResult(FitResult):
     """A [`FitResult`][dissil_jax.FitResult] of [`fit_ren`][dissil_jax.fit_ren]:
     `controllers` is a batched [`RENController`][dissil_jax.RENController], `P` the storages
     and `multiplier` (`[num_inits, q]`) the diagonals of the sector multipliers $\\Lambda$;
-    `certified` is the float64 check of each `(controller, P, multiplier)`."""
+    `certified` is the float64 check of each `(controller, P, multiplier)`; `margin` is the
+    REN map's margin $\\varepsilon$ the runs trained with (`fit_ren`'s `margin`)."""
 
     multiplier: jax.Array | None = None
+    margin: float | None = eqx.field(static=True, default=None)
 
 
 def to_user_units(K, lam, s):
@@ -60,15 +68,16 @@ def to_user_units(K, lam, s):
 
 def _run(key, windows, rate: MapRate, k, learning_rate, init_scale, *, width, activation,
          optimizer, num_inits, n_state, max_steps, atol, rtol, margin, direct_input,
-         odd=False, keep="best", progress=None):
+         odd=False, keep="best", progress=None, theta0=None):
     # Train in normalised units (`_scale.py`), as the LTI trainers do; the neurons stay in
     # those units, so the result is mapped back exactly for any activation (`to_user_units`).
     # `rate, k = solved_rate(qsr, margin, dtype, ren_rate)`: a rate far from unit size is
     # solved divided by k, (P, lam) multiplied back; traced, so one compilation per shape.
     s2 = loss_scale(windows)
     data = scaled(windows, s2)
-    theta0 = init_ren_params(key, num_inits, n_state, width, windows.n_in, windows.n_out,
-                             init_scale, windows.y.dtype)
+    if theta0 is None:  # else the parameters of `init` (`ren_init.py`)
+        theta0 = init_ren_params(key, num_inits, n_state, width, windows.n_in,
+                                 windows.n_out, init_scale, windows.y.dtype)
     opt = optax.adam(learning_rate) if optimizer is None else optimizer
     # The driver loop of every gradient trainer, with the LTI direct map's method and the
     # REN map's loss in place of the LTI one.
@@ -85,7 +94,7 @@ def _run(key, windows, rate: MapRate, k, learning_rate, init_scale, *, width, ac
         controllers=K, P=P * k, certified=None, loss_history=hist * s2, final_loss=loss * s2,
         converged=reason == _CONVERGED, steps=steps,
         wall_time=jnp.asarray(jnp.nan, hist.dtype), result=_outcome.item(reason),
-        projected=None, multiplier=lam * k, kept_step=kept)
+        projected=None, multiplier=lam * k, kept_step=kept, margin=margin)
 
 
 _run_jit = eqx.filter_jit(_run)
@@ -185,9 +194,9 @@ def fit_ren(
     key, windows: Windows, qsr: QSR, *, width: int = 16, activation="tanh",
     optimizer=None, learning_rate: float | None = None, init_scale: float | None = None,
     num_inits: int = 8, n_state: int | None = None, max_steps: int = MAX_STEPS,
-    atol: float = 0.0, rtol: float = RTOL_DIRECT, margin: float = MARGIN,
-    direct_input: bool = False, odd: bool = False, throw: bool = True, keep: str = "best",
-    balance: bool = True, progress: bool = True,
+    atol: float = 0.0, rtol: float = RTOL_DIRECT, margin: float | None = None,
+    direct_input: bool = False, odd: bool = False, init=None, throw: bool = True,
+    keep: str = "best", balance: bool = True, progress: bool = True,
 ) -> RENFitResult:
     """Learn $(Q,S,R)$-dissipative REN controllers (nonlinear, dynamic) from demonstrations.
 
@@ -218,7 +227,7 @@ def fit_ren(
     **Arguments:**
 
     - `key`, `windows`, `qsr` ($Q\\preceq0$), `num_inits`, `n_state`, `max_steps`, `atol`, `rtol`,
-      `optimizer`, `learning_rate`, `init_scale`, `margin`, `throw`, `keep`, `balance`,
+      `optimizer`, `learning_rate`, `init_scale`, `throw`, `keep`, `balance`,
       `progress`: as in
       [`fit_direct`][dissil_jax.fit_direct] (`learning_rate` is Adam's step on the REN
       map's free parameters); the defaults are `fit_direct`'s rule at the controller's
@@ -226,6 +235,23 @@ def fit_ren(
       (`default_ren_hyperparameters`: the smallest worst-case regret on the problem zoo's
       tuning half, `benchmarks/bench_ren.py --defaults tuning`).
     - `width` $q\\ge0$: the number of neurons (0 gives an LTI controller, as a REN).
+    - `init`: start the runs at given controllers instead of random draws: an
+      `LTIController` or a `RENController` (of width `width`), one or `num_inits` of them,
+      or a `FitResult` (e.g. `init=dj.fit_direct(...)`, whose controllers then are the
+      starts, or a `fit_ren` result to train further). Each start is carried into the
+      runs' units and mapped back through the REN map (an SDP per start: the map's
+      parameters are exact, [REN controllers](ren.md#starting-from-a-controller)), so the
+      first loss is the start's and, with `keep="best"`, no run ends worse than its start.
+      An LTI start becomes a REN whose neurons see the state ($C_1$ drawn with
+      `init_scale`) but do not yet act ($D_{21} = 0$); a REN start must have the runs'
+      `activation`. The default step is then
+      `WARM_LEARNING_RATE` (0.003, chosen on the problem zoo's tuning half). Not with a
+      REN and `odd=True`. With windows that start at rest, `n_state` defaults to
+      the starts' order.
+    - `margin`: the REN map's margin $\\varepsilon$ (default `MARGIN` = 0.01). With `init`
+      and no `margin`, the first of 0.01, 0.001 and 0.0001 at which the map reaches every
+      start (a start outside its reach is a `ValueError` naming `init`); the margin used is
+      `RENFitResult.margin`.
     - `direct_input`: train the neurons' direct input $D_{12}$ (static; default False,
       $D_{12} = 0$: the network then sees the plant output through the state only).
     - `odd`: learn an odd controller (static; default False): the returned REN is
@@ -281,11 +307,18 @@ def fit_ren(
         raise ValueError("`qsr.Q` has a positive eigenvalue: the REN map covers Q negative "
                          "semidefinite only. Pass a supply rate with Q <= 0, or train an LTI "
                          "controller with `dj.fit_pgd` / `dj.fit_ico`.")
+    if n_state is None and init is not None and windows.x0 is None:
+        n_state = init_controllers_order(init)
     n_state = check_n_state(windows, n_state)
-    margin = check_margin(margin)
+    # the margin: the given one, or by default `MARGIN`, and for `init` the first of
+    # `INIT_MARGINS` that reaches every start (`ren_init.py`)
+    margins = (check_margin(margin),) if margin is not None else (
+        INIT_MARGINS if init is not None else (MARGIN,))
+    margin = margins[0]
     direct_input = check_flag("direct_input", direct_input)
     odd = check_flag("odd", odd)
     lr0, scale0 = default_ren_hyperparameters(n_state, windows.n_in)
+    lr0 = lr0 if init is None else WARM_LEARNING_RATE
     learning_rate = lr0 if learning_rate is None else learning_rate
     init_scale = scale0 if init_scale is None else init_scale
     start = time.perf_counter()
@@ -293,6 +326,13 @@ def fit_ren(
     units = balancing_units(windows, balance, qsr)  # outputs' and states' units (`_units.py`)
     user_qsr, (windows, qsr) = qsr, balanced(windows, qsr, units)
     c = units.c
+    theta0 = None
+    if init is not None:
+        theta0, margin = initial_params(
+            init, key, qsr, units, loss_scale(windows), num_inits=int(num_inits),
+            n_state=n_state, width=int(width), n_in=windows.n_in, n_out=windows.n_out,
+            init_scale=float(init_scale), margins=margins, direct_input=bool(direct_input),
+            odd=bool(odd), activation=activation, dtype=dtype)
     with reporting("fit_ren", max_steps, check_flag("progress", progress), c**2) as token:
         res = _run_jit(key, windows, *solved_rate(qsr, margin, dtype, ren_rate),
                        jnp.asarray(learning_rate, dtype),
@@ -301,7 +341,7 @@ def fit_ren(
                        max_steps=int(max_steps), atol=jnp.asarray(atol / c**2, dtype),
                        rtol=jnp.asarray(rtol, dtype), margin=margin,
                        direct_input=bool(direct_input), odd=bool(odd), keep=check_keep(keep),
-                       progress=token)
+                       progress=token, theta0=theta0)
         jax.block_until_ready(res)
         phase(token, CHECKING)
         res = _certify_all(res, qsr)
