@@ -2,6 +2,7 @@
 
 import jax
 import jax.numpy as jnp
+import jax.random as jr
 import numpy as np
 
 import dissil_jax as dj
@@ -294,3 +295,24 @@ def exactly_dissipative(K, qsr, P) -> bool:
         return True
 
     return positive_definite(Ps) and positive_definite(neg(M))
+
+
+def random_ren_params(key, num, n, q, p, m, scale):
+    """`num` parameters of the REN map (float64) with every entry random (X around I, E's
+    skew part, the neurons' direct input), not only the trainer's initial draw."""
+    from dissil_jax.internal import ren_map
+
+    theta = ren_map.init_ren_params(key, num, n, q, p, m, scale, jnp.float64)
+    leaves, tree = jax.tree.flatten(theta)
+    keys = jr.split(jr.fold_in(key, 1), len(leaves))
+    return jax.tree.unflatten(tree, [a + scale * jr.normal(k, a.shape, a.dtype)
+                                     for a, k in zip(leaves, keys)])
+
+
+#: Supply rates with Q <= 0 of every kind (m = p = 2), for the REN tests.
+REN_RATES = {
+    "strict": dj.QSR(-np.eye(2), 0.3 * np.eye(2), 2.0 * np.eye(2)),
+    "passive": dj.QSR.passive(2),  # Q = 0
+    "rank_deficient": dj.QSR(np.diag([-1.0, 0.0]), np.eye(2) / 2, 0 * np.eye(2)),
+    "gain": dj.QSR.bounded_gain(1.5, n_in=2, n_out=2),
+}

@@ -2,6 +2,7 @@
 
 import jax
 import jax.numpy as jnp
+import jax.random as jr
 import numpy as np
 import pytest
 from helpers import loop_loss, random_windows
@@ -80,3 +81,17 @@ def test_validation_names_the_argument():
         dj.Windows(jnp.full((3, 1), jnp.nan), z(3, 2, 1), z(3, 2, 1))
     with pytest.raises(ValueError, match="at least one window"):
         dj.Windows(None, z(0, 2, 1), z(0, 2, 1))
+
+
+@pytest.mark.parametrize("gamma", [1e-3, 1e-4])
+def test_realisable_windows_for_tight_gain_bounds(gamma):
+    """The expert's projection used the default margin 1e-6, which a gain bound of 1e-3 has
+    no room for (its room is gamma^2): the margin is now a thousandth of the room there.
+    The expert is certified (`dj.certify`'s float64 check) and fits its windows exactly
+    (noise 0: the loss is float64 round-off of outputs of size gamma)."""
+    from dissil_jax.experiments.data import realisable_windows
+
+    qsr = dj.QSR.bounded_gain(gamma, n_in=1, n_out=2)
+    w, K = realisable_windows(jr.PRNGKey(0), qsr, n_state=2, num_windows=5, horizon=3)
+    assert bool(dj.certify(K, qsr).holds)
+    assert float(dj.imitation_loss(K, w)) <= 1e-28

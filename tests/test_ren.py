@@ -13,7 +13,7 @@ import jax.random as jr
 import numpy as np
 import optax
 import pytest
-from helpers import expert_windows, supply_from_definition
+from helpers import REN_RATES, expert_windows, random_ren_params, supply_from_definition
 
 import dissil_jax as dj
 import dissil_jax.internal as dji
@@ -30,13 +30,7 @@ from dissil_jax.internal import (
 )
 
 I2 = np.eye(2)
-#: Supply rates with Q <= 0 of every kind (m = p = 2).
-SUPPLY_RATES = {
-    "strict": dj.QSR(-I2, 0.3 * I2, 2.0 * I2),
-    "passive": dj.QSR.passive(2),  # Q = 0
-    "rank_deficient": dj.QSR(np.diag([-1.0, 0.0]), I2 / 2, 0 * I2),
-    "gain": dj.QSR.bounded_gain(1.5, n_in=2, n_out=2),
-}
+SUPPLY_RATES = REN_RATES  # Q <= 0 of every kind (m = p = 2)
 ACT = {"relu": lambda v: np.maximum(v, 0.0), "tanh": np.tanh}
 
 
@@ -343,16 +337,6 @@ def test_a_non_dissipative_ren_is_rejected():
 
 # -- the direct map ------------------------------------------------------------------------
 
-def _random_params(key, num, n, q, p, m, scale):
-    """Parameters of the REN map with every entry random (X around I, E's skew part,
-    the neurons' direct input), not only the trainer's initial draw."""
-    theta = rm.init_ren_params(key, num, n, q, p, m, scale, jnp.float64)
-    leaves, tree = jax.tree.flatten(theta)
-    keys = jr.split(jr.fold_in(key, 1), len(leaves))
-    return jax.tree.unflatten(tree, [a + scale * jr.normal(k, a.shape, a.dtype)
-                                     for a, k in zip(leaves, keys)])
-
-
 @pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)
 @pytest.mark.parametrize("name", list(SUPPLY_RATES))
 def test_map_values_are_certified_for_every_q(name):
@@ -360,7 +344,7 @@ def test_map_values_are_certified_for_every_q(name):
     M(P, Lam) <= -eps diag(P, 2 Lam, Phi0 / 2), checked in float64 on the REN's own
     dissipation matrix (`ren_lmi`, built from the definition's blocks)."""
     qsr = SUPPLY_RATES[name]
-    theta = _random_params(jr.PRNGKey(2), 6, 2, 4, 2, 2, 0.5)
+    theta = random_ren_params(jr.PRNGKey(2), 6, 2, 4, 2, 2, 0.5)
     K, P, lam = jax.jit(jax.vmap(lambda t: rm.ren_map(t, qsr, 4, "tanh",
                                                       direct_input=True)))(theta)
     cert = dj.certify_ren(K, qsr, P=P, multiplier=lam)
@@ -384,7 +368,7 @@ def test_width_zero_is_a_certified_lti_controller():
     """At width 0 the REN map is a direct map of LTI controllers: its storage is a KYP
     certificate of `K.to_lti()` (`dj.certify`'s float64 check, the LTI tools' own)."""
     for name, qsr in SUPPLY_RATES.items():
-        theta = _random_params(jr.PRNGKey(3), 4, 3, 0, 2, 2, 0.5)
+        theta = random_ren_params(jr.PRNGKey(3), 4, 3, 0, 2, 2, 0.5)
         K, P, lam = jax.jit(jax.vmap(lambda t: rm.ren_map(t, qsr, 0)))(theta)
         assert lam.shape == (4, 0), name
         cert = dj.certify(K.to_lti(), qsr, P=P)
@@ -465,7 +449,7 @@ def test_failed_end_check_gets_an_sdp_certificate(monkeypatch):
 
 
 def test_without_direct_input_d12_is_zero():
-    theta = _random_params(jr.PRNGKey(7), 2, 1, 3, 2, 2, 0.5)
+    theta = random_ren_params(jr.PRNGKey(7), 2, 1, 3, 2, 2, 0.5)
     K, P, lam = jax.jit(jax.vmap(lambda t: rm.ren_map(t, SUPPLY_RATES["passive"], 3)))(theta)
     assert not np.asarray(K.D12).any()
     assert dj.certify_ren(K, SUPPLY_RATES["passive"], P=P, multiplier=lam).holds.all()
@@ -488,7 +472,7 @@ def test_batched_check_equals_a_loop_over_controllers():
     members gives the same verdicts and margins, for certified members, members whose pair
     fails and a member certified only in the unit-multiplier form (large data)."""
     qsr = SUPPLY_RATES["strict"]
-    theta = _random_params(jr.PRNGKey(11), 4, 2, 3, 2, 2, 0.5)
+    theta = random_ren_params(jr.PRNGKey(11), 4, 2, 3, 2, 2, 0.5)
     K, P, lam = jax.jit(jax.vmap(lambda t: rm.ren_map(t, qsr, 3)))(theta)
     K = jax.tree.map(np.array, K)
     P, lam = np.array(P), np.array(lam)
@@ -580,7 +564,7 @@ def test_unbalanced_ren_realisations_are_decided_by_componentwise_bounds():
     gain bound in the same units stays refused (found by a new-user audit: `fit_ren` raised
     on a trained controller whose storage had eigenvalues 44 and 5e7)."""
     qsr = SUPPLY_RATES["gain"]
-    theta = _random_params(jr.PRNGKey(13), 1, 3, 4, 2, 2, 0.3)
+    theta = random_ren_params(jr.PRNGKey(13), 1, 3, 4, 2, 2, 0.3)
     K, P, lam = jax.tree.map(lambda a: np.asarray(a[0]),
                              jax.jit(jax.vmap(lambda t: rm.ren_map(t, qsr, 4)))(theta))
     T = np.diag([1.0, 1e-3, 1e-6])
@@ -809,7 +793,7 @@ def test_traced_rate_is_the_static_rate(name):
     """The REN map under a traced `ren_rate` equals the map with the rate baked in, up to
     the round-off of an XLA program compiled another way (a few ulps of float64)."""
     qsr = SUPPLY_RATES[name]
-    theta = _random_params(jr.PRNGKey(12), 4, 2, 3, 2, 2, 0.5)
+    theta = random_ren_params(jr.PRNGKey(12), 4, 2, 3, 2, 2, 0.5)
     static = jax.jit(jax.vmap(lambda t: rm.ren_map(t, qsr, 3, direct_input=True)))(theta)
     traced = jax.jit(jax.vmap(lambda t, r: rm.ren_map(t, r, 3, direct_input=True),
                               in_axes=(0, None)))(theta, rm.ren_rate(qsr, dtype=jnp.float64))

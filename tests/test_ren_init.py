@@ -5,27 +5,16 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import pytest
-from helpers import expert_windows
+from helpers import REN_RATES, expert_windows, random_ren_params
 
 import dissil_jax as dj
 from dissil_jax.internal import ren_init, ren_inverse, ren_map as rm, units as units_mod
 
-I2 = np.eye(2)
-RATES = {
-    "strict": dj.QSR(-I2, 0.3 * I2, 2.0 * I2),
-    "passive": dj.QSR.passive(2),  # Q = 0
-    "rank_deficient": dj.QSR(np.diag([-1.0, 0.0]), I2 / 2, 0 * I2),
-    "gain": dj.QSR.bounded_gain(1.5, n_in=2, n_out=2),
-}
+RATES = REN_RATES
 
 
 def _random_theta(key, n, q, scale=0.4):
-    theta = jax.tree.map(lambda a: a[0], rm.init_ren_params(key, 1, n, q, 2, 2, scale,
-                                                            jnp.float64))
-    leaves, tree = jax.tree.flatten(theta)
-    keys = jr.split(jr.fold_in(key, 1), len(leaves))
-    return jax.tree.unflatten(tree, [a + scale * jr.normal(k, a.shape, a.dtype)
-                                     for a, k in zip(leaves, keys)])
+    return jax.tree.map(lambda a: a[0], random_ren_params(key, 1, n, q, 2, 2, scale))
 
 
 @pytest.mark.numerics  # re-run under other BLAS kernels (make test-kernels)

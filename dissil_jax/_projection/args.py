@@ -30,6 +30,14 @@ def check_qsr(K: LTIController, qsr: QSR) -> None:
     check_feasible(qsr)  # some static D is strictly dissipative
 
 
+def solved_room(qsr: QSR) -> float | None:
+    """$\\lambda_{\\min}(R - S^\\top Q^{-1}S)$ of the rate as the projection solves it
+    (divided by `rate_factor`), the most room any feedthrough has there, in which the LMI
+    margin `eps` must fit; None for $Q$ not negative definite (no such bound)."""
+    found = schur_complement(scaled_rate(qsr, rate_factor(qsr)), 1e-12)
+    return None if found is None else float(np.linalg.eigvalsh(found[0])[0])
+
+
 def check_eps_room(qsr: QSR, eps) -> None:
     """Refuse an LMI margin `eps` that no controller can meet, naming `eps`.
 
@@ -44,12 +52,8 @@ def check_eps_room(qsr: QSR, eps) -> None:
     """
     if isinstance(eps, jax.core.Tracer) or isinstance(qsr.Q, jax.core.Tracer):
         return
-    qsr = scaled_rate(qsr, rate_factor(qsr))  # the margin applies to the rate as solved
-    found = schur_complement(qsr, 1e-12)
-    if found is None:
-        return  # Q not negative definite
-    room = float(np.linalg.eigvalsh(found[0])[0])
-    if 0 < room <= float(eps):
+    room = solved_room(qsr)
+    if room is not None and 0 < room <= float(eps):
         raise ValueError(
             f"`eps` = {float(eps):.3g} is not below the supply rate's room: every feedthrough "
             f"has R + S'D + D'S + D'QD <= R - S'Q^-1 S, whose smallest eigenvalue is "

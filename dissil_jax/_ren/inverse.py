@@ -15,10 +15,12 @@ PB_2\\end{bmatrix},$$
 with $T = S + QD_{22}$. So $K$ is in the map's image exactly when some $(P, \\Lambda)$
 makes $\\Gamma = \\mathcal M - \\varepsilon I - \\mathcal C\\tilde\\Phi^{-1}\\mathcal C^\\top
 \\succeq 0$, a linear matrix inequality (a Schur complement over $\\tilde\\Phi$), and then
-$X = \\Gamma^{1/2}$. Two SDPs choose the pair: the smallest $\\operatorname{tr}P +
-\\operatorname{tr}\\Lambda$ with $\\Gamma\\succeq\\varepsilon I$, then the largest
-$\\delta$ with $\\Gamma\\succeq\\delta I$ at up to twice that trace, which keeps $X$ well
-away from singular without letting the storage grow without bound. The feedthrough's
+$X = \\Gamma^{1/2}$. An SDP chooses the pair: the smallest $\\operatorname{tr}P +
+\\operatorname{tr}\\Lambda$ with $\\Gamma\\succeq\\tfrac\\varepsilon2 I$, which keeps $X$ away
+from singular and the storage near the size of the map's random starts ($P\\approx I$);
+when there is no such pair, a second SDP finds the largest $\\delta$ with
+$\\Gamma\\succeq\\delta I$ at $\\operatorname{tr}P + \\operatorname{tr}\\Lambda$ at most
+1000 per row of $\\Gamma$ (negative: $K$ is out of the map's reach). The feedthrough's
 parameter $W$ inverts the loop transformation of `_direct_map.output_map` at order 0 in
 closed form.
 """
@@ -84,9 +86,8 @@ def _blocks(K, qsr: QSR, margin: float, P, lam):
 
 
 def _pair(K, qsr: QSR, margin: float, Phi_t):
-    """The certificate `(P, lam)` of the module docstring and the largest $\\delta$ found
-    (two SDPs with cvxpy and Clarabel, BLAS single-threaded), or None when the solver
-    fails."""
+    """The certificate `(P, lam)` of the module docstring and its $\\delta$ (one or two SDPs
+    with cvxpy and Clarabel, BLAS single-threaded), or None when the solver fails."""
     import cvxpy as cp
 
     n, q = K[0].shape[0], K[3].shape[0]
@@ -106,26 +107,27 @@ def _pair(K, qsr: QSR, margin: float, Phi_t):
         # the pair is mapped forward by the caller, whose image is certified regardless
         warnings.filterwarnings("ignore", message="Solution may be inaccurate",
                                 category=UserWarning)
-        delta = cp.Variable()
-        first = cp.Problem(cp.Maximize(delta), [lmi(delta), delta <= margin,
-                                                trace <= _TRACE * size, *extra])
+        # the smallest storage that keeps half the map's room (one SDP for most starts)
+        first = cp.Problem(cp.Minimize(trace), [lmi(margin / 2), *extra])
         try:
             first.solve(solver=cp.CLARABEL)
+            if P.value is not None and first.status in _SOLVED:
+                P_, lam_ = value()
+                return (P_ + P_.T) / 2, lam_, margin / 2
+        except cp.SolverError:
+            pass
+        # else the most room there is, at a bounded storage (negative: out of reach)
+        delta = cp.Variable()
+        second = cp.Problem(cp.Maximize(delta), [lmi(delta), delta <= margin / 2,
+                                                 trace <= _TRACE * size, *extra])
+        try:
+            second.solve(solver=cp.CLARABEL)
         except cp.SolverError:
             return None
-        if P.value is None or delta.value is None or first.status not in _SOLVED:
+        if P.value is None or delta.value is None or second.status not in _SOLVED:
             return None
-        best, found = float(delta.value), value()
-        if best > 0.0:  # room to spare: the smallest storage that keeps half of it
-            second = cp.Problem(cp.Minimize(trace), [lmi(best / 2), *extra])
-            try:
-                second.solve(solver=cp.CLARABEL)
-                if P.value is not None and second.status in _SOLVED:
-                    found = value()
-            except cp.SolverError:
-                pass  # the first pair stands
-    P, lam = found
-    return (P + P.T) / 2, lam, best
+        P_, lam_ = value()
+        return (P_ + P_.T) / 2, lam_, float(delta.value)
 
 
 _SOLVED = ("optimal", "optimal_inaccurate")

@@ -332,7 +332,8 @@ def fit_ren(
             init, key, qsr, units, loss_scale(windows), num_inits=int(num_inits),
             n_state=n_state, width=int(width), n_in=windows.n_in, n_out=windows.n_out,
             init_scale=float(init_scale), margins=margins, direct_input=bool(direct_input),
-            odd=bool(odd), activation=activation, dtype=dtype)
+            odd=bool(odd), activation=activation, dtype=dtype,
+            progress=check_flag("progress", progress))
     with reporting("fit_ren", max_steps, check_flag("progress", progress), c**2) as token:
         res = _run_jit(key, windows, *solved_rate(qsr, margin, dtype, ren_rate),
                        jnp.asarray(learning_rate, dtype),

@@ -20,6 +20,7 @@ import numpy as np
 
 from .._controller import LTIController
 from .._direct_map import MARGIN
+from .._progress import working
 from .._rate_scale import rate_factor, scaled_rate
 from .._ren.controller import RENController
 from .._ren.inverse import ren_params_of
@@ -97,7 +98,7 @@ def balanced_controllers(K: tuple, units: Units, s: float) -> tuple:
 
 def initial_params(init, key, qsr: QSR, units: Units, s2, *, num_inits: int, n_state: int,
                    width: int, n_in: int, n_out: int, init_scale: float, margins: tuple,
-                   direct_input: bool, odd: bool, activation, dtype):
+                   direct_input: bool, odd: bool, activation, dtype, progress: bool = False):
     """`(theta0, margin)`: the REN map's parameters (batched, `dtype`) at which `fit_ren`'s
     runs start, for the balanced rate `qsr` and the data scale `s2`, at the first of
     `margins` that reaches every start; a `ValueError` naming `init` when none does."""
@@ -109,11 +110,18 @@ def initial_params(init, key, qsr: QSR, units: Units, s2, *, num_inits: int, n_s
     draws = [np.asarray(init_scale * jr.normal(k, (width, n_state)), np.float64)
              if lti and width else None for k in jr.split(key, num_inits)]
     for margin in margins:
-        found = [_start([np.array(M[i]) for M in K], draws[i], rate, margin, direct_input)
-                 for i in range(num_inits)]
-        if all(theta is not None for theta in found):
+        what = (f"mapping {num_inits} starts back through the REN map at margin {margin:g} "
+                f"(an SDP each, of order {2 * n_state + width + n_in})")
+        with working("fit_ren", what, progress):
+            found = []
+            for i in range(num_inits):  # up to the first start out of reach
+                found.append(_start([np.array(M[i]) for M in K], draws[i], rate, margin,
+                                    direct_input))
+                if found[-1] is None:
+                    break
+        if found[-1] is not None:
             return jax.tree.map(lambda *a: jnp.asarray(np.stack(a), dtype), *found), margin
-    bad = next(i for i, theta in enumerate(found) if theta is None)
+    bad = len(found) - 1
     where = f"`init[{bad}]`" if _controllers(init).batch_shape else "`init`"
     tried = ", ".join(f"{m:g}" for m in margins)
     raise ValueError(

@@ -24,6 +24,7 @@ import numpy as np
 from jaxtyping import PRNGKeyArray
 
 from .._data import Windows
+from .._projection.args import solved_room
 from .._validate import check_int
 from .simulate import (
     CONTROL_NOISE,
@@ -187,7 +188,11 @@ def realisable_windows(
     $\\hat x_0\\sim\\mathcal N(0, I)$ with inputs $y_k\\sim\\mathcal N(0, I)$, and
     $u_k = -\\hat y_k + \\nu_k$ with $\\nu_k\\sim\\mathcal N(0, \\text{noise}^2 I)$, so
     with `noise=0` the loss of $K_\\star$ is zero. `scale` multiplies $x_0$, $y$ and $u$ (a
-    change of units). Used by the optimiser comparison and the tests.
+    change of units). Used by the optimiser comparison and the tests. The projection's
+    margin is its default $10^{-6}$, or a thousandth of the rate's room where that is
+    smaller (a gain bound $\\gamma$ has room $\\gamma^2$): gain bounds down to $10^{-4}$
+    work; at $10^{-6}$ the room ($10^{-12}$) is at float64's round-off and the
+    projection's check fails.
 
     **Returns:** `(windows, K_star)`.
     """
@@ -195,7 +200,11 @@ def realisable_windows(
 
     kK, kx, ky, kn = jr.split(key, 4)
     K = dj.LTIController.random(kK, n_state, qsr.n_in, qsr.n_out, scale=1.0)
-    K, _ = dj.project(K, qsr)
+    # the projection's margin, 1e-6 by default, must fit in the rate's room (a gain bound
+    # of 1e-3 has room 1e-6): a thousandth of it where it is smaller
+    room = solved_room(qsr)
+    eps = 1e-6 if room is None or room <= 0 else min(1e-6, 1e-3 * room)
+    K, _ = dj.project(K, qsr, eps=eps)
     x0 = jr.normal(kx, (num_windows, n_state))
     y = jr.normal(ky, (num_windows, horizon, qsr.n_in))
     u = -jax.vmap(lambda x, yk: dj.rollout(K, x, yk))(x0, y)
