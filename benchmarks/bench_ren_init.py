@@ -81,6 +81,7 @@ def main(split, candidates=CANDIDATES):
             stable = 100 * np.mean(rep.stable)
             print(f"{name}: {lr}: loss {loss[name][-1]:.3g} error {err[name][-1]:.3g} "
                   f"stable {stable:.0f} % (direct {100 * np.mean(base.stable):.0f} %), "
+                  f"certified {100 * np.mean(rep.certified):.0f} % (`certify_ren`), "
                   f"margin {found['r'].margin:g}",
                   flush=True)
     for title, table in (("median final training loss", loss),

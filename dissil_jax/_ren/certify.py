@@ -45,7 +45,11 @@ class RENCertificate(eqx.Module):
       $M(P,\\Lambda)\\prec0$ beyond float64 round-off (an eigenvalue check).
     - `P`: the storage ($V(x) = x^\\top Px$), float64.
     - `multiplier`: the diagonal of $\\Lambda$ (`[q]`).
-    - `margin`: $\\min(-\\lambda_{\\max}(M), \\lambda_{\\min}(P), \\min_i\\Lambda_{ii})$.
+    - `margin`: $\\min(-\\lambda_{\\max}(M), \\lambda_{\\min}(P), \\min_i\\Lambda_{ii})$,
+      computed in float64 from $M$ as given. With multipliers far larger than $P$ it
+      carries their round-off and can read slightly below zero while `holds` is True
+      (the verdict allows for round-off and also checks the congruent form with unit
+      multipliers): a REN audit saw -0.009 where the exact margin was +0.003.
     - `status`: `"given"` or the SDP solver's status; `message` says what the verdict
       means.
 
