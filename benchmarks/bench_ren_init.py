@@ -25,8 +25,12 @@ ReLU, width 16, 150 steps) started at the LTI direct map's controllers of the sa
 (`protocol.fit("direct", ...)`) at each step, against the protocol's REN from random
 draws: median test MSE and % stable.
 
+`--cost`: the time to map one start back (`ren_inverse.ren_params_of`, a value of the REN
+map of each size, bounded gain 2, 2 inputs and outputs) against one `certify_ren` SDP of
+the same REN in the same run (the trainers' fallback certificate), BLAS single-threaded.
+
 Usage: python benchmarks/bench_ren_init.py [--split tuning|held_out] [--steps 0.01,0.003]
-       [--gap] [--paper]
+       [--gap] [--paper] [--cost]
 """
 
 import argparse
@@ -162,6 +166,33 @@ def paper(candidates, seeds=(1, 2, 0)):
         print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
 
 
+def cost(sizes=((2, 4), (8, 8), (20, 16))):
+    import time
+
+    import jax.numpy as jnp
+    import jax.random as jr
+
+    from dissil_jax.internal import ren_inverse, ren_map
+
+    qsr = dj.QSR.bounded_gain(2.0, n_in=2, n_out=2)
+    sizes = (sizes[0], *sizes)  # the first round warms cvxpy and Clarabel up: not printed
+    print("| order | width | map back (s) | certify_ren (s) | ratio |")
+    print("|---:|---:|---:|---:|---:|")
+    for i, (n, q) in enumerate(sizes):
+        theta = jax.tree.map(lambda a: a[0], ren_map.init_ren_params(
+            jr.PRNGKey(0), 1, n, q, 2, 2, 0.3, jnp.float64))
+        K, _, _ = ren_map.ren_map(theta, qsr, q, "tanh")
+        mats = tuple(np.asarray(M) for M in K.matrices)
+        t = time.perf_counter()
+        assert ren_inverse.ren_params_of(mats, qsr, ren_map.MARGIN, False)[1] >= 0
+        back = time.perf_counter() - t
+        t = time.perf_counter()
+        assert dj.certify_ren(K, qsr, progress=False).holds
+        sdp = time.perf_counter() - t
+        if i:
+            print(f"| {n} | {q} | {back:.2f} | {sdp:.2f} | {back / sdp:.2f} |", flush=True)
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--split", choices=("tuning", "held_out"), default="tuning")
@@ -171,9 +202,13 @@ if __name__ == "__main__":
                         help="the three problems outside the zoo where fit_ren fit worst")
     parser.add_argument("--paper", action="store_true",
                         help="the paper's nonlinear example, started at the direct map's")
+    parser.add_argument("--cost", action="store_true",
+                        help="the time to map one start back, against one certify_ren SDP")
     args = parser.parse_args()
     steps = tuple(float(v) for v in args.steps.split(","))
-    if args.paper:
+    if args.cost:
+        cost()
+    elif args.paper:
         paper(steps)
     elif args.gap:
         gap(steps)

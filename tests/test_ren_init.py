@@ -188,3 +188,19 @@ def test_bad_init_is_refused_by_name():
                             np.zeros((1, 1)))
     with pytest.raises(ValueError, match=r"`init` is not in the set `fit_ren` trains in"):
         fit(edge)
+
+
+def test_mapping_the_starts_back_says_so_while_it_runs(monkeypatch, capsys):
+    """The SDPs run before the training loop, one per start (minutes for many starts at a
+    high order): past the heartbeat's delay a line on standard error says what they do."""
+    from dissil_jax.internal import progress
+
+    monkeypatch.setattr(progress, "DELAY", 0.0)
+    monkeypatch.setattr(progress, "INTERVAL", 0.01)
+    monkeypatch.setattr(progress, "_BEAT", 0.005)
+    qsr = dj.QSR.passive(1)
+    w = expert_windows(2, 2, 1, 1, N=10)
+    d = _direct(w, qsr)
+    dj.fit_ren(jr.PRNGKey(1), w, qsr, width=2, num_inits=4, max_steps=0, init=d)
+    err = capsys.readouterr().err
+    assert "fit_ren: mapping 4 starts back through the REN map at margin" in err
