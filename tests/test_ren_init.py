@@ -59,7 +59,7 @@ def _loss(K, windows):
     return np.asarray(jax.vmap(lambda k: dj.imitation_loss(k, windows))(K))
 
 
-@pytest.mark.filterwarnings("ignore:.*runs returned their initial controller")
+@pytest.mark.filterwarnings("ignore:.*runs returned their start")
 @pytest.mark.parametrize("odd", [False, True])
 def test_runs_start_at_the_given_lti_controllers_and_never_end_worse(odd):
     """Each run's first loss is that of its start (up to float64 round-off of the two
@@ -204,3 +204,15 @@ def test_mapping_the_starts_back_says_so_while_it_runs(monkeypatch, capsys):
     dj.fit_ren(jr.PRNGKey(1), w, qsr, width=2, num_inits=4, max_steps=0, init=d)
     err = capsys.readouterr().err
     assert "fit_ren: mapping 4 starts back through the REN map at margin" in err
+
+
+def test_a_start_that_no_step_improves_is_named_as_the_start():
+    """A run that returns its start unchanged is reported as such, naming `init` (the
+    start may be a minimum already), not as a random draw the step was too large for."""
+    qsr = dj.QSR(-29.867, 3.556, 0.601)
+    w = expert_windows(1, 2, 1, 1, N=10)
+    d = _direct(w, qsr)
+    with pytest.warns(UserWarning, match=r"returned their start \(`init`\) unchanged"):
+        res = dj.fit_ren(jr.PRNGKey(1), w, qsr, width=2, num_inits=4, max_steps=5, init=d,
+                         learning_rate=10.0, progress=False)
+    assert np.all(np.asarray(res.kept_step) == 0)

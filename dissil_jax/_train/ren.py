@@ -348,7 +348,7 @@ def fit_ren(
         res = _certify_all(res, qsr)
     res = eqx.tree_at(lambda r: r.wall_time, res, jnp.asarray(time.perf_counter() - start,
                                                               dtype))
-    warn_if_untrained(res)
+    warn_if_untrained(res, given_start=init is not None)
     if throw and not bool(np.all(res.certified)):
         raise ValueError(_uncertified_message(res, num_inits))
     return unbalance(raise_if_failed(res) if throw else res, units, user_qsr, throw)

@@ -180,7 +180,7 @@ def fit_timed(run, hyper, dtype, finish, throw: bool, token=None) -> FitResult:
     return raise_if_failed(res) if throw else res
 
 
-def warn_if_untrained(res: FitResult) -> None:
+def warn_if_untrained(res: FitResult, given_start: bool = False) -> None:
     """Warn when runs that took steps returned their initial controller (`kept_step` 0
     with `keep="best"`): no step lowered the loss, the mark of a step too large for the
     problem (a loss rising from 55 to 7e13 ended as `max_steps`, without a word)."""
@@ -193,6 +193,12 @@ def warn_if_untrained(res: FitResult) -> None:
     untrained = (kept == 0) & (steps > 0) & rose & ~np.asarray(_outcome.failed(
         _outcome.codes(res.result)))
     if untrained.any():
+        if given_start:  # `fit_ren(init=...)`: the start may be a minimum already
+            warn_user(f"{int(untrained.sum())} of {untrained.size} runs returned their start "
+                      "(`init`) unchanged: none of their steps lowered the loss below it. "
+                      "The start may be a minimum already, or the step too large (the loss "
+                      "rose from the first step on): try a smaller `learning_rate`.")
+            return
         warn_user(f"{int(untrained.sum())} of {untrained.size} runs returned their initial "
                   "controller: none of their steps lowered the loss below it. The step is "
                   "probably too large for this problem (the loss rose from the first step "
