@@ -131,7 +131,7 @@ def _pair(K, qsr: QSR, margin: float, Phi_t):
 
 
 _SOLVED = ("optimal", "optimal_inaccurate")
-# The first SDP's bound on tr P + tr Λ per row of Γ: the map starts at P ≈ I, Λ ≈ I/2.
+# The second SDP's bound on tr P + tr Λ per row of Γ (the map starts at P ≈ I, Λ ≈ I/2).
 _TRACE = 1e3
 
 
