@@ -267,6 +267,26 @@ def test_evaluate_rens_certified_and_odd_ones_started_where_asked(problems):
             np.testing.assert_allclose(report.imitation_error[i], J / J0, rtol=1e-10)
 
 
+def test_evaluate_a_memoryless_network_on_a_problem_without_state(problems):
+    """The MLP has no order: on a problem whose windows start at rest its loops used to
+    fail with `AttributeError: n_state`. The errors are checked against a plain loop."""
+    p = problems["chain4_4x4_io"]
+    assert p.test.x0 is None
+    keys = jr.split(jr.PRNGKey(0), 2)
+    Ks = jax.vmap(lambda k: dj.MLPController(k, p.facts.n_out, p.facts.n_in, (4,),
+                                             dtype=jnp.float64))(keys)
+    rep = zoo.evaluate(p, lambda t: Ks)
+    target = -np.asarray(p.test.u, np.float64)
+    J0 = np.mean(np.sum(target**2, axis=(1, 2)))
+    for i in range(2):
+        f = jax.tree.map(lambda M: M[i], Ks).mlp
+        pred = np.asarray(jax.vmap(jax.vmap(f))(p.test.y))
+        J = np.mean(np.sum((pred - target) ** 2, axis=(1, 2)))
+        np.testing.assert_allclose(rep.imitation_error[i], J / J0, rtol=1e-10)
+    assert rep.stable.shape == (2,) and rep.certified.shape == (2,)
+    assert not rep.certified.any()
+
+
 def _zero_like(t, i):
     n, pp, m = t.n_state, t.windows.n_in, t.windows.n_out
     return dj.LTIController(jnp.zeros((n, n)), jnp.zeros((n, pp)), jnp.zeros((m, n)),

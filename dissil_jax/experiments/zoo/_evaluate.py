@@ -101,6 +101,12 @@ def _start(problem: Problem, K, x0, start):
     return x0
 
 
+def _order(problem: Problem, K) -> int:
+    """The controllers' state size: their order, or the problem's for a memoryless
+    controller (the MLP carries a state it never reads)."""
+    return K.n_state if isinstance(K, (LTIController, RENController)) else problem.n_state
+
+
 def stable(problem: Problem, controllers, start=None) -> np.ndarray:
     """`[K]` closed-loop stability with the plant (negative feedback, controller at rest or
     at the plant state as in the training windows, or at `start(x0)`).
@@ -126,7 +132,8 @@ def stable(problem: Problem, controllers, start=None) -> np.ndarray:
     if problem.facts.has_state:
         xhat0 = _start(problem, K, x0, start)
     else:
-        xhat0 = "rest" if isinstance(K, LTIController) else jnp.zeros((N, K.n_state), dtype)
+        xhat0 = "rest" if isinstance(K, LTIController) else jnp.zeros(
+            (N, _order(problem, K)), dtype)
     traj = simulate_controllers(problem.plant, K, x0, noise, xhat0)
     out[idx] = rule_stable(traj, abs_tol=SIM_ABS * problem.facts.units)
     return out
@@ -144,8 +151,7 @@ def imitation_error(problem: Problem, controllers, start=None) -> np.ndarray:
     W = problem.test
     if W.x0 is not None:
         W = eqx.tree_at(lambda w: w.x0, W, _start(problem, K, W.x0, start))
-    n_state = K.n_state if isinstance(K, (LTIController, RENController)) else problem.n_state
-    pred = np.asarray(predict_any(K, W, n_state), np.float64)
+    pred = np.asarray(predict_any(K, W, _order(problem, K)), np.float64)
     target = np.asarray(W.target, np.float64)
     J = np.mean(np.sum((pred - target[None]) ** 2, axis=(-2, -1)), axis=-1)
     J0 = np.mean(np.sum(target**2, axis=(-2, -1)))
