@@ -488,6 +488,10 @@ def test_project_shares_one_reference_storage_across_a_batch():
     with pytest.raises(ValueError, match=r"`P_ref` must be 3x3 \(shared by the batch\) or "
                                          r"\(3, 3, 3\)"):
         dj.project(Ks, qsr, P_ref=jnp.eye(2))
+    # one controller: one shape to name (the batch's alternative read the same)
+    with pytest.raises(ValueError, match=r"`P_ref` must be 3x3 \(the controller's order\), "
+                                         r"got \(2, 2\)\.$"):
+        dj.project(jax.tree.map(lambda a: a[0], Ks), qsr, P_ref=jnp.eye(2))
 
 
 def test_fit_pgd_judges_eps_on_the_balanced_rate():

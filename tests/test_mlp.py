@@ -104,7 +104,7 @@ def test_vmapped_training_equals_loop(getkey):
     windows = random_windows(getkey(), N=10, h=2, n=1, p=2, m=1)
     key = getkey()
     kwargs = dict(hidden=(8, 8), max_steps=60, learning_rate=5e-3, atol=1e-4, rtol=0.0)
-    res = dj.fit_mlp(key, windows, num_inits=4, **kwargs)
+    res = dj.fit_mlp(key, windows, num_inits=4, balance=False, **kwargs)
     assert len(set(res.result_names())) >= 1
     for i, k in enumerate(jr.split(key, 4)):
         model, hist = _plain_adam_loop(k, windows, **kwargs)
@@ -142,3 +142,58 @@ def test_float32_training(getkey):
     assert res.loss_history.dtype == jnp.float32
     assert res.controllers.params.layers[0].weight.dtype == jnp.float32
     assert bool(jnp.all(res.final_loss < 0.5 * res.initial_loss))
+
+
+def _units_windows(getkey, a, b):
+    """Random windows with y in units `a` (per channel) and u in units `b`."""
+    w = random_windows(getkey(), N=12, h=2, n=1, p=2, m=2)
+    return w, dj.Windows(w.x0, w.y * jnp.asarray(a), w.u * b)
+
+
+def test_balance_trains_the_same_network_in_any_units(getkey):
+    """With `balance`, inputs in units 2^10 and 2^-7 (per channel) and targets in 2^-10
+    give bit for bit the same training, the network mapped to the new units."""
+    a, b = np.array([2.0**10, 2.0**-7]), 2.0**-10
+    w, w2 = _units_windows(getkey, a, b)
+    key, kw = getkey(), dict(hidden=(8, 8), num_inits=2, max_steps=40)
+    r1, r2 = dj.fit_mlp(key, w, **kw), dj.fit_mlp(key, w2, **kw)
+    np.testing.assert_array_equal(r2.loss_history, r1.loss_history * b**2)
+    np.testing.assert_array_equal(r2.steps, r1.steps)
+    y = w.y[:3]
+    pred1 = jax.vmap(lambda K: jax.vmap(jax.vmap(K.mlp))(y))(r1.controllers)
+    pred2 = jax.vmap(lambda K: jax.vmap(jax.vmap(K.mlp))(y * a))(r2.controllers)
+    np.testing.assert_array_equal(pred2, pred1 * b)
+
+
+def test_balance_returns_the_network_in_the_users_units(getkey):
+    """The returned network, evaluated on the user's data by a plain loop, has the loss
+    the result reports; without `balance` the same data train far worse."""
+    a, b = np.array([1e3, 1e3]), 1e-3
+    _, w = _units_windows(getkey, a, b)
+    kw = dict(hidden=(16, 16), num_inits=2, max_steps=300)
+    res = dj.fit_mlp(getkey(), w, **kw)
+    raw = dj.fit_mlp(getkey(), w, balance=False, **kw)
+    Y, T = np.asarray(w.y), -np.asarray(w.u)
+    zero = np.mean(np.sum(T**2, axis=(1, 2)))
+    for i in range(2):
+        K = jax.tree.map(lambda x: x[i], res.controllers)
+        pred = np.stack([[np.asarray(K(jnp.zeros(1), y)[1]) for y in win] for win in Y])
+        assert np.mean(np.sum((pred - T) ** 2, axis=(1, 2))) == pytest.approx(
+            float(res.final_loss[i]), rel=1e-9)
+    # the data's units: the default step moves weights that should be ~1e-6 by 1e-3
+    assert np.all(np.asarray(res.final_loss) < 0.5 * zero)
+    assert np.all(np.asarray(raw.final_loss) > 10 * np.asarray(res.final_loss))
+
+
+def test_balance_needs_concrete_windows(getkey):
+    w = random_windows(getkey(), N=6, h=2, n=1, p=1, m=1)
+    run = lambda bal: jax.jit(lambda y: dj.fit_mlp(
+        jr.PRNGKey(0), dj.Windows(w.x0, y, w.u), hidden=(4,), num_inits=2, max_steps=3,
+        balance=bal).final_loss)(w.y)
+    with pytest.raises(ValueError, match="`balance=True`.*pass `balance=False`"):
+        run(True)
+    np.testing.assert_allclose(run(False), dj.fit_mlp(
+        jr.PRNGKey(0), w, hidden=(4,), num_inits=2, max_steps=3, balance=False).final_loss,
+        rtol=1e-12)
+    with pytest.raises(ValueError, match="`balance`"):
+        dj.fit_mlp(jr.PRNGKey(0), w, balance="yes")

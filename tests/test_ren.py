@@ -845,6 +845,10 @@ def test_ill_conditioned_storages_are_named_when_the_end_check_fails(monkeypatch
     assert max(np.linalg.cond(np.asarray(P)) for P in np.asarray(res.P)[bad]) > 1e8
     with pytest.raises(ValueError, match="condition number .* beyond what float64"):
         dj.fit_ren(key, W, qsr, width=3, num_inits=2, **hyper)
+    # float32 runs are told that float64 may pass; these float64 ones are not
+    assert "float32" not in ren_train._uncertified_message(res, 2)
+    single = eqx.tree_at(lambda r: r.final_loss, res, res.final_loss.astype(jnp.float32))
+    assert "jax_enable_x64" in ren_train._uncertified_message(single, 2)
 
 
 def test_default_step_and_scale_are_the_capped_rule():

@@ -1,5 +1,7 @@
 """`fit_ren(init=...)`: the REN map backwards, and runs that start at given controllers."""
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import jax.random as jr
@@ -155,6 +157,37 @@ def test_the_default_margin_falls_back_until_every_start_is_reached():
     with pytest.raises(ValueError, match=r"`init\[0\]` is not in the set .* `margin` 0.01"):
         ren_init.initial_params(Kb, jr.PRNGKey(0), qsr, units_mod.Units(), 1.0,
                                 margins=(1e-2,), **common)
+
+
+def test_a_start_reached_only_approximately_tries_smaller_margins_then_warns(monkeypatch):
+    """The map's value at a start is measured against the start (`_deviation`, checked
+    here against a perturbed parameter); a start off by more than round-off is tried at
+    the smaller margins, and when none reaches it exactly the closest is used with a
+    warning that names the deviation (a new user's gain bound of 1e-5 started 37 % above
+    the given controllers' loss, silently)."""
+    qsr = RATES["strict"]
+    theta = _random_theta(jr.PRNGKey(5), 2, 2)
+    K, _, _ = rm.ren_map(theta, qsr, 2, "tanh", 1e-2)
+    mats = [np.asarray(M) for M in K.matrices]
+    dev = lambda th: ren_init._deviation(th, mats, qsr, 1e-2, False, jnp.float64)
+    assert dev(theta) < 1e-9
+    bumped = theta.__class__(theta.X + 1e-3 * jnp.eye(theta.X.shape[0]),
+                             *jax.tree.leaves(theta)[1:])
+    assert dev(bumped) > ren_init._EXACT
+    Kb = jax.tree.map(lambda a: a[None], K)
+    common = dict(num_inits=1, n_state=2, width=2, n_in=2, n_out=2, init_scale=0.1,
+                  direct_input=False, odd=False, activation="tanh", dtype=jnp.float64)
+    run = lambda: ren_init.initial_params(Kb, jr.PRNGKey(0), qsr, units_mod.Units(), 1.0,
+                                          margins=ren_init.INIT_MARGINS, **common)[1]
+    offs = {1e-2: 0.5, 1e-3: 0.0, 1e-4: 0.2}
+    monkeypatch.setattr(ren_init, "_deviation", lambda th, Ki, rate, margin, *a: offs[margin])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert run() == 1e-3  # exact there: no warning
+    offs.update({1e-3: 0.3})
+    with pytest.warns(UserWarning, match=r"only approximately \(at `margin` 0.0001, the "
+                                         r"closest of 3\).* 2.0e-01"):
+        assert run() == 1e-4
 
 
 def test_bad_init_is_refused_by_name():

@@ -110,8 +110,10 @@ def check_options(K: LTIController, P_ref, active, eps, reg, refine, metric=None
         return
     n, shape = K.n_state, np.shape(P_ref)
     if shape not in ((n, n), K.batch_shape + (n, n)):
-        raise ValueError(f"`P_ref` must be {n}x{n} (shared by the batch) or "
-                         f"{K.batch_shape + (n, n)} (one per controller), got {shape}.")
+        raise ValueError(
+            f"`P_ref` must be {n}x{n} (the controller's order), got {shape}." if not K.batch_shape
+            else f"`P_ref` must be {n}x{n} (shared by the batch) or "
+                 f"{K.batch_shape + (n, n)} (one per controller), got {shape}.")
     if isinstance(P_ref, jax.core.Tracer):
         if jnp.iscomplexobj(P_ref):
             raise ValueError("`P_ref` must be an array of real numbers, got complex values.")

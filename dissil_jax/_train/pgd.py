@@ -296,9 +296,13 @@ def fit_pgd(
       chosen on the tuning half of `dissil_jax.experiments.zoo` (the largest `rtol` that
       stops within about 1 % of the full budget's loss, `benchmarks/bench_defaults.py`;
       `fit_gd` uses 1e-8, `fit_mlp` 1e-9). The paper's
-      $|\\Delta J| <$ tol is `atol` = tol, `rtol` = 0: 1e-3 linear, 1e-5 nonlinear; both
-      `0.0` run every step), `init_scale` $\\sigma$ (default 0.3, `ADAM_INIT_SCALE`; the
-      paper's N(0, 1) draw is `init_scale=1`, see below), `eps` (LMI strictness margin).
+      $|\\Delta J| <$ tol is `atol` = tol, `rtol` = 0: 1e-3 linear, 1e-5 nonlinear. With
+      both `0.0` every step runs. The rule looks at one step's change, so a run whose
+      loss oscillates can stop at a quiet step: `converged` says that the rule fired, not
+      that the loss is stationary.
+    - `init_scale`: $\\sigma$ of the initial draw (default 0.3, `ADAM_INIT_SCALE`; the
+      paper's N(0, 1) draw is `init_scale=1`, see below).
+    - `eps`: the LMI's strictness margin.
     - `throw`: raise a `ValueError` when a run ends in failure (`result` other than
       `converged` or `max_steps`: a failed projection, or a non-finite loss). With
       `throw=False` the result is returned and `result` says what happened; a failed

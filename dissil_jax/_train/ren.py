@@ -154,9 +154,15 @@ def _uncertified_message(res: RENFitResult, num_inits: int) -> str:
                 "smaller `init_scale` or `learning_rate`, or train in float64)")
     msg += "; pass `throw=False` to inspect them (`certified`, `result`)"
     if cond > _ILL_CONDITIONED:
+        single = np.asarray(res.final_loss).dtype == np.float32
         return msg + (
             f". Their storages P reached condition number {cond:.1e}, beyond what float64 "
-            "can verify. This happens with supply rates whose Q is far larger than R (tight "
+            "can verify. " + (
+                "The runs trained in float32, whose round-off near the edge of the set can "
+                "leave storages this ill-conditioned: in float64 "
+                "(`jax.config.update(\"jax_enable_x64\", True)` before the data are made) "
+                "they may pass. " if single else "") +
+            "This happens with supply rates whose Q is far larger than R (tight "
             "gain bounds), where training can buy imitation with storage; the conditioning "
             "varies along training, so another `max_steps` (more or fewer) may pass. Or try "
             "`dj.fit_direct` (LTI controllers, whose map kept such storages verifiable in our "
@@ -242,6 +248,9 @@ def fit_ren(
       runs' units and mapped back through the REN map (an SDP per start: the map's
       parameters are exact, [REN controllers](ren.md#starting-from-a-controller)), so the
       first loss is the start's and, with `keep="best"`, no run ends worse than its start.
+      Each start is checked against the map's value; one the SDP reaches only
+      approximately (ill-conditioned rates such as gain bounds of 1e-5) is tried at
+      smaller margins, then used with a warning naming the deviation.
       An LTI start becomes a REN whose neurons see the state ($C_1$ drawn with
       `init_scale`) but do not yet act ($D_{21} = 0$); a REN start must have the runs'
       `activation`. The default step is then

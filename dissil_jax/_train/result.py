@@ -38,7 +38,8 @@ class FitResult(eqx.Module):
     - `kept_step`: `[num_inits]` the step the returned controller came from (0: the
       initial controller; equal to `steps` when the last iterate was kept).
     - `converged`: `[num_inits]` True when the stopping rule fired (`result` is
-      `converged`).
+      `converged`). The rule looks at one step's change of the loss, so this does not
+      prove a stationary point: a run whose loss oscillates can stop at a quiet step.
     - `steps`: `[num_inits]` number of steps taken.
     - `wall_time`: total training wall time in seconds, compilation included, as a 0-d
       array of the data's dtype (a leaf like the others; `float(res.wall_time)` for a

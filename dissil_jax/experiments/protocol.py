@@ -230,8 +230,11 @@ def fit(method: str, key, windows, spec: ExampleSpec, inits: int):
                           odd=spec.ren_odd,
                           **dict(unbalanced, atol=0.0))
     if method == "mlp":
+        # The paper's baseline trains on the data as they are (its learning rate was
+        # chosen there), so `balance=False` as for the LTI trainers.
         return dj.fit_mlp(key, windows, hidden=spec.hidden, num_inits=inits, atol=spec.tol,
-                          rtol=0.0, max_steps=spec.mlp_max_steps, throw=False, progress=False)
+                          rtol=0.0, max_steps=spec.mlp_max_steps, throw=False,
+                          balance=False, progress=False)
     raise ValueError(f"`method` must be one of {METHODS}, got {method!r}.")
 
 

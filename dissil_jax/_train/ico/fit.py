@@ -184,7 +184,9 @@ def fit_ico(
     **Controller order.** The KYP LMI is balanced by the congruence with
     $\\operatorname{diag}(\\tilde P^{-1/2}, I, I, \\tilde P^{-1/2})$, which fills its $A$
     columns: about $\\hat n^4$ nonzeros, and an iteration's cost grows about like
-    $\\hat n^{3.5}$ (0.2-0.3 s at $\\hat n = 8$, 2-4 s at $\\hat n = 16$ for $m = p = 2$; see
+    $\\hat n^{3.3}$ from $\\hat n = 8$ to 24 (0.2-0.3 s at $\\hat n = 8$, 2-4 s at
+    $\\hat n = 16$ for $m = p = 2$) and like $\\hat n^{6.3}$ beyond, where Clarabel's
+    dense factors dominate (36 s at 32, 420 s at 48; see
     [Scaling up](scaling.md#scaling-up)). ICO is meant for $\\hat n \\le 24$; for larger
     controllers use [`fit_direct`][dissil_jax.fit_direct] (no SDP in the loop) or
     [`fit_pgd`][dissil_jax.fit_pgd].
