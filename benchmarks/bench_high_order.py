@@ -37,8 +37,15 @@ random order-n̂ passive expert ("real.", length 10, which some controller fits 
    initial loss per run (median, worst) and median steps on the chains (tuning);
    `--gd-budget --report` on the realisable order-16 problems of seeds 0–5 (held out).
 
+7. **Plain GD's initial scale** (`--gd-init`): `fit_gd` with its defaults (600 steps) from the
+   constant N(0, 0.3²) draw and from its order rule 0.3 min(1, 3/sqrt(n̂)) (the default):
+   median initial and final loss over the zero controller's, median steps and the fraction
+   of returned controllers with a stable Â, on the chains of order 6–48 (tuning);
+   `--gd-init --report` on realisable problems of orders 12, 20 and 32, seeds 0–3 (held
+   out), with the median loss on 200 fresh windows over the zero controller's.
+
 Usage: python benchmarks/bench_high_order.py [--defaults] [--hang R] [--steps] [--order16]
-       [--gd [--report]] [--gd-budget [--report]]
+       [--gd [--report]] [--gd-budget [--report]] [--gd-init [--report]]
 """
 
 import argparse
@@ -308,6 +315,31 @@ def gd_budget(report=False):
         print(f"| {kind} {seed} | {n} | " + " | ".join(cells) + " |", flush=True)
 
 
+def gd_init(report=False):
+    probs = ([("real.", s, n) for s in range(4) for n in (12, 20, 32)] if report else
+             [("chain", s, n) for s in (0, 1) for n in (6, 12, 24, 48)])
+    rules = (("0.3", lambda n: 0.3), ("0.3 min(1, 3/sqrt(n̂)) (default)", lambda n: None))
+    cols = "J_0, final (over J(0)), steps, stable Â"
+    print("| problem | n̂ | " + " | ".join(f"{name}: {cols}" for name, _ in rules)
+          + (" | fresh windows (over J(0)) |" if report else " |"))
+    print("|---|---:|" + "---|" * (len(rules) + report))
+    for kind, seed, n in probs:
+        w = chain_windows(seed, n // 2) if kind == "chain" else realisable(seed, n)
+        zero = float(jnp.mean(jnp.sum(w.u ** 2, axis=(1, 2))))
+        cells, fresh = [], []
+        for _, rule in rules:
+            r = dj.fit_gd(jr.PRNGKey(seed + 1), w, n_state=n, init_scale=rule(n),
+                          throw=False, progress=False)
+            radius = np.max(np.abs(np.linalg.eigvals(np.asarray(r.controllers.A))), axis=-1)
+            cells.append(f"{np.median(np.asarray(r.loss_history)[:, 0]) / zero:.3g}, "
+                         f"{np.median(np.asarray(r.final_loss)) / zero:.3g}, "
+                         f"{np.median(np.asarray(r.steps)):.0f}, {np.mean(radius < 1):.2f}")
+            if report:
+                fresh.append(f"{held_out(seed, n, r.controllers):.3g}")
+        print(f"| {kind} {seed} | {n} | " + " | ".join(cells)
+              + (" | " + ", ".join(fresh) if report else "") + " |", flush=True)
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--defaults", action="store_true")
@@ -317,12 +349,15 @@ if __name__ == "__main__":
     ap.add_argument("--order16", action="store_true")
     ap.add_argument("--gd", action="store_true")
     ap.add_argument("--gd-budget", action="store_true")
+    ap.add_argument("--gd-init", action="store_true")
     ap.add_argument("--report", action="store_true")
     a = ap.parse_args()
     if a.gd:
         gd_rule(a.report)
     if a.gd_budget:
         gd_budget(a.report)
+    if a.gd_init:
+        gd_init(a.report)
     if a.order16:
         order16()
     if a.defaults:

@@ -80,7 +80,7 @@ from ._train.ico.sdp import ICOProblem
 from ._train.ico.solver import ICOSolver
 from ._train.ico.windows import stacked_factor
 from ._train.mlp import demonstration_pairs
-from ._train.steps import METRIC_FLOOR, gd_learning_rate, optimizer_metric
+from ._train.steps import METRIC_FLOOR, gd_init_scale, gd_learning_rate, optimizer_metric
 from .experiments import _figures as experiment_figures, _jobs as experiment_jobs
 from .experiments._paper import FIGURES, TABLES
 from .experiments.zoo import _build as zoo_build
@@ -88,7 +88,7 @@ from .experiments.zoo import _build as zoo_build
 __all__ = [
     "balanced_realisation", "ConvexifiedLMI", "FIGURES", "LRU", "ICOProblem", "ICOSolver", "INIT_SCALE", "Iterate",
     "METRIC_FLOOR", "MapDescent", "Method", "OUTPUT_BAND", "TABLES", "certified", "certify_fast", "certify_sdp", "certify_state_scale",
-    "check_feasible", "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct", "gd_learning_rate",
+    "check_feasible", "check_n_state", "default_hyperparameters", "demonstration_pairs", "direct", "gd_init_scale", "gd_learning_rate",
     "direct_map", "direct_run_unchecked", "experiment_figures", "experiment_jobs", "ico", "ico_run", "ico_sdp", "ico_step", "init_controllers", "is_indefinite",
     "iterate",
     "kyp_bound_holds", "kyp_certified", "kyp_margin", "kyp_scale", "linalg", "lmi", "loss_scale", "map_loss", "mlp",

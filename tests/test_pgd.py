@@ -216,6 +216,29 @@ def test_gd_default_step_follows_the_width(getkey):
     np.testing.assert_allclose(run.controllers.A, same.controllers.A, rtol=1e-10)
 
 
+def test_gd_default_initial_scale_follows_the_order(getkey):
+    """Plain GD's default initial scale is 0.3 up to order 9 and 0.3 * sqrt(9 / n) above
+    (`gd_init_scale`), through `fit_gd` and `pgd_run(qsr=None)` alike; `fit_pgd` keeps 0.3."""
+    from dissil_jax.internal import gd_init_scale
+    assert gd_init_scale(9) == 0.3 and gd_init_scale(1) == 0.3
+    assert gd_init_scale(36) == pytest.approx(0.15)
+    kw = dict(num_inits=2, max_steps=0, balance=False)  # max_steps=0: the draw itself
+    for n, sigma in ((4, 0.3), (13, 0.3 * (9 / 13) ** 0.5)):
+        w, key = random_windows(getkey(), N=6, n=n), getkey()
+        default = dj.fit_gd(key, w, **kw)
+        given = dj.fit_gd(key, w, init_scale=sigma, **kw)
+        np.testing.assert_array_equal(default.controllers.A, given.controllers.A)
+        run = dj.pgd_run(key, w, None, num_inits=2, max_steps=0)
+        # another compiled program: the data scale's round trip may differ in the last bit
+        np.testing.assert_allclose(run.controllers.A, given.controllers.A, rtol=1e-14)
+        # the draw itself: N(0, sigma^2) entries of the shared initialisation
+        np.testing.assert_allclose(given.controllers.A, init_controllers(key, 2, w, sigma).A,
+                                   rtol=1e-15)
+    pgd = dj.fit_pgd(key, w, dj.QSR.passive(1), **kw)
+    K0, _ = dj.project(init_controllers(key, 2, w, 0.3), dj.QSR.passive(1))
+    np.testing.assert_allclose(pgd.controllers.A, K0.A, rtol=1e-6, atol=1e-9)
+
+
 def test_stop_reasons(getkey):
     """Every stopping rule is reported: converged, max_steps and a diverging run."""
     w = random_windows(getkey(), N=10, gain=0.2)

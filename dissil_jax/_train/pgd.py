@@ -37,7 +37,9 @@ from ._units import balance as balanced, balancing_units, unbalance
 from .pgd_steps import PGDSteps
 from .result import FitResult, fit_timed, raise_if_failed
 from .steps import (
+    ADAM_INIT_SCALE as ADAM_INIT_SCALE,  # re-exported
     ADAM_LEARNING_RATE as ADAM_LEARNING_RATE,  # re-exported
+    default_init_scale,
     default_rule,
     optimizer_metric,
     paper_rule,
@@ -102,12 +104,6 @@ _run_jit = eqx.filter_jit(_run)
 #: confirmed by the reproduction's own step-size sweeps (`docs/results/lr_sweep_*`).
 LEARNING_RATE, DECAY = 1.0, 0.99
 
-#: The default initial scale of `fit_pgd`, `pgd_run` and `fit_gd`, chosen on the zoo too:
-#: from N(0, 1) draws 150 Adam steps ended up to 80x (GD) and 9x (PGD) above the runs from
-#: N(0, 0.3^2); scales that shrink with the order and the window length, min(1, 1/sqrt(n))
-#: and min(1, 1/sqrt(n (h - 1))), did worse than the constant (worst tuning regret 9.8 and
-#: 3.7 against 1.07).
-ADAM_INIT_SCALE = 0.3
 
 
 def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, decay, atol,
@@ -138,7 +134,7 @@ def _options(windows, qsr, num_inits, max_steps, *, optimizer, learning_rate, de
 
 def pgd_run(
     key, windows: Windows, qsr: QSR | None, *, optimizer=None, learning_rate=None, decay=None,
-    init_scale=ADAM_INIT_SCALE, num_inits: int = 8, n_state: int | None = None,
+    init_scale=None, num_inits: int = 8, n_state: int | None = None,
     max_steps: int = 150, atol: float = 0.0, rtol: float = RTOL, eps: float = 1e-6,
     throw: bool = True, method: str = "auto", keep: str = "best",
 ) -> FitResult:
@@ -149,7 +145,8 @@ def pgd_run(
     hyperparameter sweep); `qsr` is static (hashable), so each distinct rate compiles a
     run of its own (`fit_pgd` does not; see [`QSR`][dissil_jax.QSR], "Many rates in one
     process"). `qsr=None` gives plain gradient
-    descent. `wall_time` is NaN and `certified` comes from the projection's own float64
+    descent, with `fit_gd`'s default step and initial scale for its order (`init_scale`
+    None, the default: 0.3, or for plain GD $0.3\\min(1, 3/\\sqrt{\\hat n})$). `wall_time` is NaN and `certified` comes from the projection's own float64
     check (with `throw=False`, a failed initial projection leaves that initialisation with
     `certified=False` and zero steps). `throw`, `method` and `keep` as in `fit_pgd`: with
     `throw=True` a failure raises a `ValueError` eagerly, a `jax.errors.JaxRuntimeError`
@@ -166,6 +163,7 @@ def pgd_run(
     """
     check_key(key)
     check_flag("throw", throw)
+    init_scale = default_init_scale(init_scale, windows if qsr is None else None, n_state)
     optimizer, learning_rate, decay, n_state = _options(
         windows, qsr, num_inits, max_steps, optimizer=default_rule(
             optimizer, learning_rate, decay, windows if qsr is None else None, n_state),
@@ -184,6 +182,7 @@ def _fit(key, windows, qsr, *, optimizer, learning_rate, decay, init_scale, num_
     """`pgd_run`, compiled once per static configuration, timed and certified as a batch."""
     check_key(key)
     progress = check_flag("progress", progress)
+    init_scale = default_init_scale(init_scale, windows if qsr is None else None, n_state)
     if qsr is None:  # plain GD has no host check: it runs under `jax.vmap` too
         check_flag("throw", throw)
     else:
