@@ -36,11 +36,12 @@ ROWS = (("x̂0 = x0", 1, "x0"), ("x̂0 = x0", 1, "rest"), ("x̂0 = 0", 1, "rest"
 
 
 def fit(key, windows, spec, inits, n_state):
-    """PGD with the example's settings (as protocol.fit), with an explicit order."""
+    """PGD with the example's settings (as protocol.fit: the paper's step rule, in the
+    data's units), with an explicit order."""
     return dj.fit_pgd(key, windows, spec.qsr, num_inits=inits, n_state=n_state,
                       max_steps=spec.max_steps, atol=spec.tol,
                       learning_rate=spec.pgd_learning_rate, decay=spec.pgd_decay,
-                      init_scale=spec.init_scale, throw=False)
+                      init_scale=spec.init_scale, balance=False, throw=False)
 
 
 def run(regime, segments, spec, inits, seed):

@@ -3,9 +3,11 @@
 import json
 import math
 
+import jax
 import numpy as np
 import pytest
 
+import dissil_jax as dj
 from dissil_jax.experiments import __main__ as cli
 from dissil_jax.experiments.protocol import example_spec, run_config
 from dissil_jax.experiments.report import load_records, merge_records, tables_markdown, write_report
@@ -146,6 +148,10 @@ def test_solver_thread_count_must_be_a_positive_integer(monkeypatch):
         with pytest.raises(ValueError, match=f"DISSIL_JAX_THREADS must be a positive "
                                              f"integer.*{re.escape(repr(bad))}"):
             sdp.pool()
+    # and from a projection as a ValueError, not inside the host callback's runtime error
+    K = dj.LTIController.random(jax.random.PRNGKey(0), 1, 1, 1)
+    with pytest.raises(ValueError, match="DISSIL_JAX_THREADS must be a positive"):
+        dj.project(K, dj.QSR.passive(1))
     monkeypatch.setenv("DISSIL_JAX_THREADS", " 2 ")
     assert sdp.num_workers() == 2
     sdp.pool().shutdown()

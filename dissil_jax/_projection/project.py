@@ -280,6 +280,7 @@ def project(
     ```
     """
     check_flag("throw", throw)
+    _sdp.num_workers()  # a bad DISSIL_JAX_THREADS raises its ValueError here, on the host
     if isinstance(qsr, RateHandle):  # a trainer's: checked and scaled
         _check_options(K, P_ref, active, eps, reg, refine, metric)
         k = 1.0

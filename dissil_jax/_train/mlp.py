@@ -267,7 +267,7 @@ def fit_mlp(
       `atol` = 0, `rtol` = 1e-9, the relative rule of [`fit_pgd`][dissil_jax.fit_pgd]
       with the MLP's own value: on the zoo's tuning half, the largest that stops within
       1 % of the 2,000-step budget's loss on the median problem and within 10 % on the
-      worst; at `fit_gd`'s 1e-7 the worst problem stopped 7.1 times above it).
+      worst; at 1e-7 the worst problem stopped 7.1 times above it).
     - `learning_rate`: Adam's step on the network's weights and biases (about how far
       each of them moves per step), in the units `balance` chooses.
     - `throw`: raise a `ValueError` if a run's loss became non-finite (as `dj.fit_gd`).
