@@ -163,6 +163,37 @@ def test_state_factors():
     assert units.state_factors(dj.Windows(np.full((4, 1), 0.99 * lo), y, y)) is not None
 
 
+def test_large_states_with_a_failed_fit_are_named():
+    """States far larger than the outputs are left as they are; when the runs also ended
+    above a tenth of the zero controller's loss the trainers warn, naming the power of two
+    to divide x0 by. The thresholds on a stand-in result, then one real fit each way."""
+    import types
+    import warnings
+
+    hint = "initial states are up to"
+    rho_top, ratio_top = units.LARGE_STATES
+    u = units.Units(hint=(2 * rho_top, 4.0))
+    with pytest.warns(UserWarning, match=f"{hint} {2 * rho_top:.3g} times.*x0 / 32"):
+        units.large_states_hint(types.SimpleNamespace(final_loss=np.full(3, 4.0 * 1.01 * ratio_top)), u)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        units.large_states_hint(types.SimpleNamespace(final_loss=np.full(3, 4.0 * 0.99 * ratio_top)), u)
+        units.large_states_hint(types.SimpleNamespace(final_loss=np.full(3, 4.0)), units.Units())
+    passive = dj.QSR.passive(2)
+    base = realisable_windows(jr.PRNGKey(0), passive, n_state=4, num_windows=20, horizon=5)[0]
+    assert units.balancing_units(base, True, passive).hint is None  # states in balance
+    small_units = dj.Windows(base.x0 * 64, base.y, base.u)
+    with pytest.warns(UserWarning, match=f"{hint} .*x0 / 64"):
+        res = dj.fit_direct(jr.PRNGKey(1), small_units, passive, num_inits=2, progress=False)
+    zero = np.mean(np.sum(np.asarray(base.u) ** 2, axis=(1, 2)))
+    assert np.median(np.asarray(res.final_loss)) > ratio_top * zero
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = dj.fit_direct(jr.PRNGKey(1), base, passive, num_inits=2, progress=False)
+    assert not [w for w in caught if hint in str(w.message)]
+    assert np.median(np.asarray(res.final_loss)) < ratio_top * zero
+
+
 # A supply rate and its multiple 2^20 admit the same controllers, with storages P and
 # 2^20 P. The trainers and `project` divide a rate far from unit size by the power of two
 # nearest its largest entry, so the two runs must agree bit for bit.

@@ -65,7 +65,10 @@ them back helped (`fit_direct` lost up to 120 times at $\\rho\\approx60$ without
 plants with small output matrices ($\\rho\\approx140$) it changed nothing, and on an
 audit's windows that start far from rest, in the expert's own coordinates
 ($\\rho\\approx30$), it cost PGD 140 times: the data cannot tell the two apart, so
-they are left as they are. Every problem of the zoo and the paper's examples have
+they are left as they are. When states more than 16 times the outputs' size come with
+runs that ended above a tenth of the zero controller's loss, the trainers warn, naming the
+power of two to divide $\\hat x_0$ by if the states are in small units
+(`large_states_hint`). Every problem of the zoo and the paper's examples have
 $0.23\\le\\rho_i\\le3.8$ (`benchmarks/bench_units.py --states`): unchanged.
 """
 
@@ -86,7 +89,7 @@ from .._ren.certify import certified_batch
 from .._ren.controller import RENController
 from .._sdp.lmi import kyp_certified
 from .._supply import QSR
-from .._validate import check_flag
+from .._validate import check_flag, warn_user
 from .result import raise_if_failed
 
 #: The ratios r of output to input size that the trainers take as they are.
@@ -95,6 +98,10 @@ BAND = (0.2, 5.0)
 #: The ratios rho_i of a state's size to the outputs' that the trainers take as they are:
 #: only states far smaller than the outputs are rescaled (module docstring).
 STATE_BAND = (0.2, float("inf"))
+
+#: A hint is warned when some rho_i exceeds the first and the runs' median final loss the
+#: second fraction of the zero controller's (`large_states_hint`).
+LARGE_STATES = (16.0, 0.1)
 
 
 def _power(a) -> float:
@@ -153,6 +160,9 @@ class Units(NamedTuple):
     c: float = 1.0
     d: np.ndarray | None = None
     centre: np.ndarray | None = None
+    #: `(max rho_i, the zero controller's loss)` when some state is `LARGE_STATES[0]` times
+    #: the outputs' size, for `large_states_hint`; None otherwise.
+    hint: tuple[float, float] | None = None
 
     @property
     def none(self) -> bool:
@@ -220,7 +230,10 @@ def balancing_units(windows: Windows, balance, qsr: QSR | None = None) -> Units:
     centre = None if found is None else found[0]
     windows = _divided(windows, Units(centre=centre))
     d = state_factors(windows)
-    return Units(output_factor(_divided(windows, Units(1.0, d))), d, centre)
+    rho = state_ratios(windows)
+    top = float(np.nanmax(rho)) if np.isfinite(rho).any() else 0.0
+    hint = (top, _power(windows.u)) if top > LARGE_STATES[0] and _power(windows.u) > 0 else None
+    return Units(output_factor(_divided(windows, Units(1.0, d))), d, centre, hint)
 
 
 def _divided(windows: Windows, units: Units) -> Windows:
@@ -255,7 +268,40 @@ def balance(windows: Windows, qsr: QSR | None, units: Units) -> tuple[Windows, Q
     return _divided(windows, units), qsr
 
 
+def large_states_hint(res, units: Units) -> None:
+    """Warn when the runs ended at a median loss above `LARGE_STATES[1]` of the zero
+    controller's and some initial state is more than `LARGE_STATES[0]` times the outputs'
+    size (`Units.hint`): the one case `balance` leaves alone (module docstring) that made
+    the runs fail. On a realisable 2x2 problem of order 4 (passive), `fit_direct` ended at
+    0.0025-0.0058 of the zero controller's loss in matching units and at 0.06-0.26, 0.55-0.56
+    and 0.65 with the states 16, 64 and 256 times larger (same data, states in smaller
+    units)."""
+    if units.hint is None or isinstance(res.final_loss, jax.core.Tracer):
+        return
+    rho, zero = units.hint
+    ratio = float(np.median(np.asarray(res.final_loss, np.float64))) / zero
+    if not ratio > LARGE_STATES[1]:
+        return
+    k = nearest_power_of_two(rho)
+    warn_user(
+        f"the runs ended at a median loss {ratio:.2g} times the zero controller's, and the "
+        f"windows' initial states are up to {rho:.3g} times the outputs' size (root mean "
+        f"square). Training is slow when the states are much larger than the outputs (states "
+        f"in small units): on a test problem, 16 and 64 times larger states left the loss "
+        f"20-230 times higher than in matching units. `balance` rescales states that are far "
+        f"smaller than the outputs but leaves large ones, since windows that start far from "
+        f"rest look the same. If the states are in small units, train on `x0 / {k:g}` "
+        f"instead (the controller then starts at x̂0 = x0 / {k:g}).")
+
+
 def unbalance(res, units: Units, qsr: QSR | None = None, throw: bool = False):
+    """`_unbalance`, then `large_states_hint`."""
+    res = _unbalance(res, units, qsr, throw)
+    large_states_hint(res, units)
+    return res
+
+
+def _unbalance(res, units: Units, qsr: QSR | None = None, throw: bool = False):
     """A `FitResult` (LTI or REN controllers) of the balanced problem in the user's units:
     controllers by `Units.controllers`, storages by `Units.storages` (a REN's multiplier
     unchanged), losses times $c^2$.
