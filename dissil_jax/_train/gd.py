@@ -31,9 +31,9 @@ def fit_gd(
     0.3 up to $\\hat n = 9$ (the paper's sizes and every problem of the zoo), smaller for
     higher orders. A draw's eigenvalues fill a disc of radius about $\\sigma\\sqrt{\\hat n}$,
     so the constant 0.3 starts unstable from $\\hat n\\approx11$ on, the first loss grows
-    like $\\rho(\\hat A)^{2h}$, and 600 Adam steps do not bring such a start back. On the tuning chains at $\\hat n$ = 24 and 48 the
-    constant ended the median run at 0.29-1.5 times the zero controller's loss, this rule
-    at 0.0007-0.08 times; on held-out realisable problems of order 12, 20 and 32 the
+    like $\\rho(\\hat A)^{2h}$, and 600 Adam steps do not bring such a start back. On
+    the tuning chains at $\\hat n$ = 24 and 48 the constant ended the median run at
+    0.29-1.5 times the zero controller's loss, this rule at 0.0007-0.08 times; on held-out realisable problems of order 12, 20 and 32 the
     median error on fresh windows fell 1.2-5.6 times
     (`benchmarks/bench_high_order.py --gd-init [--report]`).
 

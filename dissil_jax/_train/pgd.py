@@ -144,11 +144,12 @@ def pgd_run(
     `decay` and `init_scale`, or over the hyperparameters an `optimizer` closes over (a
     hyperparameter sweep); `qsr` is static (hashable), so each distinct rate compiles a
     run of its own (`fit_pgd` does not; see [`QSR`][dissil_jax.QSR], "Many rates in one
-    process"). `qsr=None` gives plain gradient
-    descent, with `fit_gd`'s default step and initial scale for its order (`init_scale`
-    None, the default: 0.3, or for plain GD $0.3\\min(1, 3/\\sqrt{\\hat n})$). `wall_time` is NaN and `certified` comes from the projection's own float64
-    check (with `throw=False`, a failed initial projection leaves that initialisation with
-    `certified=False` and zero steps). `throw`, `method` and `keep` as in `fit_pgd`: with
+    process"). `qsr=None` gives plain gradient descent, with
+    `fit_gd`'s default step and initial scale for its order (`init_scale` None, the
+    default: 0.3, or for plain GD $0.3\\min(1, 3/\\sqrt{\\hat n})$). `wall_time` is NaN
+    and `certified` comes from the projection's own float64 check (with `throw=False`, a
+    failed initial projection leaves that initialisation with `certified=False` and zero
+    steps). `throw`, `method` and `keep` as in `fit_pgd`: with
     `throw=True` a failure raises a `ValueError` eagerly, a `jax.errors.JaxRuntimeError`
     under `jax.jit` (an `equinox.EquinoxRuntimeError` under `equinox.filter_jit`). A
     traced hyperparameter cannot be checked eagerly: a lane whose `learning_rate` or
