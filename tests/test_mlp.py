@@ -118,6 +118,36 @@ def test_vmapped_training_equals_loop(getkey):
         assert bool(res.converged[i]) == (n - 1 < kwargs["max_steps"])
 
 
+def test_balanced_training_equals_loop_in_balanced_units(getkey):
+    """`balance=True` against a plain loop: the loop trains on (y/a, -u/c) with the powers
+    of two a (per input channel) and c nearest the data's RMS, computed here by hand, and
+    its network is mapped back by hand (first weights / a, last layer * c); the losses are
+    the loop's times c² and `atol` is in the user's units."""
+    base = random_windows(getkey(), N=10, h=2, n=1, p=2, m=1)
+    y = np.asarray(base.y) * np.array([300.0, 0.02])  # channels in units far apart
+    u = np.asarray(base.u) * 1e-3
+    windows = dj.Windows(base.x0, jnp.asarray(y), jnp.asarray(u))
+    a = 2.0 ** np.round(np.log2(np.sqrt(np.mean(y.reshape(-1, 2) ** 2, axis=0))))
+    c = float(2.0 ** np.round(np.log2(np.sqrt(np.mean(u**2)))))
+    assert np.all(a != 1.0) and c != 1.0
+    key = getkey()
+    kwargs = dict(hidden=(8, 8), max_steps=60, learning_rate=5e-3, rtol=0.0)
+    atol = 1e-4
+    res = dj.fit_mlp(key, windows, num_inits=3, atol=atol * c**2, **kwargs)
+    scaled = dj.Windows(base.x0, jnp.asarray(y / a), jnp.asarray(u / c))
+    for i, k in enumerate(jr.split(key, 3)):
+        model, hist = _plain_adam_loop(k, scaled, atol=atol, **kwargs)
+        first, last = model.params.layers[0], model.params.layers[-1]
+        model = eqx.tree_at(lambda m: (m.params.layers[0].weight, m.params.layers[-1].weight,
+                                       m.params.layers[-1].bias), model,
+                            (first.weight / a, last.weight * c, last.bias * c))
+        assert tree_allclose(model, jax.tree.map(lambda v: v[i], res.controllers),
+                             rtol=1e-9, atol=1e-12 * c)
+        n = len(hist)
+        np.testing.assert_allclose(res.loss_history[i, :n], np.asarray(hist) * c**2, rtol=1e-9)
+        assert int(res.steps[i]) == n - 1
+
+
 def test_stopping_rule(getkey):
     windows = random_windows(getkey(), N=10, h=2)
     res = dj.fit_mlp(getkey(), windows, hidden=(4,), num_inits=2, max_steps=200,
