@@ -226,13 +226,13 @@ def balancing_units(windows: Windows, balance, qsr: QSR | None = None) -> Units:
         raise ValueError("`balance=True` chooses the outputs' units from the data on the host, "
                          "which traced `windows` (a trainer under `jax.jit` or `jax.vmap` over "
                          "its windows) do not allow: pass `balance=False` there.")
+    rho, zero = state_ratios(windows), _power(windows.u)  # zero: the zero controller's loss
+    top = float(np.nanmax(rho)) if np.isfinite(rho).any() else 0.0
+    hint = (top, zero) if top > LARGE_STATES[0] and zero > 0 else None
     found = None if qsr is None else centring(qsr)
     centre = None if found is None else found[0]
     windows = _divided(windows, Units(centre=centre))
     d = state_factors(windows)
-    rho = state_ratios(windows)
-    top = float(np.nanmax(rho)) if np.isfinite(rho).any() else 0.0
-    hint = (top, _power(windows.u)) if top > LARGE_STATES[0] and _power(windows.u) > 0 else None
     return Units(output_factor(_divided(windows, Units(1.0, d))), d, centre, hint)
 
 
